@@ -1,0 +1,72 @@
+"""Error types that the CLI turns into exit codes and messages (never tracebacks)."""
+from __future__ import annotations
+
+
+class ElastoprobeError(Exception):
+    """Base of every error the product raises on purpose."""
+
+    exit_code = 1
+
+
+class InputError(ElastoprobeError):
+    """Bad user input: a plan, a cell, an object file or a CLI argument.
+
+    ``location`` is ``path:line:col`` when the error is in a file (1-based line
+    and column), or a short name of the argument otherwise.
+    """
+
+    exit_code = 2
+
+    def __init__(self, message: str, *, path: str | None = None, line: int | None = None,
+                 col: int | None = None) -> None:
+        self.message = message
+        self.path = path
+        self.line = line
+        self.col = col
+        super().__init__(self.format())
+
+    @property
+    def location(self) -> str:
+        if self.path is None:
+            return ""
+        if self.line is None:
+            return f"{self.path}"
+        return f"{self.path}:{self.line}:{self.col if self.col is not None else 1}"
+
+    def format(self) -> str:
+        loc = self.location
+        return f"{loc}: {self.message}" if loc else self.message
+
+
+class InputErrors(InputError):
+    """Several input errors found in one validation pass (all reported at once)."""
+
+    def __init__(self, errors: list[InputError]) -> None:
+        if not errors:
+            raise ValueError("InputErrors needs at least one error")
+        self.errors = errors
+        first = errors[0]
+        super().__init__(first.message, path=first.path, line=first.line, col=first.col)
+
+    def format(self) -> str:
+        return "\n".join(e.format() for e in self.errors)
+
+
+class DeviceError(ElastoprobeError):
+    """A device misbehaved: lost connection, timeout, bad frame, refused command."""
+
+
+class ProtocolError(DeviceError):
+    """Bytes on a wire that do not follow the protocol (bad frame, checksum, size)."""
+
+
+class DeviceTimeout(DeviceError):
+    """A device did not answer within its deadline."""
+
+
+class MotionRefused(ElastoprobeError):
+    """A motion was rejected before being sent (IK, joint limits, workspace, collision)."""
+
+
+class SafetyTrip(ElastoprobeError):
+    """A safety limit was crossed; the arm has been stopped."""

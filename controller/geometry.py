@@ -1,0 +1,180 @@
+"""Rigid transforms, rotation vectors and the probe geometry of DESIGN §3.
+
+Units: positions in mm, angles in degrees at the edges (YAML, CLI) and radians
+inside; UR poses (ur_rtde) are ``[x, y, z, rx, ry, rz]`` in metres and a rotation
+vector in radians. See docs/frames.md for the frames and sign conventions.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+NINE_ANGLES_DEG: tuple[float, ...] = (10.0, 25.0, 45.0, 75.0, 90.0, 105.0, 135.0, 155.0, 170.0)
+
+
+def rotvec_to_matrix(rotvec_rad: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation vector (axis * angle, rad) -> 3x3 rotation matrix."""
+    r = np.asarray(rotvec_rad, dtype=float)
+    theta = float(np.linalg.norm(r))
+    if theta < 1e-12:
+        k = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
+        return np.eye(3) + k
+    k_axis = r / theta
+    k = np.array([[0.0, -k_axis[2], k_axis[1]], [k_axis[2], 0.0, -k_axis[0]], [-k_axis[1], k_axis[0], 0.0]])
+    return np.eye(3) + np.sin(theta) * k + (1.0 - np.cos(theta)) * (k @ k)
+
+
+def matrix_to_rotvec(rotation: np.ndarray) -> np.ndarray:
+    """3x3 rotation matrix -> rotation vector (rad), robust near 0 and pi."""
+    m = np.asarray(rotation, dtype=float)
+    cos_theta = np.clip((np.trace(m) - 1.0) / 2.0, -1.0, 1.0)
+    theta = float(np.arccos(cos_theta))
+    if theta < 1e-9:
+        return np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]]) / 2.0
+    if np.pi - theta < 1e-6:
+        # Near pi the antisymmetric part vanishes: take the axis from the diagonal.
+        b = (m + np.eye(3)) / 2.0
+        axis = np.sqrt(np.clip(np.diag(b), 0.0, None))
+        i = int(np.argmax(axis))
+        axis[i] = np.sqrt(b[i, i])
+        for j in range(3):
+            if j != i:
+                axis[j] = b[i, j] / axis[i]
+        return axis / np.linalg.norm(axis) * theta
+    axis = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]]) / (2.0 * np.sin(theta))
+    return axis * theta
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A rigid transform ``parent <- child``: ``x_parent = rotation @ x_child + position_mm``."""
+
+    position_mm: np.ndarray
+    rotation: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "position_mm", np.asarray(self.position_mm, dtype=float).reshape(3))
+        object.__setattr__(self, "rotation", np.asarray(self.rotation, dtype=float).reshape(3, 3))
+
+    @staticmethod
+    def identity() -> "Pose":
+        return Pose(np.zeros(3), np.eye(3))
+
+    @staticmethod
+    def from_ur(pose_m_rotvec: "np.ndarray | list[float]") -> "Pose":
+        """From a ur_rtde pose ``[x, y, z, rx, ry, rz]`` (m, rad)."""
+        p = np.asarray(pose_m_rotvec, dtype=float)
+        return Pose(p[:3] * 1000.0, rotvec_to_matrix(p[3:6]))
+
+    def to_ur(self) -> list[float]:
+        """To a ur_rtde pose ``[x, y, z, rx, ry, rz]`` (m, rad)."""
+        return [*(self.position_mm / 1000.0).tolist(), *matrix_to_rotvec(self.rotation).tolist()]
+
+    @staticmethod
+    def from_matrix(matrix: np.ndarray) -> "Pose":
+        m = np.asarray(matrix, dtype=float)
+        return Pose(m[:3, 3], m[:3, :3])
+
+    def matrix(self) -> np.ndarray:
+        m = np.eye(4)
+        m[:3, :3] = self.rotation
+        m[:3, 3] = self.position_mm
+        return m
+
+    def compose(self, other: "Pose") -> "Pose":
+        """``self * other``: apply ``other`` first, then ``self``."""
+        return Pose(self.rotation @ other.position_mm + self.position_mm, self.rotation @ other.rotation)
+
+    def inverse(self) -> "Pose":
+        rt = self.rotation.T
+        return Pose(-rt @ self.position_mm, rt)
+
+    def apply(self, points_mm: np.ndarray) -> np.ndarray:
+        """Map points (N,3) or (3,) from the child frame to the parent frame."""
+        pts = np.asarray(points_mm, dtype=float)
+        return pts @ self.rotation.T + self.position_mm
+
+    def apply_vector(self, vectors: np.ndarray) -> np.ndarray:
+        """Rotate directions (N,3) or (3,) from the child frame to the parent frame."""
+        return np.asarray(vectors, dtype=float) @ self.rotation.T
+
+    def distance_to(self, other: "Pose") -> tuple[float, float]:
+        """(translation in mm, rotation angle in deg) between two poses."""
+        d_mm = float(np.linalg.norm(self.position_mm - other.position_mm))
+        r = self.rotation.T @ other.rotation
+        angle_deg = float(np.degrees(np.linalg.norm(matrix_to_rotvec(r))))
+        return d_mm, angle_deg
+
+    def to_list(self) -> list[float]:
+        """Compact storage form: 3 position (mm) + 3 rotation vector (rad)."""
+        return [*self.position_mm.tolist(), *matrix_to_rotvec(self.rotation).tolist()]
+
+    @staticmethod
+    def from_list(values: "list[float] | np.ndarray") -> "Pose":
+        v = np.asarray(values, dtype=float)
+        return Pose(v[:3], rotvec_to_matrix(v[3:6]))
+
+
+def interpolate_pose(a: Pose, b: Pose, fraction: float) -> Pose:
+    """Straight-line position and geodesic rotation between two poses."""
+    f = float(np.clip(fraction, 0.0, 1.0))
+    rel = matrix_to_rotvec(a.rotation.T @ b.rotation)
+    return Pose(a.position_mm + f * (b.position_mm - a.position_mm), a.rotation @ rotvec_to_matrix(f * rel))
+
+
+def unit(v: np.ndarray) -> np.ndarray:
+    v = np.asarray(v, dtype=float)
+    n = float(np.linalg.norm(v))
+    if n < 1e-12:
+        raise ValueError("zero-length vector has no direction")
+    return v / n
+
+
+def scan_direction(normal: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """The scan direction t: ``reference`` projected on the tangent plane of ``normal``.
+
+    The fixed rule of DESIGN §3, so that an angle means the same thing at every
+    point of a region. Falls back to a stable perpendicular when ``reference`` is
+    parallel to the normal.
+    """
+    n = unit(normal)
+    r = np.asarray(reference, dtype=float)
+    t = r - np.dot(r, n) * n
+    if np.linalg.norm(t) < 1e-6:
+        fallback = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        t = fallback - np.dot(fallback, n) * n
+    return unit(t)
+
+
+def push_direction(t: np.ndarray, n: np.ndarray, angle_deg: float) -> np.ndarray:
+    """d = cos(a) t - sin(a) n: the direction the probe pushes (into the surface)."""
+    a = np.radians(angle_deg)
+    return np.cos(a) * np.asarray(t, dtype=float) - np.sin(a) * np.asarray(n, dtype=float)
+
+
+def probe_axis(t: np.ndarray, n: np.ndarray, angle_deg: float) -> np.ndarray:
+    """u = -cos(a) t + sin(a) n: from the contact point out along the probe body."""
+    return -push_direction(t, n, angle_deg)
+
+
+def probe_tcp_pose(point_mm: np.ndarray, normal: np.ndarray, t: np.ndarray, angle_deg: float,
+                   offset_mm: float = 0.0) -> Pose:
+    """TCP pose with the tip at ``point + offset * u`` for approach angle ``angle_deg``.
+
+    Tool frame: +z is the push direction d (out of the flange, along the probe);
+    +x lies in the (t, n) plane, so the scanner's laser plane (the tool x-z plane)
+    contains the probe axis and the scan direction t.
+    """
+    n = unit(normal)
+    t = unit(t)
+    z = unit(push_direction(t, n, angle_deg))
+    # x: the in-plane direction perpendicular to z, on the +t side.
+    x = t - np.dot(t, z) * z
+    if np.linalg.norm(x) < 1e-9:
+        x = n - np.dot(n, z) * z
+    x = unit(x)
+    y = np.cross(z, x)
+    rotation = np.column_stack([x, y, z])
+    u = -z
+    return Pose(np.asarray(point_mm, dtype=float) + offset_mm * u, rotation)
