@@ -150,7 +150,7 @@ class Trip:
     value: float
     limit: float
     message: str
-    raw: WrenchBlock | None = None
+    raw: WrenchBlock | None = field(default=None, repr=False)
 
 
 @runtime_checkable
