@@ -162,18 +162,20 @@ def probe_tcp_pose(point_mm: np.ndarray, normal: np.ndarray, t: np.ndarray, angl
                    offset_mm: float = 0.0) -> Pose:
     """TCP pose with the tip at ``point + offset * u`` for approach angle ``angle_deg``.
 
-    Tool frame: +z is the push direction d (out of the flange, along the probe);
-    +x lies in the (t, n) plane, so the scanner's laser plane (the tool x-z plane)
-    contains the probe axis and the scan direction t.
+    Tool frame: +z is the push direction d (out of the flange, along the probe).
+    +x lies in the (t, n) plane, perpendicular to the probe, on the side AWAY from
+    the surface (x . n >= 0), so the eye-in-hand scanner mounted on the +x side
+    looks down at the tip from above at every angle and its laser plane (the tool
+    x-z plane) contains the probe axis and t. That side flips from +t to -t when
+    the angle passes 90 degrees, so the wrist turns half a turn about the probe
+    between 90 and 105 degrees; profiles do not care, being mapped through the pose.
     """
     n = unit(normal)
     t = unit(t)
+    a = np.radians(angle_deg)
     z = unit(push_direction(t, n, angle_deg))
-    # x: the in-plane direction perpendicular to z, on the +t side.
-    x = t - np.dot(t, z) * z
-    if np.linalg.norm(x) < 1e-9:
-        x = n - np.dot(n, z) * z
-    x = unit(x)
+    side = 1.0 if angle_deg <= 90.0 else -1.0
+    x = unit(side * (np.sin(a) * t + np.cos(a) * n))
     y = np.cross(z, x)
     rotation = np.column_stack([x, y, z])
     u = -z

@@ -17,6 +17,7 @@ error back to the position of the offending key or value.
 """
 from __future__ import annotations
 
+import json
 import math
 import re
 from dataclasses import dataclass, field
@@ -205,8 +206,10 @@ def _message(err: dict[str, Any]) -> str:
 
 def validate(doc: YamlDoc, model: type[M], context: dict[str, Any] | None = None) -> M:
     """Validate ``doc.data`` against a pydantic model; errors carry ``path:line:col``."""
+    # JSON mode keeps strictness (no "5" -> 5, no "off" -> False) while letting YAML
+    # lists fill tuple fields, which strict Python-mode validation would refuse.
     try:
-        return model.model_validate(doc.data, context=context)
+        return model.model_validate_json(json.dumps(doc.data), strict=True, context=context)
     except pydantic.ValidationError as exc:
         errors: list[InputError] = []
         for err in exc.errors():

@@ -47,6 +47,9 @@ def test_angle_convention_of_fig5():
         assert np.allclose(pose.rotation[:, 2], push_direction(t, n, a))
         # tool x stays in the (t, n) plane: the laser plane contains the probe axis and t
         assert abs(pose.rotation[1, 0]) < 1e-12
+        # ... perpendicular to the probe, on the side away from the surface (scanner above)
+        assert abs(np.dot(pose.rotation[:, 0], pose.rotation[:, 2])) < 1e-12
+        assert np.dot(pose.rotation[:, 0], n) >= -1e-12
         assert np.allclose(pose.position_mm, 20.0 * probe_axis(t, n, a))
 
 

@@ -1,0 +1,491 @@
+"""Schemas of cell and plan files (YAML, mm and degrees), validated with positions.
+
+A cell file describes the hardware: robot, tool geometry, F/T sensor, scanner,
+where the object sits, the safety limits and, for simulated cells, the simulation.
+A plan file describes one session: how to get the cloud, how many neural-gas
+units, the phases and their forces and angles, budgets, a deadline, the fault
+policy. A plan may only tighten a cell's limits (checked in :func:`load_session_inputs`).
+Every error is reported as ``path:line:col: message``.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+import pydantic
+from pydantic import Field, field_validator, model_validator
+
+from .errors import InputError, InputErrors
+from .geometry import NINE_ANGLES_DEG, Pose, rotvec_to_matrix
+from .safety import SafetyLimits
+from .yamlio import Spec, YamlDoc, load_validated
+
+Vec3 = tuple[float, float, float]
+PositiveFloat = Annotated[float, Field(gt=0)]
+
+
+def rpy_deg_to_matrix(rpy_deg: Vec3) -> np.ndarray:
+    """Roll, pitch, yaw (deg) about fixed x, y, z (R = Rz @ Ry @ Rx)."""
+    rx, ry, rz = np.radians(rpy_deg)
+    return (rotvec_to_matrix(np.array([0.0, 0.0, rz])) @ rotvec_to_matrix(np.array([0.0, ry, 0.0]))
+            @ rotvec_to_matrix(np.array([rx, 0.0, 0.0])))
+
+
+class PoseSpec(Spec):
+    """A rigid transform: position in mm, orientation as roll/pitch/yaw in degrees."""
+
+    position_mm: Vec3 = (0.0, 0.0, 0.0)
+    rpy_deg: Vec3 = (0.0, 0.0, 0.0)
+
+    def pose(self) -> Pose:
+        return Pose(np.array(self.position_mm), rpy_deg_to_matrix(self.rpy_deg))
+
+
+class BoxSpec(Spec):
+    """An axis-aligned box in the robot base frame (mm)."""
+
+    name: str = "box"
+    min_mm: Vec3
+    max_mm: Vec3
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "BoxSpec":
+        if any(lo >= hi for lo, hi in zip(self.min_mm, self.max_mm)):
+            raise ValueError("min_mm must be below max_mm on every axis")
+        return self
+
+    def contains(self, point_mm: np.ndarray) -> bool:
+        p = np.asarray(point_mm)
+        return bool(np.all(p >= np.array(self.min_mm)) and np.all(p <= np.array(self.max_mm)))
+
+
+class ToolShapeSpec(Spec):
+    """Collision geometry carried by the arm, in the TCP frame."""
+
+    name: str
+    kind: Literal["cylinder", "box"]
+    pose: PoseSpec = PoseSpec()
+    radius_mm: float = Field(0.0, ge=0)
+    length_mm: float = Field(0.0, ge=0)
+    size_mm: Vec3 | None = None
+
+    @model_validator(mode="after")
+    def _dimensions(self) -> "ToolShapeSpec":
+        if self.kind == "cylinder" and (self.radius_mm <= 0 or self.length_mm <= 0):
+            raise ValueError("a cylinder needs radius_mm > 0 and length_mm > 0")
+        if self.kind == "box" and (self.size_mm is None or min(self.size_mm) <= 0):
+            raise ValueError("a box needs size_mm with three positive values")
+        return self
+
+
+class RobotSpec(Spec):
+    model: Literal["UR5e"] = "UR5e"
+    host: str = "127.0.0.1"
+    home_joints_deg: tuple[float, float, float, float, float, float] = (0.0, -90.0, 90.0, -90.0, -90.0, 0.0)
+    joint_limits_deg: list[tuple[float, float]] | None = None
+
+    @field_validator("joint_limits_deg")
+    @classmethod
+    def _six_limits(cls, v: list[tuple[float, float]] | None) -> list[tuple[float, float]] | None:
+        if v is not None:
+            if len(v) != 6:
+                raise ValueError("joint_limits_deg needs six [min, max] pairs")
+            for lo, hi in v:
+                if not (-360.0 <= lo < hi <= 360.0):
+                    raise ValueError("each joint limit must satisfy -360 <= min < max <= 360")
+        return v
+
+
+class ToolSpec(Spec):
+    tip_radius_mm: float = Field(gt=0, le=50)
+    flange_to_tcp: PoseSpec
+    tcp_to_sensor: PoseSpec
+    tcp_to_scanner: PoseSpec
+    payload_mass_kg: float = Field(ge=0, le=5)
+    payload_com_mm: Vec3 = (0.0, 0.0, 0.0)
+    shapes: list[ToolShapeSpec] = []
+
+
+class FTSpec(Spec):
+    host: str = "127.0.0.1"
+    rdt_port: int = Field(49152, ge=1, le=65535)
+    calinfo_port: int = Field(49151, ge=1, le=65535)
+    rate_hz: float = Field(1000.0, gt=0, le=7000)
+    range_n: float = Field(290.0, gt=0)
+    range_nm: float = Field(10.0, gt=0)
+
+
+class ScannerSpec(Spec):
+    url: str = "sim://"
+    samples_per_profile: int = Field(256, ge=16, le=4096)
+    rate_hz: float = Field(50.0, gt=0, le=2000)
+    field_of_view_deg: float = Field(40.0, gt=0, lt=120)
+    max_range_mm: float = Field(400.0, gt=0)
+
+
+class ObjectPlacementSpec(Spec):
+    """Where the object sits: its model file and the nominal base <- object transform."""
+
+    file: str
+    base_to_object: PoseSpec
+
+
+class LimitsSpec(Spec):
+    """Cell safety and motion limits (units in names)."""
+
+    max_force_n: float = Field(gt=0, le=300)
+    max_torque_nm: float = Field(gt=0, le=50)
+    max_lateral_force_n: float = Field(gt=0, le=300)
+    max_force_rate_n_s: float = Field(gt=0, le=10000)
+    contact_force_n: float = Field(gt=0, le=10)
+    contact_speed_mm_s: float = Field(gt=0, le=50)
+    free_speed_mm_s: float = Field(gt=0, le=1000)
+    free_accel_mm_s2: float = Field(500.0, gt=0, le=5000)
+    search_distance_mm: float = Field(gt=0, le=200)
+    ft_stale_ms: float = Field(gt=0, le=1000)
+    ft_frozen_ms: float = Field(gt=0, le=5000)
+    slip_mm: float = Field(gt=0, le=50)
+    rearm_fraction: float = Field(0.8, gt=0, lt=1)
+    workspace: BoxSpec
+    keep_out: list[BoxSpec] = []
+
+    def safety(self) -> SafetyLimits:
+        return SafetyLimits(max_force_n=self.max_force_n, max_torque_nm=self.max_torque_nm,
+                            max_lateral_force_n=self.max_lateral_force_n,
+                            max_force_rate_n_s=self.max_force_rate_n_s, ft_stale_ms=self.ft_stale_ms,
+                            ft_frozen_ms=self.ft_frozen_ms, slip_mm=self.slip_mm,
+                            rearm_fraction=self.rearm_fraction)
+
+
+FaultKind = Literal["force_spike", "ft_stall", "ft_frozen", "scanner_timeout", "scanner_short_burst",
+                    "protective_stop", "connection_loss", "emergency_stop", "object_moved", "slip",
+                    "disk_error"]
+
+
+class FaultSpec(Spec):
+    """A fault the simulator injects: at a step, or at a rate per 100 steps."""
+
+    kind: FaultKind
+    step: int | None = Field(None, ge=0)
+    rate_per_100_steps: float | None = Field(None, gt=0, le=100)
+    clear_after_s: float | None = Field(None, gt=0)   # emergency stop: operator clears it after this
+
+    @model_validator(mode="after")
+    def _when(self) -> "FaultSpec":
+        if (self.step is None) == (self.rate_per_100_steps is None):
+            raise ValueError("give exactly one of step or rate_per_100_steps")
+        return self
+
+
+class MiscalibrationSpec(Spec):
+    enabled: bool = False
+    payload_mass_rel: float = Field(0.1, ge=0, le=1)
+    payload_com_mm: float = Field(5.0, ge=0, le=50)
+    tip_mm: float = Field(2.0, ge=0, le=20)
+    scanner_deg: float = Field(2.0, ge=0, le=20)
+    scanner_mm: float = Field(3.0, ge=0, le=30)
+
+
+class SimulationSpec(Spec):
+    control_period_ms: float = Field(2.0, gt=0, le=20)
+    ft_noise_n: float = Field(0.04, ge=0, le=5)
+    ft_noise_nm: float = Field(0.002, ge=0, le=1)
+    ft_drift_n_per_h: float = Field(0.2, ge=0, le=50)
+    scanner_noise_scale: float = Field(1.0, ge=0, le=20)
+    miscalibration: MiscalibrationSpec = MiscalibrationSpec()
+    faults: list[FaultSpec] = []
+
+
+class NotifySpec(Spec):
+    """A user command run with a JSON payload on stdin when something happens."""
+
+    command: list[str] = Field(min_length=1)
+    on: list[Literal["pause", "fault", "finish", "finish_by"]] = ["pause", "fault", "finish", "finish_by"]
+    timeout_s: float = Field(10.0, gt=0, le=300)
+
+
+class CellSpec(Spec):
+    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    kind: Literal["simulated", "ur", "loopback"]
+    robot: RobotSpec = RobotSpec()
+    tool: ToolSpec
+    ft: FTSpec = FTSpec()
+    scanner: ScannerSpec = ScannerSpec()
+    object: ObjectPlacementSpec
+    limits: LimitsSpec
+    calibration_file: str | None = None
+    calibration_max_age_days: float = Field(30.0, gt=0)
+    simulation: SimulationSpec = SimulationSpec()
+    notify: NotifySpec | None = None
+
+
+# ----------------------------------------------------------------------------- plans
+AngleDeg = Annotated[float, Field(gt=0, lt=180)]
+ForceN = Annotated[float, Field(gt=0, le=300)]
+
+
+def _strictly_increasing(values: list[float], what: str) -> list[float]:
+    if any(b <= a for a, b in zip(values, values[1:])):
+        raise ValueError(f"{what} must be strictly increasing")
+    return values
+
+
+class CloudSpec(Spec):
+    source: Literal["scan", "file"] = "scan"
+    file: str | None = None
+    sweep_spacing_mm: float = Field(3.0, gt=0, le=50)
+    sweep_height_mm: float = Field(250.0, gt=0, le=1000)
+    max_points: int = Field(200_000, ge=1000, le=5_000_000)
+
+    @model_validator(mode="after")
+    def _file(self) -> "CloudSpec":
+        if self.source == "file" and not self.file:
+            raise ValueError("source: file needs file:")
+        return self
+
+
+class SamplingSpec(Spec):
+    units: int = Field(60, ge=4, le=5000)
+    steps_per_unit: int = Field(200, ge=10, le=100_000)
+    geometry_weight: float = Field(1.0, ge=0, le=100)
+    edge_clearance_mm: float = Field(15.0, ge=0, le=200)
+    max_tilt_deg: float = Field(60.0, gt=0, le=90)
+    reference_direction: Vec3 = (1.0, 0.0, 0.0)
+
+
+class SurveySpec(Spec):
+    angles_deg: list[AngleDeg] = [90.0]
+    forces_n: list[ForceN] = [4.0, 12.0]
+
+    @field_validator("forces_n")
+    @classmethod
+    def _increasing(cls, v: list[float]) -> list[float]:
+        return _strictly_increasing(v, "forces_n")
+
+
+class CharacterizeSpec(Spec):
+    points_per_region: int = Field(2, ge=1, le=50)
+    angles_deg: list[AngleDeg] = list(NINE_ANGLES_DEG)
+    forces_n: list[ForceN] = [2.0, 5.0, 9.0, 14.0, 20.0]
+
+    @field_validator("forces_n")
+    @classmethod
+    def _increasing(cls, v: list[float]) -> list[float]:
+        return _strictly_increasing(v, "forces_n")
+
+
+class DensifySpec(Spec):
+    rounds: int = Field(2, ge=0, le=50)
+    points_per_round: int = Field(8, ge=1, le=500)
+    min_spacing_mm: float = Field(6.0, gt=0, le=200)
+    resolution_mm: float = Field(8.0, gt=0, le=200)
+
+
+class PhasesSpec(Spec):
+    survey: SurveySpec = SurveySpec()
+    characterize: CharacterizeSpec = CharacterizeSpec()
+    densify: DensifySpec = DensifySpec()
+
+
+class ProbingSpec(Spec):
+    scans_per_step: int = Field(40, ge=1, le=200)
+    settle_s: float = Field(3.0, ge=0, le=120)
+    standoff_mm: float = Field(15.0, gt=0, le=200)
+    force_rate_n_s: float = Field(10.0, gt=0, le=200)
+    force_tolerance_n: float = Field(0.5, gt=0, le=20)
+
+
+class BudgetSpec(Spec):
+    max_steps: int = Field(2000, ge=1, le=1_000_000)
+    max_robot_hours: float = Field(12.0, gt=0, le=24 * 14)
+
+
+class ModelSpec(Spec):
+    hidden_units: int = Field(45, ge=2, le=1000)
+    ensemble: int = Field(5, ge=1, le=50)
+    max_epochs: int = Field(3000, ge=10, le=100_000)
+    profile_span_mm: float = Field(80.0, gt=0, le=1000)
+    profile_samples: int = Field(256, ge=8, le=4096)
+
+
+class FaultActionSpec(Spec):
+    action: Literal["retry", "skip_target", "pause", "abort"]
+    retries: int = Field(2, ge=0, le=20)
+
+
+class FaultPolicySpec(Spec):
+    """What to do for each kind of trip or fault; kinds not listed use ``default``."""
+
+    default: FaultActionSpec = FaultActionSpec(action="retry", retries=2)
+    kinds: dict[str, FaultActionSpec] = {}
+
+    @field_validator("kinds")
+    @classmethod
+    def _known(cls, v: dict[str, FaultActionSpec]) -> dict[str, FaultActionSpec]:
+        known = {"force", "torque", "lateral_force", "force_rate", "frozen", "ft_status", "stale", "slip",
+                 "workspace", "protective_stop", "emergency_stop", "connection", "no_contact",
+                 "scanner", "motion_refused", "device"}
+        for k in v:
+            if k not in known:
+                raise ValueError(f"unknown fault kind {k!r} (known: {', '.join(sorted(known))})")
+        return v
+
+    def for_kind(self, kind: str) -> FaultActionSpec:
+        if kind == "emergency_stop" and kind not in self.kinds:
+            return FaultActionSpec(action="pause", retries=0)   # never auto-cleared
+        return self.kinds.get(kind, self.default)
+
+
+class PlanLimitsSpec(Spec):
+    """Limits a plan may set; each must be at or below the cell's."""
+
+    max_force_n: float | None = Field(None, gt=0)
+    max_torque_nm: float | None = Field(None, gt=0)
+    max_lateral_force_n: float | None = Field(None, gt=0)
+    max_force_rate_n_s: float | None = Field(None, gt=0)
+    contact_speed_mm_s: float | None = Field(None, gt=0)
+    free_speed_mm_s: float | None = Field(None, gt=0)
+    search_distance_mm: float | None = Field(None, gt=0)
+    slip_mm: float | None = Field(None, gt=0)
+
+
+class ExtraTargetSpec(Spec):
+    """A probe point the plan asks for explicitly (object frame, mm)."""
+
+    point_mm: Vec3
+    normal: Vec3 = (0.0, 0.0, 1.0)
+
+
+class PlanSpec(Spec):
+    name: str = Field(min_length=1, max_length=80, pattern=r"^[A-Za-z0-9_.-]+$")
+    cell: str | None = None
+    simulated_object: str | None = None
+    seed: int = Field(0, ge=0, le=2**31 - 1)
+    cloud: CloudSpec = CloudSpec()
+    sampling: SamplingSpec = SamplingSpec()
+    probing: ProbingSpec = ProbingSpec()
+    phases: PhasesSpec = PhasesSpec()
+    budget: BudgetSpec = BudgetSpec()
+    model: ModelSpec = ModelSpec()
+    limits: PlanLimitsSpec = PlanLimitsSpec()
+    fault_policy: FaultPolicySpec = FaultPolicySpec()
+    targets: list[ExtraTargetSpec] = []
+    finish_by: _dt.datetime | None = None
+    notify: NotifySpec | None = None
+
+    @field_validator("finish_by", mode="before")
+    @classmethod
+    def _parse_time(cls, v: object) -> object:
+        if isinstance(v, str):
+            try:
+                t = _dt.datetime.fromisoformat(v)
+            except ValueError:
+                raise ValueError("finish_by must be an ISO 8601 date-time, e.g. 2026-11-23T07:00:00+01:00") from None
+            return t if t.tzinfo else t.astimezone()
+        return v
+
+
+# ------------------------------------------------------------------------ loading
+@dataclass(frozen=True)
+class SessionInputs:
+    """A validated plan and cell, with their paths and texts (hashed into the journal)."""
+
+    plan: PlanSpec
+    cell: CellSpec
+    plan_path: Path
+    cell_path: Path
+    plan_doc: YamlDoc
+    cell_doc: YamlDoc
+    limits: SafetyLimits
+
+    def resolve(self, relative_to: Path, name: str) -> Path:
+        p = Path(name)
+        return p if p.is_absolute() else (relative_to.parent / p)
+
+    def object_file(self) -> Path:
+        """The simulated object: the plan's choice, else the cell's."""
+        if self.plan.simulated_object and self.cell.kind != "ur":
+            return self.resolve(self.plan_path, self.plan.simulated_object)
+        return self.resolve(self.cell_path, self.cell.object.file)
+
+
+def load_cell(path: str | Path) -> tuple[CellSpec, YamlDoc]:
+    return load_validated(path, CellSpec)
+
+
+def load_plan(path: str | Path) -> tuple[PlanSpec, YamlDoc]:
+    return load_validated(path, PlanSpec)
+
+
+DEFAULT_CELL = Path(__file__).resolve().parent.parent / "config" / "cells" / "sim.yaml"
+
+
+def load_session_inputs(plan_path: str | Path, cell_path: str | Path | None = None) -> SessionInputs:
+    """Load and cross-check a plan and its cell; raise InputError(s) with positions."""
+    plan, plan_doc = load_plan(plan_path)
+    if cell_path is None:
+        cell_path = (Path(plan_path).parent / plan.cell) if plan.cell else DEFAULT_CELL
+    cell, cell_doc = load_cell(cell_path)
+    errors: list[InputError] = []
+    lim = cell.limits
+    # A plan may only tighten the cell's limits.
+    overrides = {}
+    for name, value in plan.limits.model_dump().items():
+        if value is None:
+            continue
+        cell_value = getattr(lim, name)
+        if value > cell_value:
+            errors.append(plan_doc.error(("limits", name),
+                                         f"limits.{name} = {value} is looser than the cell's {cell_value} "
+                                         f"({cell_doc.path}:{cell_doc.where(('limits', name))[0]})"))
+        overrides[name] = value
+    max_force_n = plan.limits.max_force_n or lim.max_force_n
+    for phase in ("survey", "characterize"):
+        forces = getattr(plan.phases, phase).forces_n
+        for i, f in enumerate(forces):
+            if f > max_force_n:
+                errors.append(plan_doc.error(("phases", phase, "forces_n", i),
+                                             f"force {f} N exceeds the limit max_force_n = {max_force_n} N"))
+            if f <= lim.contact_force_n:
+                errors.append(plan_doc.error(("phases", phase, "forces_n", i),
+                                             f"force {f} N is not above the contact threshold "
+                                             f"{lim.contact_force_n} N"))
+    base_to_object = cell.object.base_to_object.pose()
+    for i, target in enumerate(plan.targets):
+        p_base = base_to_object.apply(np.array(target.point_mm))
+        if not lim.workspace.contains(p_base):
+            errors.append(plan_doc.error(("targets", i, "point_mm"),
+                                         f"target {list(target.point_mm)} mm (base {np.round(p_base, 1).tolist()}) "
+                                         f"is outside the cell workspace"))
+        for box in lim.keep_out:
+            if box.contains(p_base):
+                errors.append(plan_doc.error(("targets", i, "point_mm"),
+                                             f"target lies inside keep-out box {box.name!r}"))
+        if np.linalg.norm(target.normal) < 1e-9:
+            errors.append(plan_doc.error(("targets", i, "normal"), "normal must not be zero"))
+    if errors:
+        raise InputErrors(errors)
+    limits = lim.safety().tightened(**{k: v for k, v in overrides.items()
+                                       if k in SafetyLimits.__dataclass_fields__})
+    inputs = SessionInputs(plan=plan, cell=cell, plan_path=Path(plan_path), cell_path=Path(cell_path),
+                           plan_doc=plan_doc, cell_doc=cell_doc, limits=limits)
+    obj = inputs.object_file()
+    if not obj.exists():
+        where = (plan_doc, ("simulated_object",)) if plan.simulated_object else (cell_doc, ("object", "file"))
+        raise where[0].error(where[1], f"object file {str(obj)!r} does not exist")
+    return inputs
+
+
+def effective_motion_limits(inputs: SessionInputs) -> dict[str, float]:
+    """Speeds and distances after the plan's tightening."""
+    lim, pl = inputs.cell.limits, inputs.plan.limits
+    return {
+        "contact_speed_mm_s": pl.contact_speed_mm_s or lim.contact_speed_mm_s,
+        "free_speed_mm_s": pl.free_speed_mm_s or lim.free_speed_mm_s,
+        "search_distance_mm": pl.search_distance_mm or lim.search_distance_mm,
+        "free_accel_mm_s2": lim.free_accel_mm_s2,
+        "contact_force_n": lim.contact_force_n,
+    }
