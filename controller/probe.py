@@ -1,0 +1,377 @@
+"""One probe: standoff, reference scan, contact, force levels with scan bursts, unload, retract.
+
+The executor drives a :class:`~elastoprobe.controller.devices.Cell` through the
+session state machine. Every motion is validated before it is sent
+(:class:`MotionValidator`), every wait polls the arm's trip and status bits, and
+each force level ends in one callback (the journal's one transaction per step).
+A failure raises :class:`ProbeFault`; the caller applies the plan's fault policy.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Protocol
+
+import numpy as np
+
+from .devices import Cell, Motion, MotionState, Scan, Trip, WrenchBlock
+from .errors import DeviceError, DeviceTimeout, MotionRefused
+from .geometry import Pose, probe_tcp_pose
+from .machine import SessionMachine
+
+
+@dataclass(frozen=True)
+class ProbeTarget:
+    """A point to probe, in the object frame (mm), with its outward normal and scan direction t."""
+
+    index: int
+    point_mm: np.ndarray
+    normal: np.ndarray
+    t: np.ndarray
+
+
+@dataclass(frozen=True)
+class ForceLevel:
+    step_id: int
+    force_n: float
+
+
+@dataclass
+class StepData:
+    """What one force step measured (all poses base <- tcp, forces in the base frame)."""
+
+    step_id: int
+    force_target_n: float
+    angle_deg: float
+    scans_xz_mm: np.ndarray          # (S, L, 2) float32: scanner-frame x, z (NaN missing)
+    scan_t_s: np.ndarray             # (S,)
+    scan_pose: np.ndarray            # (S, 6) tcp pose at exposure: mm + rotation vector
+    scan_force_n: np.ndarray         # (S, 3) mean contact force around each exposure, base frame
+    reference_xz_mm: np.ndarray      # (R, L, 2) zero-force reference scans of the same place
+    reference_pose: np.ndarray       # (R, 6)
+    robot_time_s: float
+
+    def force_magnitude_n(self) -> float:
+        return float(np.linalg.norm(self.scan_force_n.mean(axis=0)))
+
+    def measured_direction(self) -> np.ndarray:
+        """Unit vector of the mean force the probe exerted (base frame)."""
+        f = -self.scan_force_n.mean(axis=0)
+        n = np.linalg.norm(f)
+        return f / n if n > 0 else f
+
+
+class ProbeFault(Exception):
+    """The probe could not be completed; ``kind`` matches the plan's fault policy keys."""
+
+    def __init__(self, kind: str, message: str, trip: Trip | None = None) -> None:
+        super().__init__(message)
+        self.kind = kind
+        self.message = message
+        self.trip = trip
+
+
+class MotionValidator(Protocol):
+    def validate_path(self, start: Pose, end: Pose, contact_allowed: bool = False) -> None:
+        """Raise MotionRefused if the straight TCP path is unreachable or collides."""
+        ...
+
+
+@dataclass
+class ProbeSettings:
+    scans_per_step: int
+    settle_s: float
+    standoff_mm: float
+    force_rate_n_s: float
+    force_tolerance_n: float
+    contact_force_n: float
+    contact_speed_mm_s: float
+    free_speed_mm_s: float
+    free_accel_mm_s2: float
+    search_distance_mm: float
+    tip_radius_mm: float
+    clearance_mm: float = 60.0          # travel height above the object's top
+    poll_period_s: float = 0.01
+    reference_scans: int = 10
+    scan_timeout_factor: float = 3.0
+
+
+@dataclass
+class _Recorder:
+    """F/T samples and arm poses logged while a wait loop runs."""
+
+    blocks: list[WrenchBlock] = field(default_factory=list)
+    pose_t_s: list[float] = field(default_factory=list)
+    poses: list[np.ndarray] = field(default_factory=list)
+    rotations: list[np.ndarray] = field(default_factory=list)
+
+    def clear(self) -> None:
+        self.blocks.clear()
+        self.pose_t_s.clear()
+        self.poses.clear()
+        self.rotations.clear()
+
+
+class ProbeExecutor:
+    """Runs probes on a cell, firing the state machine's triggers as it goes."""
+
+    def __init__(self, cell: Cell, machine: SessionMachine, settings: ProbeSettings,
+                 validator: MotionValidator, object_top_z_mm: float,
+                 should_stop: Callable[[], bool] = lambda: False) -> None:
+        self.cell = cell
+        self.machine = machine
+        self.s = settings
+        self.validator = validator
+        self.object_top_z_mm = object_top_z_mm
+        self.should_stop = should_stop
+        self._rec = _Recorder()
+        self.robot_time_s = 0.0
+
+    # ------------------------------------------------------------------ public
+    def probe(self, target: ProbeTarget, angle_deg: float, levels: list[ForceLevel],
+              on_step_done: Callable[[StepData], None]) -> None:
+        """Probe one target at one angle through ``levels`` (increasing forces).
+
+        Calls ``on_step_done`` once per completed level; raises ProbeFault on failure
+        (the arm is stopped; the caller unloads/retracts via :meth:`safe_retract`).
+        """
+        s = self.s
+        b2o = self.cell.base_to_object
+        p = b2o.apply(target.point_mm)
+        n = b2o.apply_vector(target.normal)
+        t = b2o.apply_vector(target.t)
+        standoff = probe_tcp_pose(p, n, t, angle_deg, offset_mm=s.standoff_mm + s.tip_radius_mm)
+        contact_pose = probe_tcp_pose(p, n, t, angle_deg, offset_mm=s.tip_radius_mm)
+        d = standoff.rotation[:, 2]
+
+        self.machine.fire("go_to_target")
+        self._travel_to(standoff)
+        self.machine.fire("at_standoff")
+        self._tare()
+        ref_scans, ref_poses = self._scan_burst(s.reference_scans)
+        self.machine.fire("reference_ok")
+        # Contact search: the path from standoff to the deepest allowed point is validated
+        # with the tip allowed to touch the object.
+        search_mm = s.standoff_mm + s.search_distance_mm
+        deepest = Pose(standoff.position_mm + d * search_mm, standoff.rotation)
+        self.validator.validate_path(standoff, deepest, contact_allowed=True)
+        motion = self.cell.arm.seek_contact(d, s.contact_speed_mm_s, s.contact_force_n, search_mm)
+        state = self._wait(motion, timeout_s=search_mm / s.contact_speed_mm_s * 2.0 + 5.0)
+        if state == MotionState.NO_CONTACT:
+            raise ProbeFault("no_contact", f"no contact within {search_mm:.0f} mm of the standoff "
+                             f"(object moved or missing?)")
+        self._expect(state, MotionState.CONTACT, "seek_contact")
+        self.machine.fire("contact")
+        del contact_pose
+        for k, level in enumerate(levels):
+            if k > 0:
+                self.machine.fire("next_level")
+            motion = self.cell.arm.regulate_force(d, level.force_n, s.force_rate_n_s)
+            ramp_s = level.force_n / s.force_rate_n_s
+            state = self._wait(motion, timeout_s=ramp_s * 3.0 + 10.0)
+            self._expect(state, MotionState.DONE, "regulate_force")
+            self.machine.fire("at_force")
+            self._hold(s.settle_s)
+            self.machine.fire("settled")
+            step_start_s = self.cell.clock.now_s()
+            scans, poses = self._scan_burst(s.scans_per_step)
+            forces = self._forces_at([sc.exposure_t_s for sc in scans])
+            self._check_force_held(forces, level.force_n)
+            on_step_done(StepData(
+                step_id=level.step_id, force_target_n=level.force_n, angle_deg=angle_deg,
+                scans_xz_mm=_stack_scans(scans), scan_t_s=np.array([sc.exposure_t_s for sc in scans]),
+                scan_pose=poses, scan_force_n=forces, reference_xz_mm=_stack_scans(ref_scans),
+                reference_pose=ref_poses, robot_time_s=self.cell.clock.now_s() - step_start_s))
+        self.machine.fire("unload")
+        self._unload_and_retract(n)
+
+    def safe_retract(self) -> None:
+        """After a fault: unload along the normal if in contact, then move up to travel height."""
+        arm = self.cell.arm
+        arm.stop()
+        status = arm.status()
+        if status.emergency_stop or not status.connected:
+            return
+        pose = status.tcp_pose
+        up = np.array([0.0, 0.0, 1.0])
+        # Unload: straight up along +z of the base (the surface normal is not known here)
+        # slowly, until the force is gone, then to travel height.
+        lift_mm = max(0.0, self.object_top_z_mm + self.s.clearance_mm - pose.position_mm[2])
+        slow = Pose(pose.position_mm + up * min(20.0, lift_mm), pose.rotation)
+        self._move(slow, self.s.contact_speed_mm_s * 2, check=False)
+        self._move(Pose(pose.position_mm + up * lift_mm, pose.rotation), self.s.free_speed_mm_s, check=False)
+
+    # ------------------------------------------------------------------ motions
+    def _travel_to(self, standoff: Pose) -> None:
+        """Up to travel height, across, then down to the standoff; every leg validated."""
+        here = self.cell.arm.status().tcp_pose
+        travel_z = self.object_top_z_mm + self.s.clearance_mm
+        legs: list[Pose] = []
+        if here.position_mm[2] < travel_z - 1.0:
+            legs.append(Pose(np.array([*here.position_mm[:2], travel_z]), here.rotation))
+        above = Pose(np.array([*standoff.position_mm[:2], max(travel_z, standoff.position_mm[2])]),
+                     standoff.rotation)
+        legs += [above, standoff]
+        start = here
+        for leg in legs:
+            if start.distance_to(leg)[0] < 0.05 and start.distance_to(leg)[1] < 0.05:
+                continue
+            self.validator.validate_path(start, leg)
+            self._move(leg, self.s.free_speed_mm_s)
+            start = leg
+
+    def _move(self, target: Pose, speed_mm_s: float, check: bool = True) -> None:
+        motion = self.cell.arm.move_linear(target, speed_mm_s, self.s.free_accel_mm_s2)
+        dist = float(np.linalg.norm(target.position_mm - self.cell.arm.status().tcp_pose.position_mm))
+        state = self._wait(motion, timeout_s=dist / speed_mm_s * 3.0 + 10.0)
+        self._expect(state, MotionState.DONE, "move_linear")
+
+    def _unload_and_retract(self, n_base: np.ndarray) -> None:
+        """Unload along the normal first (backing out along -d at 10 deg would drag the tip)."""
+        arm = self.cell.arm
+        pose = arm.status().tcp_pose
+        away = Pose(pose.position_mm + n_base * (self.s.standoff_mm + 5.0), pose.rotation)
+        self.validator.validate_path(pose, away, contact_allowed=True)
+        self._move(away, self.s.contact_speed_mm_s * 2.0)
+        self.machine.fire("retract")
+        here = arm.status().tcp_pose
+        travel_z = self.object_top_z_mm + self.s.clearance_mm
+        if here.position_mm[2] < travel_z:
+            up = Pose(np.array([*here.position_mm[:2], travel_z]), here.rotation)
+            self.validator.validate_path(here, up)
+            self._move(up, self.s.free_speed_mm_s)
+
+    # ------------------------------------------------------------------ sensing
+    def _tare(self) -> None:
+        """Re-tare in free air at the standoff: F/T drift is large against 0.1 N forces."""
+        self._hold(0.2)
+        self.cell.ft.tare()
+        self._hold(0.05)
+
+    def _hold(self, duration_s: float) -> None:
+        end = self.cell.clock.now_s() + duration_s
+        while self.cell.clock.now_s() < end - 1e-9:
+            self._tick()
+
+    def _scan_burst(self, count: int) -> tuple[list[Scan], np.ndarray]:
+        scanner = self.cell.scanner
+        self._rec.clear()
+        scanner.read_scans()   # drop anything stale
+        scanner.start_burst(count)
+        scans: list[Scan] = []
+        deadline = self.cell.clock.now_s() + count / scanner.rate_hz * self.s.scan_timeout_factor + 1.0
+        while len(scans) < count:
+            if self.cell.clock.now_s() > deadline:
+                raise ProbeFault("scanner", f"scanner delivered {len(scans)} of {count} profiles in time")
+            self._tick()
+            try:
+                scans.extend(scanner.read_scans())
+            except DeviceTimeout as exc:
+                raise ProbeFault("scanner", str(exc)) from exc
+            except DeviceError as exc:
+                raise ProbeFault("scanner", str(exc)) from exc
+        scans = scans[:count]
+        return scans, self._poses_at([sc.exposure_t_s for sc in scans])
+
+    def _tick(self) -> None:
+        """One poll period: let time pass, collect F/T and pose, check for trips and faults."""
+        self.cell.clock.sleep_s(self.s.poll_period_s)
+        self.robot_time_s += self.s.poll_period_s
+        try:
+            block = self.cell.ft.read_block()
+            status = self.cell.arm.status()
+        except DeviceError as exc:
+            raise ProbeFault("device", str(exc)) from exc
+        if len(block):
+            self._rec.blocks.append(block)
+            if len(self._rec.blocks) > 2000:
+                del self._rec.blocks[:1000]
+        self._rec.pose_t_s.append(status.t_s)
+        self._rec.poses.append(status.tcp_pose.position_mm)
+        self._rec.rotations.append(status.tcp_pose.rotation)
+        trip = self.cell.arm.trip()
+        if trip is not None:
+            raise ProbeFault(trip.kind, trip.message, trip)
+        if status.emergency_stop:
+            raise ProbeFault("emergency_stop", "emergency stop is pressed")
+        if status.protective_stop:
+            raise ProbeFault("protective_stop", "the robot is in a protective stop")
+        if not status.connected:
+            raise ProbeFault("connection", "lost the connection to the robot")
+        if self.should_stop():
+            raise ProbeFault("operator_stop", "stop requested by the operator")
+
+    def _wait(self, motion: Motion, timeout_s: float) -> MotionState:
+        deadline = self.cell.clock.now_s() + timeout_s
+        while True:
+            state = motion.state()
+            if state != MotionState.RUNNING:
+                return state
+            if self.cell.clock.now_s() > deadline:
+                self.cell.arm.stop()
+                raise ProbeFault("device", f"{motion.kind} did not finish within {timeout_s:.1f} s")
+            self._tick()
+
+    def _expect(self, state: MotionState, wanted: MotionState, what: str) -> None:
+        if state == wanted:
+            return
+        trip = self.cell.arm.trip()
+        if trip is not None:
+            raise ProbeFault(trip.kind, trip.message, trip)
+        status = self.cell.arm.status()
+        if status.emergency_stop:
+            raise ProbeFault("emergency_stop", "emergency stop is pressed")
+        if status.protective_stop:
+            raise ProbeFault("protective_stop", f"protective stop during {what}")
+        if not status.connected:
+            raise ProbeFault("connection", f"lost the connection to the robot during {what}")
+        raise ProbeFault("device", f"{what} ended {state.value}, expected {wanted.value}")
+
+    def _poses_at(self, times_s: list[float]) -> np.ndarray:
+        """TCP poses (mm + rotation vector) at the given times, from the poses logged while waiting."""
+        from .geometry import matrix_to_rotvec
+
+        t = np.asarray(self._rec.pose_t_s)
+        out = np.zeros((len(times_s), 6))
+        if len(t) == 0:
+            pose = self.cell.arm.status().tcp_pose
+            out[:] = pose.to_list()
+            return out
+        pos = np.asarray(self._rec.poses)
+        for i, ts in enumerate(times_s):
+            for axis in range(3):
+                out[i, axis] = np.interp(ts, t, pos[:, axis])
+            j = int(np.clip(np.searchsorted(t, ts), 0, len(t) - 1))
+            out[i, 3:] = matrix_to_rotvec(self._rec.rotations[j])
+        return out
+
+    def _forces_at(self, times_s: list[float], window_s: float = 0.01) -> np.ndarray:
+        """Mean F/T force (base frame) over a window around each exposure."""
+        block = WrenchBlock.concat(self._rec.blocks)
+        out = np.full((len(times_s), 3), np.nan)
+        if not len(block):
+            return out
+        tcp_to_sensor = self.cell.tcp_to_sensor
+        pose_t = np.asarray(self._rec.pose_t_s)
+        for i, ts in enumerate(times_s):
+            sel = np.abs(block.t_s - ts) <= window_s / 2 + 1e-9
+            if not sel.any():
+                sel = np.zeros(len(block), bool)
+                sel[int(np.argmin(np.abs(block.t_s - ts)))] = True
+            f_sensor = block.force_n[sel].mean(axis=0)
+            j = int(np.clip(np.searchsorted(pose_t, ts), 0, len(pose_t) - 1)) if len(pose_t) else 0
+            r_base_tcp = self._rec.rotations[j] if len(pose_t) else self.cell.arm.status().tcp_pose.rotation
+            out[i] = r_base_tcp @ (tcp_to_sensor.rotation @ f_sensor)
+        return out
+
+    def _check_force_held(self, forces_n: np.ndarray, target_n: float) -> None:
+        magnitude = np.linalg.norm(forces_n, axis=1)
+        err = float(np.nanmax(np.abs(magnitude - target_n))) if len(magnitude) else np.inf
+        # The force must stay at the level while the scans are taken (the paper keeps it constant).
+        if not np.isfinite(err) or err > max(self.s.force_tolerance_n * 3.0, 0.15 * target_n):
+            raise ProbeFault("force_not_held", f"force strayed {err:.2f} N from {target_n:.1f} N during the scans")
+
+
+def _stack_scans(scans: list[Scan]) -> np.ndarray:
+    if not scans:
+        return np.zeros((0, 0, 2), dtype=np.float32)
+    return np.stack([np.stack([sc.x_mm, sc.z_mm], axis=1) for sc in scans]).astype(np.float32)
