@@ -90,7 +90,7 @@ class _Builder:
         tag = str(node.tag)
         if isinstance(node, MappingNode):
             if tag != _CORE + "map":
-                raise self.fail(node, f"tag {tag!r} is not allowed (only plain YAML maps)")
+                raise self.fail(node, f"tag {tag!r} is not allowed (plain YAML only)")
             out: dict[Any, Any] = {}
             for key_node, value_node in node.value:
                 if str(key_node.tag) == _CORE + "merge":
@@ -106,7 +106,7 @@ class _Builder:
             return out
         if isinstance(node, SequenceNode):
             if tag != _CORE + "seq":
-                raise self.fail(node, f"tag {tag!r} is not allowed (only plain YAML lists)")
+                raise self.fail(node, f"tag {tag!r} is not allowed (plain YAML only)")
             return [self.build(item, loc + (i,), depth + 1) for i, item in enumerate(node.value)]
         assert isinstance(node, ScalarNode)
         return self.scalar(node, tag)
@@ -164,7 +164,7 @@ def parse_yaml_text(text_bytes: bytes, path: str) -> YamlDoc:
     except MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line, col = (mark.line + 1, mark.column + 1) if mark is not None else (1, 1)
-        problem = (exc.problem or exc.context or "invalid YAML").strip()
+        problem = (exc.problem or exc.context or "invalid YAML").strip().splitlines()[0]
         raise InputError(f"YAML syntax: {problem}", path=path, line=line, col=col) from None
     except YAMLError as exc:   # unmarked errors (e.g. stream-level problems)
         raise InputError(f"YAML syntax: {exc}", path=path, line=1, col=1) from None
