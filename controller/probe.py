@@ -184,6 +184,33 @@ class ProbeExecutor:
         self.machine.fire("unload")
         self._unload_and_retract(n)
 
+    def scan_while_moving(self, start: Pose, end: Pose, speed_mm_s: float) -> tuple[list[Scan], np.ndarray]:
+        """Travel to ``start``, then scan continuously while moving in a straight line to ``end``.
+
+        Returns the scans and the TCP pose (mm + rotation vector) at each exposure.
+        """
+        self._travel_to(start)
+        self.validator.validate_path(start, end)
+        scanner = self.cell.scanner
+        length_mm = float(np.linalg.norm(end.position_mm - start.position_mm))
+        duration_s = length_mm / speed_mm_s
+        count = max(1, int(duration_s * scanner.rate_hz))
+        self._rec.clear()
+        scanner.read_scans()
+        motion = self.cell.arm.move_linear(end, speed_mm_s, self.s.free_accel_mm_s2)
+        scanner.start_burst(count)
+        scans: list[Scan] = []
+        deadline = self.cell.clock.now_s() + duration_s * 3.0 + 10.0
+        while motion.state() == MotionState.RUNNING or len(scans) < count:
+            if self.cell.clock.now_s() > deadline:
+                self.cell.arm.stop()
+                raise ProbeFault("scanner", f"sweep got {len(scans)} of {count} profiles in time")
+            self._tick()
+            scans.extend(scanner.read_scans())
+            if motion.state() not in (MotionState.RUNNING, MotionState.DONE):
+                self._expect(motion.state(), MotionState.DONE, "sweep move")
+        return scans, self._poses_at([sc.exposure_t_s for sc in scans])
+
     def safe_retract(self) -> None:
         """After a fault: unload along the normal if in contact, then move up to travel height."""
         arm = self.cell.arm
