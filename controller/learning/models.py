@@ -1,0 +1,473 @@
+"""Per-region neural models of the deformation profile (DESIGN §7; paper §IV).
+
+One network per region maps (F, α) -> the L-sample depth profile:
+inputs F (N) and α (deg) each mapped linearly to [-1, 1] (the ranges are stored),
+``hidden_units`` (45) tanh or logistic units, L linear outputs in normalised depth
+(depth_mm / depth_scale_mm, so the region's deepest measured depth is 1).
+
+Training (torch, imported lazily): full-batch resilient propagation
+(``torch.optim.Rprop``) on a masked MSE, so missing (NaN) samples cost nothing.
+Stopping rule: at most ``stages x epochs_per_stage`` epochs (the paper trained in
+five steps of 5000; one continuous Rprop run here, since restarting its step sizes
+makes the loss jump); a member stops early when its
+training loss improved by less than ``plateau_rel_tol`` (relative) over the last
+``plateau_patience`` epochs, or fell below ``loss_goal``.
+
+Disagreement: member 0 is fitted on all the data; members 1..E are fitted on
+bootstrap resamples of probe POINTS (every profile of a drawn point comes along,
+weighted by how often it was drawn), so their spread reflects point-to-point
+variation within the region, not just scan noise. All members train together as
+one stacked tensor; Rprop is element-wise, so this is exactly independent training.
+
+Serving is pure numpy with the normalisation folded into the weights and
+preallocated buffers (``predict_mm``), fast enough for a 1 kHz haptic loop.
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import platform
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..atomic import atomic_write_bytes, atomic_write_json
+from .profiles import depth_scale_mm
+
+FORMAT = "elastoprobe.region_model/1"
+ANGLE_RANGE_DEG: tuple[float, float] = (0.0, 180.0)
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """How a region model is trained (see the module docstring for the stopping rule)."""
+
+    hidden_units: int = 45
+    activation: str = "tanh"            # "tanh" or "sigmoid" (logistic)
+    stages: int = 5
+    epochs_per_stage: int = 2000
+    check_every: int = 50               # epochs between stopping-rule checks
+    plateau_patience: int = 400         # epochs over which improvement is measured
+    plateau_rel_tol: float = 2e-3       # relative improvement below which training stops
+    loss_goal: float = 1e-7             # normalised MSE at which training stops
+    rprop_lr: float = 0.01              # Rprop's initial step size
+    rprop_etas: tuple[float, float] = (0.5, 1.2)
+    rprop_step_sizes: tuple[float, float] = (1e-7, 1.0)
+    ensemble: int = 5                   # bootstrap members besides the full-data member
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.activation not in ("tanh", "sigmoid"):
+            raise ValueError(f"activation must be tanh or sigmoid, not {self.activation!r}")
+        if self.hidden_units < 1 or self.stages < 1 or self.epochs_per_stage < 1 or self.ensemble < 0:
+            raise ValueError("hidden_units, stages, epochs_per_stage must be >= 1 and ensemble >= 0")
+
+
+@dataclass
+class TrainReport:
+    """What training did, per member (member 0 = full data)."""
+
+    mse_norm: list[float]               # final masked MSE in normalised units
+    epochs: list[int]
+    stop_reason: list[str]              # "plateau", "goal", "max_epochs"
+    train_s: float
+    n_profiles: int
+    n_points: int
+    valid_fraction: float
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def _normalize_inputs(force_n: np.ndarray, angle_deg: np.ndarray, force_range_n: tuple[float, float],
+                      angle_range_deg: tuple[float, float]) -> np.ndarray:
+    """(M,) forces and angles -> (M,2) in [-1, 1] (a degenerate range maps to 0)."""
+    def scale(v: np.ndarray, lo: float, hi: float) -> np.ndarray:
+        if hi - lo <= 0.0:
+            return np.zeros_like(v)
+        return 2.0 * (v - lo) / (hi - lo) - 1.0
+    f = np.asarray(force_n, dtype=float).reshape(-1)
+    a = np.asarray(angle_deg, dtype=float).reshape(-1)
+    return np.column_stack([scale(f, *force_range_n), scale(a, *angle_range_deg)])
+
+
+def _affine(lo: float, hi: float) -> tuple[float, float]:
+    """(gain, offset) with normalised = gain * v + offset."""
+    if hi - lo <= 0.0:
+        return 0.0, 0.0
+    g = 2.0 / (hi - lo)
+    return g, -1.0 - g * lo
+
+
+def data_hash(force_n: np.ndarray, angle_deg: np.ndarray, depth_mm: np.ndarray,
+              point_ids: np.ndarray | None = None) -> str:
+    """sha256 of the training data (NaN canonicalised), for provenance."""
+    h = hashlib.sha256()
+    for arr in (force_n, angle_deg, depth_mm):
+        a = np.ascontiguousarray(np.asarray(arr, dtype=np.float64))
+        a = np.where(np.isfinite(a), a, np.nan)
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    if point_ids is not None:
+        h.update(np.ascontiguousarray(np.asarray(point_ids, dtype=np.int64)).tobytes())
+    return h.hexdigest()
+
+
+class RegionModel:
+    """A trained region network (plus its bootstrap members), served in numpy.
+
+    Weights (raw, as trained): ``w1`` (B,H,2), ``b1`` (B,H), ``w2`` (B,L,H), ``b2`` (B,L)
+    act on normalised inputs and give normalised depth; member 0 is the full-data fit.
+    ``predict_mm`` is not thread-safe (it reuses buffers): one model per serving thread.
+    """
+
+    def __init__(self, w1: np.ndarray, b1: np.ndarray, w2: np.ndarray, b2: np.ndarray, *,
+                 x_mm: np.ndarray, force_range_n: tuple[float, float],
+                 angle_range_deg: tuple[float, float] = ANGLE_RANGE_DEG, depth_scale_mm: float,
+                 activation: str = "tanh", meta: dict[str, Any] | None = None) -> None:
+        self.w1 = np.ascontiguousarray(w1, dtype=np.float64)
+        self.b1 = np.ascontiguousarray(b1, dtype=np.float64)
+        self.w2 = np.ascontiguousarray(w2, dtype=np.float64)
+        self.b2 = np.ascontiguousarray(b2, dtype=np.float64)
+        if self.w1.ndim == 2:
+            self.w1, self.b1, self.w2, self.b2 = self.w1[None], self.b1[None], self.w2[None], self.b2[None]
+        self.x_mm = np.asarray(x_mm, dtype=np.float64).copy()
+        self.force_range_n = (float(force_range_n[0]), float(force_range_n[1]))
+        self.angle_range_deg = (float(angle_range_deg[0]), float(angle_range_deg[1]))
+        self.depth_scale_mm = float(depth_scale_mm)
+        self.activation = activation
+        self.meta: dict[str, Any] = dict(meta or {})
+        if self.w2.shape[1] != self.x_mm.shape[0]:
+            raise ValueError(f"model has {self.w2.shape[1]} outputs but the grid has {self.x_mm.shape[0]}")
+        self._fold()
+
+    # -- serving ------------------------------------------------------------------------
+    @property
+    def n_members(self) -> int:
+        return int(self.w1.shape[0])
+
+    @property
+    def hidden_units(self) -> int:
+        return int(self.w1.shape[1])
+
+    @property
+    def outputs(self) -> int:
+        return int(self.w2.shape[1])
+
+    def _fold(self) -> None:
+        """Fold input normalisation, a logistic hidden layer and the depth scale into the
+        weights, so serving is h = tanh(wf F + wa α + b); depth_mm = W h + c."""
+        gf, of = _affine(*self.force_range_n)
+        ga, oa = _affine(*self.angle_range_deg)
+        w1f = self.w1[:, :, 0] * gf
+        w1a = self.w1[:, :, 1] * ga
+        b1 = self.b1 + self.w1[:, :, 0] * of + self.w1[:, :, 1] * oa
+        w2 = self.w2 * self.depth_scale_mm
+        b2 = self.b2 * self.depth_scale_mm
+        if self.activation == "sigmoid":
+            # logistic(z) = (1 + tanh(z / 2)) / 2
+            w1f, w1a, b1 = w1f / 2.0, w1a / 2.0, b1 / 2.0
+            b2 = b2 + 0.5 * w2.sum(axis=2)
+            w2 = 0.5 * w2
+        self._w1f, self._w1a, self._b1f = w1f, w1a, b1
+        self._w2f, self._b2f = np.ascontiguousarray(w2), b2
+        # Member 0's serving arrays and buffers, contiguous for np.dot(out=).
+        self._s_w1f = np.ascontiguousarray(w1f[0])
+        self._s_w1a = np.ascontiguousarray(w1a[0])
+        self._s_b1 = np.ascontiguousarray(b1[0])
+        self._s_w2 = np.ascontiguousarray(w2[0])
+        self._s_b2 = np.ascontiguousarray(b2[0])
+        self._h = np.empty(self.hidden_units)
+        self._tmp = np.empty(self.hidden_units)
+        self._o = np.empty(self.outputs)
+
+    def predict_mm(self, force_n: float, angle_deg: float, out: np.ndarray | None = None) -> np.ndarray:
+        """Depth profile (L,) in mm for one query (full-data member); numpy only.
+
+        Pass ``out`` (L,) float64 to avoid the one allocation (the copy of the result).
+        """
+        h, tmp, o = self._h, self._tmp, self._o
+        np.multiply(self._s_w1f, force_n, out=h)
+        np.multiply(self._s_w1a, angle_deg, out=tmp)
+        h += tmp
+        h += self._s_b1
+        np.tanh(h, out=h)
+        np.dot(self._s_w2, h, out=o)
+        o += self._s_b2
+        if out is None:
+            return o.copy()
+        out[...] = o
+        return out
+
+    def predict_batch_mm(self, force_n: np.ndarray, angle_deg: np.ndarray) -> np.ndarray:
+        """Depth profiles (Q,L) in mm for Q queries (full-data member)."""
+        f = np.asarray(force_n, dtype=float).reshape(-1, 1)
+        a = np.asarray(angle_deg, dtype=float).reshape(-1, 1)
+        h = np.tanh(f * self._s_w1f + a * self._s_w1a + self._s_b1)
+        return h @ self._s_w2.T + self._s_b2
+
+    def predict_members_mm(self, force_n: np.ndarray, angle_deg: np.ndarray) -> np.ndarray:
+        """Depth profiles (B,Q,L) in mm from every member (member 0 = full data)."""
+        f = np.asarray(force_n, dtype=float).reshape(1, -1, 1)
+        a = np.asarray(angle_deg, dtype=float).reshape(1, -1, 1)
+        h = np.tanh(f * self._w1f[:, None, :] + a * self._w1a[:, None, :] + self._b1f[:, None, :])
+        return np.einsum("bqh,blh->bql", h, self._w2f) + self._b2f[:, None, :]
+
+    def predict_ensemble(self, force_n: float | np.ndarray, angle_deg: float | np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+        """(mean, std) in mm over the bootstrap members: (L,) for a scalar query, else (Q,L).
+
+        With no bootstrap members the mean is the full-data prediction and std is 0.
+        """
+        scalar = np.ndim(force_n) == 0 and np.ndim(angle_deg) == 0
+        f, a = np.broadcast_arrays(np.asarray(force_n, dtype=float), np.asarray(angle_deg, dtype=float))
+        p = self.predict_members_mm(f.reshape(-1), a.reshape(-1))
+        boot = p[1:] if self.n_members > 1 else p[:1]
+        mean = boot.mean(axis=0)
+        std = boot.std(axis=0, ddof=1) if boot.shape[0] > 1 else np.zeros_like(mean)
+        return (mean[0], std[0]) if scalar else (mean, std)
+
+    # -- torch forward (training-time form; the serving reference) ------------------------
+    def torch_forward_mm(self, force_n: np.ndarray, angle_deg: np.ndarray, member: int = 0) -> np.ndarray:
+        """The same net evaluated by torch with the training-time normalisation (Q,L) mm."""
+        import torch
+        x = torch.from_numpy(_normalize_inputs(np.atleast_1d(force_n), np.atleast_1d(angle_deg),
+                                               self.force_range_n, self.angle_range_deg))
+        with torch.no_grad():
+            y = _torch_forward(x, torch.from_numpy(self.w1[member:member + 1]),
+                               torch.from_numpy(self.b1[member:member + 1]),
+                               torch.from_numpy(self.w2[member:member + 1]),
+                               torch.from_numpy(self.b2[member:member + 1]), self.activation)
+        return y[0].numpy() * self.depth_scale_mm
+
+    def torch_module(self) -> Any:
+        """A plain ``torch.nn.Sequential`` of the full-data member taking raw (F, α) -> mm."""
+        import torch
+        lin1 = torch.nn.Linear(2, self.hidden_units, dtype=torch.float64)
+        lin2 = torch.nn.Linear(self.hidden_units, self.outputs, dtype=torch.float64)
+        gf, of = _affine(*self.force_range_n)
+        ga, oa = _affine(*self.angle_range_deg)
+        with torch.no_grad():
+            lin1.weight.copy_(torch.from_numpy(self.w1[0] * np.array([gf, ga])))
+            lin1.bias.copy_(torch.from_numpy(self.b1[0] + self.w1[0] @ np.array([of, oa])))
+            lin2.weight.copy_(torch.from_numpy(self.w2[0] * self.depth_scale_mm))
+            lin2.bias.copy_(torch.from_numpy(self.b2[0] * self.depth_scale_mm))
+        act = torch.nn.Tanh() if self.activation == "tanh" else torch.nn.Sigmoid()
+        return torch.nn.Sequential(lin1, act, lin2).eval()
+
+    # -- persistence -----------------------------------------------------------------------
+    def _defining(self) -> dict[str, Any]:
+        return {"format": FORMAT, "activation": self.activation, "hidden_units": self.hidden_units,
+                "outputs": self.outputs, "members": self.n_members,
+                "force_range_n": list(self.force_range_n), "angle_range_deg": list(self.angle_range_deg),
+                "depth_scale_mm": self.depth_scale_mm}
+
+    def _weights_bytes(self) -> bytes:
+        return b"".join(np.ascontiguousarray(a, dtype="<f8").tobytes()
+                        for a in (self.w1, self.b1, self.w2, self.b2, self.x_mm))
+
+    def model_hash(self) -> str:
+        """sha256 of what defines the predictions: weights, grid, ranges, scale, activation."""
+        h = hashlib.sha256(json.dumps(self._defining(), sort_keys=True).encode())
+        h.update(self._weights_bytes())
+        return h.hexdigest()
+
+    def save(self, path: str | Path) -> Path:
+        """Write ``<path>.npz`` (weights) and ``<path>.json`` (metadata), each atomically.
+
+        The JSON names the weights' hash, so a crash between the two renames is
+        detected by :meth:`load` rather than silently pairing old and new files.
+        """
+        base = Path(path)
+        if base.suffix in (".npz", ".json"):
+            base = base.with_suffix("")
+        buf = io.BytesIO()
+        np.savez(buf, w1=self.w1, b1=self.b1, w2=self.w2, b2=self.b2, x_mm=self.x_mm)
+        atomic_write_bytes(base.with_suffix(".npz"), buf.getvalue())
+        meta = dict(self.meta)
+        meta.update(self._defining())
+        meta.update({
+            "units": {"force": "N", "angle": "deg", "depth": "mm", "x": "mm",
+                      "outputs": "depth along -n (mm) = normalised output * depth_scale_mm"},
+            "grid": {"x0_mm": float(self.x_mm[0]), "x1_mm": float(self.x_mm[-1]), "samples": self.outputs},
+            "weights_sha256": hashlib.sha256(self._weights_bytes()).hexdigest(),
+            "model_hash": self.model_hash(),
+        })
+        atomic_write_json(base.with_suffix(".json"), meta)
+        return base.with_suffix(".npz")
+
+    @staticmethod
+    def load(path: str | Path) -> "RegionModel":
+        """Read a model written by :meth:`save`; refuses a weights/metadata mismatch."""
+        base = Path(path)
+        if base.suffix in (".npz", ".json"):
+            base = base.with_suffix("")
+        meta = json.loads(base.with_suffix(".json").read_text(encoding="utf-8"))
+        if meta.get("format") != FORMAT:
+            raise ValueError(f"{base}.json: not a {FORMAT} file")
+        with np.load(base.with_suffix(".npz"), allow_pickle=False) as z:
+            arrays = {k: z[k] for k in ("w1", "b1", "w2", "b2", "x_mm")}
+        model = RegionModel(arrays["w1"], arrays["b1"], arrays["w2"], arrays["b2"], x_mm=arrays["x_mm"],
+                            force_range_n=tuple(meta["force_range_n"]),
+                            angle_range_deg=tuple(meta["angle_range_deg"]),
+                            depth_scale_mm=meta["depth_scale_mm"], activation=meta["activation"], meta=meta)
+        if hashlib.sha256(model._weights_bytes()).hexdigest() != meta.get("weights_sha256"):
+            raise ValueError(f"{base}.npz does not match the weights hash in {base}.json")
+        if model.model_hash() != meta.get("model_hash"):
+            raise ValueError(f"{base}: model hash mismatch")
+        return model
+
+
+# -- training -------------------------------------------------------------------------------
+
+def _torch_forward(x: Any, w1: Any, b1: Any, w2: Any, b2: Any, activation: str) -> Any:
+    """x (M,2) -> (B,M,L) normalised depth for stacked members."""
+    import torch
+    z = torch.einsum("bhi,mi->bmh", w1, x) + b1[:, None, :]
+    h = torch.tanh(z) if activation == "tanh" else torch.sigmoid(z)
+    return torch.einsum("bmh,blh->bml", h, w2) + b2[:, None, :]
+
+
+def _init_weights(rng: np.random.Generator, members: int, hidden: int, outputs: int,
+                  y_mean: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Nguyen-Widrow-like init (as Matlab's default for the paper's nets): hidden units'
+    active regions spread over the [-1, 1]^2 input square; outputs start at the mean profile."""
+    gain = 0.7 * hidden ** 0.5
+    direction = rng.normal(size=(members, hidden, 2))
+    direction /= np.linalg.norm(direction, axis=2, keepdims=True)
+    w1 = direction * gain
+    b1 = gain * rng.uniform(-1.0, 1.0, size=(members, hidden))
+    w2 = rng.uniform(-1.0, 1.0, size=(members, outputs, hidden)) / hidden ** 0.5 * 0.1
+    b2 = np.broadcast_to(y_mean, (members, outputs)).copy()
+    return w1, b1, w2, b2
+
+
+def bootstrap_point_weights(point_ids: np.ndarray, members: int, rng: np.random.Generator) -> np.ndarray:
+    """(members+1, M) row weights: row 0 all ones; rows 1.. draw the distinct probe points
+    with replacement, and every profile of a point gets the point's draw count."""
+    ids = np.asarray(point_ids)
+    uniq, inverse = np.unique(ids, return_inverse=True)
+    weights = np.ones((members + 1, ids.shape[0]))
+    for b in range(1, members + 1):
+        counts = np.bincount(rng.integers(0, uniq.shape[0], uniq.shape[0]), minlength=uniq.shape[0])
+        if counts.max() == 0:
+            counts[:] = 1
+        weights[b] = counts[inverse]
+    return weights
+
+
+def fit_region_model(force_n: np.ndarray, angle_deg: np.ndarray, depth_mm: np.ndarray, x_mm: np.ndarray,
+                     point_ids: np.ndarray | None = None, mask: np.ndarray | None = None,
+                     config: TrainConfig = TrainConfig(), force_range_n: tuple[float, float] | None = None,
+                     depth_scale: float | None = None,
+                     noise_mm: float | np.ndarray | None = None) -> RegionModel:
+    """Fit one region's network (and bootstrap members) to averaged profiles.
+
+    ``force_n``, ``angle_deg`` (M,): the measured |F| (N) and commanded α (deg) of each
+    profile; ``depth_mm`` (M,L): averaged profiles on the grid ``x_mm`` (NaN missing);
+    ``point_ids`` (M,): which probe point each profile came from (bootstrap unit; default:
+    every profile its own point); ``mask`` (M,L): optional extra validity (False = ignore).
+    ``force_range_n`` defaults to the data's [min, max]; ``depth_scale`` to its deepest depth.
+    ``noise_mm``: the standard error of the averaged profiles (scalar or (M,L), e.g.
+    ``std / sqrt(count)`` from :func:`profiles.average_profiles`). When given, training
+    stops once the fit is as close to the data as the noise allows (the discrepancy
+    principle: masked MSE <= mean noise variance): with 45 hidden units and a few dozen
+    profiles the net can fit the noise itself, which only hurts unseen (F, α).
+    Deterministic for a given config.seed (numpy draws the init and the resamples).
+    """
+    import torch
+
+    t0 = time.perf_counter()
+    f = np.asarray(force_n, dtype=float).reshape(-1)
+    a = np.asarray(angle_deg, dtype=float).reshape(-1)
+    y_mm = np.asarray(depth_mm, dtype=float)
+    if y_mm.ndim != 2 or y_mm.shape[0] != f.shape[0] or a.shape != f.shape:
+        raise ValueError(f"need (M,) forces and angles and (M,L) depths; got {f.shape}, {a.shape}, {y_mm.shape}")
+    if y_mm.shape[1] != np.asarray(x_mm).shape[0]:
+        raise ValueError("depth profiles and grid differ in length")
+    ids = np.arange(f.shape[0]) if point_ids is None else np.asarray(point_ids).reshape(-1)
+    valid = np.isfinite(y_mm)
+    if mask is not None:
+        valid &= np.asarray(mask, dtype=bool)
+    if not valid.any():
+        raise ValueError("no valid depth samples to train on")
+    f_range = force_range_n or (float(f.min()), float(f.max()))
+    scale = float(depth_scale) if depth_scale is not None else depth_scale_mm(np.where(valid, y_mm, np.nan))
+    y = np.where(valid, y_mm / scale, 0.0)
+
+    goal = config.loss_goal
+    if noise_mm is not None:
+        noise = np.broadcast_to(np.asarray(noise_mm, dtype=float), y.shape)
+        noise_ok = valid & np.isfinite(noise)
+        if noise_ok.any():
+            goal = max(goal, float(np.mean((noise[noise_ok] / scale) ** 2)))
+
+    rng = np.random.default_rng(config.seed)
+    members = config.ensemble
+    row_w = bootstrap_point_weights(ids, members, rng)
+    with np.errstate(invalid="ignore"):
+        y_mean = np.where(valid.any(axis=0), y.sum(axis=0) / np.maximum(valid.sum(axis=0), 1), 0.0)
+    init = _init_weights(rng, members + 1, config.hidden_units, y.shape[1], y_mean)
+
+    x_t = torch.from_numpy(_normalize_inputs(f, a, f_range, ANGLE_RANGE_DEG))
+    y_t = torch.from_numpy(y)
+    w_t = torch.from_numpy(row_w)[:, :, None] * torch.from_numpy(valid.astype(np.float64))[None]
+    denom = w_t.sum(dim=(1, 2)).clamp_min(1e-12)
+    params = [torch.from_numpy(p.copy()).requires_grad_(True) for p in init]
+    active = torch.ones(members + 1, dtype=torch.float64)
+    epochs = [0] * (members + 1)
+    reason = ["max_epochs"] * (members + 1)
+    history: list[np.ndarray] = []
+    lag = max(1, config.plateau_patience // config.check_every)
+
+    def member_losses() -> Any:
+        pred = _torch_forward(x_t, *params, config.activation)
+        return ((pred - y_t[None]) ** 2 * w_t).sum(dim=(1, 2)) / denom
+
+    opt = torch.optim.Rprop(params, lr=config.rprop_lr, etas=config.rprop_etas,
+                            step_sizes=config.rprop_step_sizes)
+    epoch = 0
+    for epoch in range(1, config.stages * config.epochs_per_stage + 1):
+        opt.zero_grad(set_to_none=False)
+        losses = member_losses()
+        # Stopped members get zero gradient, and Rprop leaves a zero-gradient weight alone.
+        (losses * active).sum().backward()
+        opt.step()
+        if epoch % config.check_every:
+            continue
+        current = losses.detach().numpy().copy()
+        history.append(current)
+        for b in range(members + 1):
+            if active[b] == 0:
+                continue
+            if current[b] <= goal:
+                active[b], epochs[b], reason[b] = 0.0, epoch, "goal"
+            elif len(history) > lag:
+                old = history[-1 - lag][b]
+                if old - current[b] <= config.plateau_rel_tol * old:
+                    active[b], epochs[b], reason[b] = 0.0, epoch, "plateau"
+        if not bool(active.any()):
+            break
+    for b in range(members + 1):
+        if active[b] != 0:
+            epochs[b] = epoch
+    with torch.no_grad():
+        final = member_losses().numpy().tolist()
+    w1, b1, w2, b2 = (p.detach().numpy().copy() for p in params)
+    report = TrainReport(mse_norm=[float(v) for v in final], epochs=epochs, stop_reason=reason,
+                         train_s=time.perf_counter() - t0, n_profiles=int(f.shape[0]),
+                         n_points=int(np.unique(ids).shape[0]), valid_fraction=float(valid.mean()),
+                         extra={"loss_goal_norm": goal})
+    meta = {
+        "train_mse_norm": report.mse_norm[0],
+        "training": asdict(report),
+        "config": asdict(config),
+        "seed": config.seed,
+        "data_sha256": data_hash(f, a, np.where(valid, y_mm, np.nan), ids),
+        "versions": {"torch": torch.__version__, "numpy": np.__version__, "python": platform.python_version()},
+    }
+    return RegionModel(w1, b1, w2, b2, x_mm=np.asarray(x_mm, dtype=float), force_range_n=f_range,
+                       angle_range_deg=ANGLE_RANGE_DEG, depth_scale_mm=scale,
+                       activation=config.activation, meta=meta)
