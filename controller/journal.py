@@ -551,12 +551,20 @@ class Journal:
     # ------------------------------------------------------------------ opening
     @staticmethod
     def _connect(path: Path, readonly: bool) -> sqlite3.Connection:
+        """Open and configure a connection; the file must already be a journal of a known schema
+        (checked before anything is written to it, so a foreign SQLite file stays untouched)."""
         if readonly:
             uri = "file:" + urllib.parse.quote(str(path)) + "?mode=ro"
             conn = sqlite3.connect(uri, uri=True, isolation_level=None, timeout=10.0)
             conn.execute("PRAGMA query_only=ON")
         else:
             conn = sqlite3.connect(str(path), isolation_level=None, timeout=10.0)
+        try:
+            Journal._check_schema(conn, path)
+        except BaseException:
+            conn.close()
+            raise
+        if not readonly:
             mode = conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
             if str(mode).lower() != "wal":
                 conn.close()
@@ -646,11 +654,6 @@ class Journal:
         held = SessionLock(d).acquire() if lock else None
         try:
             conn = cls._connect(path, readonly=False)
-            try:
-                cls._check_schema(conn, path)
-            except BaseException:
-                conn.close()
-                raise
             journal = cls(d, conn, readonly=False, lock=held, run_id=None)
             journal._start_run("resume")
             return journal
@@ -667,22 +670,20 @@ class Journal:
         if not path.exists():
             raise InputError("no session journal here (expected journal.sqlite)", path=str(d))
         conn = cls._connect(path, readonly=True)
-        try:
-            cls._check_schema(conn, path)
-        except BaseException:
-            conn.close()
-            raise
         return cls(d, conn, readonly=True, lock=None, run_id=None)
 
     @staticmethod
     def _check_schema(conn: sqlite3.Connection, path: Path) -> None:
+        conn.execute("PRAGMA busy_timeout=10000")
         try:
             app_id = conn.execute("PRAGMA application_id").fetchone()[0]
+            if app_id != APPLICATION_ID:
+                raise JournalCorruption(f"{path}: not an elastoprobe session journal")
             row = conn.execute("SELECT max(version) FROM schema_version").fetchone()
         except sqlite3.DatabaseError as exc:
             raise JournalCorruption(f"{path}: not a readable session journal ({exc})") from None
-        if app_id != APPLICATION_ID or row is None or row[0] is None:
-            raise JournalCorruption(f"{path}: not an elastoprobe session journal")
+        if row is None or row[0] is None:
+            raise JournalCorruption(f"{path}: session journal without a schema version")
         version = int(row[0])
         if version > SCHEMA_VERSION:
             raise JournalError(f"{path}: journal schema version {version} is newer than this "
