@@ -164,9 +164,10 @@ class _FileLock:
         self.release()
 
     def __del__(self) -> None:   # pragma: no cover - safety net only
-        if self._fd is not None:
+        fd = getattr(self, "_fd", None)
+        if fd is not None:
             try:
-                os.close(self._fd)
+                os.close(fd)
             except OSError:
                 pass
 
