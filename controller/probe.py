@@ -128,7 +128,8 @@ class ProbeExecutor:
 
     # ------------------------------------------------------------------ public
     def probe(self, target: ProbeTarget, angle_deg: float, levels: list[ForceLevel],
-              on_step_done: Callable[[StepData], None]) -> None:
+              on_step_done: Callable[[StepData], None],
+              before_level: Callable[[ForceLevel], None] = lambda level: None) -> None:
         """Probe one target at one angle through ``levels`` (increasing forces).
 
         Calls ``on_step_done`` once per completed level; raises ProbeFault on failure
@@ -165,6 +166,7 @@ class ProbeExecutor:
         for k, level in enumerate(levels):
             if k > 0:
                 self.machine.fire("next_level")
+            before_level(level)
             motion = self.cell.arm.regulate_force(d, level.force_n, s.force_rate_n_s)
             ramp_s = level.force_n / s.force_rate_n_s
             state = self._wait(motion, timeout_s=ramp_s * 3.0 + 10.0)

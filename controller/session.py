@@ -1,0 +1,398 @@
+"""One probing session: lock, journal, phases, fault policy, pause and resume (DESIGN §2, §5, §6).
+
+The session is a sequence of phases. Each phase either is already committed in
+the journal (a resumed session reads its outputs back: same cloud, same targets,
+same regions) or is computed now and committed in ONE transaction together with
+the steps it plans. Steps run through the probe executor and the state machine;
+each force step is committed in one transaction. A kill -9 at any moment loses
+at most the step in flight; ``resume`` re-runs only what is not done.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from .config import SessionInputs, effective_motion_limits
+from .devices import Cell
+from .errors import ElastoprobeError, InputError, MotionRefused
+from .geometry import Pose
+from .journal import Journal, SessionMeta, StepPlan, StepRecord, StepResult
+from .locking import CellLock
+from .machine import SessionMachine
+from .probe import ForceLevel, ProbeExecutor, ProbeFault, ProbeSettings, ProbeTarget, StepData
+from .signals import OperatorFlags
+
+EXIT_DONE, EXIT_FAULT, EXIT_PAUSED = 0, 1, 3
+
+
+class SessionPaused(Exception):
+    """The session stopped cleanly with work left (exit 3)."""
+
+
+class SessionAborted(Exception):
+    """The fault policy said abort (exit 1)."""
+
+
+@dataclass
+class Progress:
+    """What the progress display and ``status`` show."""
+
+    phase: str = ""
+    state: str = "idle"
+    target: int | None = None
+    steps_done: int = 0
+    steps_total: int = 0
+    robot_s: float = 0.0
+    started_wall_s: float = field(default_factory=time.monotonic)
+
+    def eta_robot_s(self) -> float | None:
+        if self.steps_done == 0:
+            return None
+        return self.robot_s / self.steps_done * max(self.steps_total - self.steps_done, 0)
+
+
+class JsonlLog:
+    """DIR/log.jsonl: one JSON object per line, flushed per record (readable while running)."""
+
+    def __init__(self, path: Path) -> None:
+        self._f = open(path, "a", encoding="utf-8")
+
+    def write(self, kind: str, **record: Any) -> None:
+        rec = {"t_wall_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds"),
+               "kind": kind, **record}
+        self._f.write(json.dumps(rec, default=_json_default) + "\n")
+        self._f.flush()
+
+    def close(self) -> None:
+        self._f.close()
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    return str(o)
+
+
+class Session:
+    """Runs (or resumes) one session in ``session_dir``."""
+
+    def __init__(self, inputs: SessionInputs, session_dir: Path, seed: int, dry_run: bool = False,
+                 on_progress: Callable[[Progress], None] | None = None) -> None:
+        self.inputs = inputs
+        self.dir = Path(session_dir)
+        self.seed = int(seed)
+        self.dry_run = dry_run
+        self.flags = OperatorFlags()
+        self.progress = Progress()
+        self.on_progress = on_progress or (lambda p: None)
+        self.journal: Journal | None = None
+        self.cell: Cell | None = None
+        self.log: JsonlLog | None = None
+        self._current_step: int | None = None
+
+    # ------------------------------------------------------------------ entry points
+    def run(self, resume: bool = False) -> int:
+        from .cellfactory import build_cell
+
+        self.flags.install()
+        cell_lock = CellLock(self.inputs.cell.name)
+        try:
+            cell_lock.acquire()
+            self.journal = self._open_journal(resume)
+            self.log = JsonlLog(self.dir / "log.jsonl")
+            self.log.write("session_start", resume=resume, seed=self.seed, plan=self.inputs.plan.name)
+            built = build_cell(self.inputs, self.seed, dry_run=self.dry_run)
+            self.cell = built.cell
+            self.world = built
+            self._record_identities()
+            code = self._run_phases(resume)
+            return code
+        finally:
+            if self.cell is not None:
+                self.cell.close()
+            if self.journal is not None:
+                self.journal.close()
+            if self.log is not None:
+                self.log.close()
+            cell_lock.release()
+            self.flags.restore()
+
+    # ------------------------------------------------------------------ journal
+    def _open_journal(self, resume: bool) -> Journal:
+        from .provenance import collect_provenance
+
+        plan_text = self.inputs.plan_path.read_bytes()
+        cell_text = self.inputs.cell_path.read_bytes()
+        if resume:
+            journal = Journal.open(self.dir)
+            journal.verify_inputs(plan_text, cell_text)
+            return journal
+        prov = collect_provenance(self.inputs.plan_path, self.inputs.cell_path, self._calibration_path())
+        prov["seed"] = self.seed
+        prov["dry_run"] = self.dry_run
+        prov["object_file"] = str(self.inputs.object_file())
+        return Journal.create(self.dir, SessionMeta(plan_name=self.inputs.plan.name, seed=self.seed,
+                                                    provenance=prov))
+
+    def _calibration_path(self) -> Path | None:
+        c = self.inputs.cell.calibration_file
+        return self.inputs.resolve(self.inputs.cell_path, c) if c else None
+
+    def _record_identities(self) -> None:
+        assert self.journal is not None and self.cell is not None
+        ids = {}
+        for name in ("arm", "ft", "scanner"):
+            ident = getattr(self.cell, name).identity()
+            ids[name] = {"model": ident.model, "serial": ident.serial, "firmware": ident.firmware, **ident.extra}
+        self.journal.set_provenance("devices", ids)
+
+    # ------------------------------------------------------------------ phases
+    def _run_phases(self, resume: bool) -> int:
+        from . import phases
+
+        assert self.journal is not None and self.cell is not None
+        j = self.journal
+        machine = SessionMachine(j.transition_callback(self.cell.clock.now_s, lambda: self._current_step))
+        self.machine = machine
+        self.executor = self._make_executor(machine)
+        ctx = phases.PhaseContext(session=self)
+        try:
+            machine.fire("start")
+            if resume:
+                self._recover_pose()
+            phases.run_all(ctx)
+            machine.fire("finish")
+            j.set_status("done")
+            self._log("session_done")
+            return EXIT_DONE
+        except SessionPaused as exc:
+            self._park()
+            if machine.can("pause"):
+                machine.fire("pause")
+            j.set_status("paused", str(exc))
+            self._log("session_paused", reason=str(exc))
+            return EXIT_PAUSED
+        except SessionAborted as exc:
+            self._park()
+            if machine.can("abort"):
+                machine.fire("abort")
+            j.set_status("aborted", str(exc))
+            self._log("session_aborted", reason=str(exc))
+            return EXIT_FAULT
+
+    def _make_executor(self, machine: SessionMachine) -> ProbeExecutor:
+        from .validation import build_validator
+
+        inputs = self.inputs
+        m = effective_motion_limits(inputs)
+        pr = inputs.plan.probing
+        settings = ProbeSettings(
+            scans_per_step=pr.scans_per_step, settle_s=pr.settle_s, standoff_mm=pr.standoff_mm,
+            force_rate_n_s=pr.force_rate_n_s, force_tolerance_n=pr.force_tolerance_n,
+            contact_force_n=m["contact_force_n"], contact_speed_mm_s=m["contact_speed_mm_s"],
+            free_speed_mm_s=m["free_speed_mm_s"], free_accel_mm_s2=m["free_accel_mm_s2"],
+            search_distance_mm=m["search_distance_mm"], tip_radius_mm=inputs.cell.tool.tip_radius_mm)
+        assert self.cell is not None
+        validator = build_validator(inputs, self.cell, self.world.object_mesh)
+        top_z = float(self.cell.base_to_object.apply(self.world.object_mesh.vertices)[:, 2].max())
+        return ProbeExecutor(self.cell, machine, settings, validator, top_z,
+                             should_stop=lambda: self.flags.stop_now)
+
+    def _recover_pose(self) -> None:
+        """Resume starts by reading |F| and the pose, and unloads/retracts before anything else."""
+        assert self.cell is not None
+        status = self.cell.arm.status()
+        block = self.cell.ft.read_block()
+        force = float(np.linalg.norm(block.force_n[-1])) if len(block) else 0.0
+        self._log("resume_state", force_n=force, tcp_mm=status.tcp_pose.position_mm)
+        self.executor.safe_retract()
+
+    def _park(self) -> None:
+        try:
+            self.executor.safe_retract()
+        except (ProbeFault, ElastoprobeError) as exc:   # parking is best effort; the arm is stopped
+            self._log("park_failed", message=str(exc))
+
+    # ------------------------------------------------------------------ steps
+    def run_steps(self, phase: str, round_: int, targets: dict[int, ProbeTarget]) -> None:
+        """Run every pending step of a phase round, contact by contact, with the fault policy."""
+        assert self.journal is not None
+        j = self.journal
+        self.progress.phase = f"{phase}[{round_}]"
+        while True:
+            self._check_operator()
+            self._check_budget()
+            pending = j.pending_steps(phase=phase, round=round_)
+            if not pending:
+                break
+            group = self._contact_group(pending)
+            target = targets[group[0].plan.target_index]
+            self._run_contact(target, group, targets)
+        self._update_progress()
+
+    def _contact_group(self, pending: list[StepRecord]) -> list[StepRecord]:
+        """Every step of the first pending contact (same phase round, target and angle), by force.
+
+        A contact interrupted half-way is pressed again from its first level, because
+        the force history matters (foam creeps, cardboard dents); levels already done
+        are measured but not stored again.
+        """
+        assert self.journal is not None
+        first = pending[0]
+        same = self.journal.steps(phase=first.phase, round=first.round)
+        group = [r for r in same if r.plan.target_index == first.plan.target_index
+                 and abs(r.plan.angle_deg - first.plan.angle_deg) < 1e-9 and r.status != "skipped"]
+        return sorted(group, key=lambda r: r.plan.force_n)
+
+    def _retry_index(self, step_id: int) -> int:
+        """Faults recorded against a step: its retry number (kills do not count, so a
+        resumed session draws the same simulator noise as an uninterrupted one)."""
+        assert self.journal is not None
+        return sum(1 for f in self.journal.faults() if f.step_id == step_id)
+
+    def _run_contact(self, target: ProbeTarget, group: list[StepRecord], targets: dict[int, ProbeTarget]) -> None:
+        from . import phases
+
+        assert self.journal is not None and self.cell is not None
+        j = self.journal
+        cell = self.cell
+        first = group[0].plan
+        retry = max(self._retry_index(r.step_id) for r in group)
+        done_before = {r.step_id for r in group if r.status == "done"}
+        cell.begin_step((self.seed, first.step_id, retry))
+        self.progress.target = target.index
+        t_start = cell.clock.now_s()
+        step_time = 0.0
+
+        def before_level(level: ForceLevel) -> None:
+            cell.begin_step((self.seed, level.step_id, retry))
+
+        def on_done(data: StepData) -> None:
+            nonlocal step_time
+            if data.step_id in done_before:
+                self._log("step_repressed", step=data.step_id)
+                return
+            self._current_step = data.step_id
+            attempt = j.begin_step(data.step_id)
+            profile, x = phases.step_profile(self, target, data)
+            result = StepResult.from_step_data(data, profile, x)
+            j.commit_step(data.step_id, attempt, result)
+            step_time += data.robot_time_s
+            self._current_step = None
+            self.progress.steps_done += 1
+            self._log("step_done", step=data.step_id, force_n=result.summary["force_measured_n"],
+                      angle_deg=data.angle_deg, target=target.index)
+            self._update_progress()
+
+        levels = [ForceLevel(r.step_id, r.plan.force_n) for r in group]
+        try:
+            self.executor.probe(target, first.angle_deg, levels, on_done, before_level)
+        except MotionRefused as exc:
+            self._handle_fault(ProbeFault("motion_refused", str(exc)), group)
+        except ProbeFault as fault:
+            self._handle_fault(fault, group)
+        finally:
+            overhead = cell.clock.now_s() - t_start - step_time
+            if overhead > 0:
+                j.add_robot_time("travel_and_contact", overhead)
+            self.progress.robot_s = j.robot_time_s()["total"]
+
+    def _handle_fault(self, fault: ProbeFault, group: list[StepRecord]) -> None:
+        """Stop first (the device already did), journal, retract, then follow the policy."""
+        assert self.journal is not None and self.cell is not None
+        j = self.journal
+        self.cell.arm.stop()
+        open_steps = [r for r in group if j.step(r.step_id).status not in ("done", "skipped")]
+        step_id = open_steps[0].step_id if open_steps else None
+        if fault.kind == "operator_stop":
+            self._log("operator_stop", step=step_id)
+            raise SessionPaused("stopped by the operator")
+        policy = self.inputs.plan.fault_policy.for_kind(fault.kind)
+        retries_so_far = self._retry_index(step_id) if step_id is not None else 0
+        action = policy.action
+        if action == "retry" and retries_so_far >= policy.retries:
+            action = "skip_target"
+        raw = fault.trip.raw if fault.trip is not None else None
+        fault_id = j.record_fault(fault.kind, fault.message, t_robot_s=self.cell.clock.now_s(),
+                                  step_id=step_id, policy_action=action, raw=raw)
+        self._log("fault", kind=fault.kind, message=fault.message, step=step_id, action=action)
+        if self.machine.can("fault"):
+            self.machine.fire("fault")
+        self.machine.fire("recover")
+        recovered = self._recover(fault)
+        if not recovered and action in ("retry", "skip_target"):
+            action = "pause"
+        for rec in open_steps:
+            if action == "skip_target":
+                j.skip_step(rec.step_id, f"{fault.kind}: {fault.message}")
+        if action == "pause":
+            raise SessionPaused(f"{fault.kind}: {fault.message}")
+        if action == "abort":
+            raise SessionAborted(f"{fault.kind}: {fault.message}")
+        del fault_id
+        # Back to a known place before the next contact.
+        self.machine.fire("retract")
+
+    def _recover(self, fault: ProbeFault) -> bool:
+        """Make the arm movable again: protective-stop recovery, re-arm, retract. Never clears an e-stop."""
+        assert self.cell is not None
+        arm = self.cell.arm
+        status = arm.status()
+        if status.emergency_stop:
+            return False
+        if status.protective_stop and not arm.recover_protective_stop():
+            return False
+        try:
+            self.executor.safe_retract()
+        except (ProbeFault, ElastoprobeError) as exc:
+            self._log("recovery_failed", message=str(exc))
+            return False
+        # Re-arm only after the state change, below the hysteresis level.
+        for _ in range(50):
+            if arm.rearm():
+                return True
+            self.cell.clock.sleep_s(0.1)
+            self.cell.ft.read_block()
+        return False
+
+    # ------------------------------------------------------------------ operator, budget, progress
+    def _check_operator(self) -> None:
+        if self.flags.pause_requested:
+            raise SessionPaused("pause requested by the operator")
+        finish_by = self.inputs.plan.finish_by
+        if finish_by is not None and _dt.datetime.now(_dt.timezone.utc) >= finish_by:
+            raise SessionPaused(f"finish_by {finish_by.isoformat()} reached")
+
+    def _check_budget(self) -> None:
+        assert self.journal is not None and self.cell is not None
+        budget = self.inputs.plan.budget
+        counts = self.journal.status_counts()
+        if counts.get("done", 0) >= budget.max_steps:
+            raise BudgetSpent(f"step budget of {budget.max_steps} reached")
+        if self.journal.robot_time_s()["total"] / 3600.0 >= budget.max_robot_hours:
+            raise BudgetSpent(f"robot-time budget of {budget.max_robot_hours} h reached")
+
+    def _update_progress(self) -> None:
+        if self.machine is not None:
+            self.progress.state = self.machine.state
+        self.on_progress(self.progress)
+
+    def _log(self, kind: str, **record: Any) -> None:
+        if self.log is not None:
+            self.log.write(kind, **record)
+        if self.journal is not None:
+            t = self.cell.clock.now_s() if self.cell is not None else None
+            self.journal.log_event(kind, record, t_robot_s=t)
+
+
+class BudgetSpent(Exception):
+    """The plan's step or robot-time budget is used up: the session wraps up what it has."""
