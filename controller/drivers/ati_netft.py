@@ -278,13 +278,13 @@ class _Timebase:
     """Sample time = anchor + seq / rate, anchored to the earliest-arriving records.
 
     ``anchor`` follows the lower envelope of (arrival - seq/rate): transport delay only
-    ever makes a record late, never early. It creeps up at ``creep`` s/s (device crystal
-    vs nominal rate), and jumps when a record arrives more than ``max_lag_s`` after its
+    ever makes a record late, never early. It creeps up at no more than ``creep`` s/s
+    (device crystal vs nominal rate: 200 ppm covers ordinary oscillators), and jumps when a record arrives more than ``max_lag_s`` after its
     predicted time (a stalled stream restarting). Times never exceed the arrival time
     and never go backwards.
     """
 
-    def __init__(self, rate_hz: float, max_lag_s: float = 0.02, creep: float = 1e-3) -> None:
+    def __init__(self, rate_hz: float, max_lag_s: float = 0.02, creep: float = 2e-4) -> None:
         self.period_s = 1.0 / rate_hz
         self.max_lag_s = max_lag_s
         self.creep = creep
@@ -305,7 +305,7 @@ class _Timebase:
                 self.anchor_s = candidate
                 self.reanchors += 1
             else:
-                self.anchor_s = allowed
+                self.anchor_s = min(candidate, allowed)
         self._anchor_arrival_s = arrival_s
         t_s = min(self.anchor_s + seq * self.period_s, arrival_s)
         t_s = max(t_s, self.last_t_s)
