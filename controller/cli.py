@@ -110,9 +110,109 @@ def cmd_diagram(args: argparse.Namespace) -> int:
     return EXIT_DONE
 
 
+def _default_out_dir(plan_name: str) -> Path:
+    import datetime as dt
+
+    return Path("sessions") / f"{dt.date.today().isoformat()}-{plan_name}"
+
+
+def _progress_printer(quiet: bool) -> Callable[[object], None]:
+    """A one-line progress display (state, target, steps, robot time, ETA) on stderr."""
+    import time
+
+    last = [0.0]
+    tty = sys.stderr.isatty()
+
+    def show(p: object) -> None:
+        now = time.monotonic()
+        if quiet or now - last[0] < (0.2 if tty else 5.0):
+            return
+        last[0] = now
+        eta = p.eta_robot_s()   # type: ignore[attr-defined]
+        eta_txt = f"{eta / 60:5.1f} min" if eta is not None else "   --   "
+        line = (f"{p.phase:<16} {p.state:<18} target {p.target if p.target is not None else '-':>4}  "  # type: ignore[attr-defined]
+                f"steps {p.steps_done}/{p.steps_total}  robot {p.robot_s / 60:6.1f} min  ETA {eta_txt}")  # type: ignore[attr-defined]
+        print(("\r" + line) if tty else line, end="" if tty else "\n", file=sys.stderr, flush=True)
+
+    return show
+
+
+def _run_session(inputs, out_dir: Path, seed: int, dry_run: bool, resume: bool, quiet: bool) -> int:  # type: ignore[no-untyped-def]
+    from .session import Session
+
+    session = Session(inputs, out_dir, seed, dry_run=dry_run, on_progress=_progress_printer(quiet))
+    code = session.run(resume=resume)
+    if sys.stderr.isatty() and not quiet:
+        print(file=sys.stderr)
+    words = {0: "done", 1: "ended in a fault or was aborted", 3: "paused; continue with: elastoprobe resume " + str(out_dir)}
+    print(f"session {out_dir}: {words.get(code, code)}")
+    report = out_dir / "report" / "index.html"
+    if report.exists():
+        print(f"report: {report}")
+    return code
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from .config import load_session_inputs
+
+    inputs = load_session_inputs(args.plan, args.cell)
+    if inputs.cell.kind == "ur" and not args.dry_run:
+        from .cellfactory import check_real_cell_ready
+        check_real_cell_ready(inputs, allow_stale_calibration=args.allow_stale_calibration)
+    seed = args.seed if args.seed is not None else inputs.plan.seed
+    out = Path(args.out) if args.out else _default_out_dir(inputs.plan.name)
+    return _run_session(inputs, out, seed, args.dry_run, resume=False, quiet=args.quiet)
+
+
+def cmd_resume(args: argparse.Namespace) -> int:
+    from .config import load_session_inputs
+    from .journal import Journal
+
+    j = Journal.open_readonly(args.dir)
+    try:
+        prov = j.provenance()
+        session = j.session()
+    finally:
+        j.close()
+    plan_path = prov.get("plan", {}).get("path")
+    cell_path = prov.get("cell", {}).get("path")
+    if not plan_path or not cell_path:
+        raise InputError("the journal does not name its plan and cell files", path=str(args.dir))
+    inputs = load_session_inputs(plan_path, cell_path)
+    return _run_session(inputs, Path(args.dir), int(session["seed"]), bool(prov.get("dry_run", False)),
+                        resume=True, quiet=args.quiet)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    from .status import show_status
+
+    return show_status(Path(args.dir), follow=args.follow, as_json=args.json)
+
+
+def cmd_pause(args: argparse.Namespace) -> int:
+    from .signals import request_pause
+
+    pid = request_pause(Path(args.dir))
+    print(f"asked the controller (pid {pid}) to pause after the step in flight")
+    return EXIT_DONE
+
+
+def cmd_stop(args: argparse.Namespace) -> int:
+    from .signals import request_stop
+
+    pid = request_stop(Path(args.dir))
+    print(f"asked the controller (pid {pid}) to stop safely now")
+    return EXIT_DONE
+
+
 COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "check": cmd_check,
     "diagram": cmd_diagram,
+    "run": cmd_run,
+    "resume": cmd_resume,
+    "status": cmd_status,
+    "pause": cmd_pause,
+    "stop": cmd_stop,
 }
 
 
@@ -125,6 +225,31 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("plan")
     c.add_argument("--cell", help="cell file (default: the plan's cell, else the simulated cell)")
     c.add_argument("--json", action="store_true", help="print one JSON object")
+
+    r = sub.add_parser("run", help="run a plan (default: on the simulated cell)")
+    r.add_argument("plan")
+    r.add_argument("--cell", help="cell file (default: the plan's cell, else the simulated cell)")
+    r.add_argument("--out", help="session directory (default: sessions/<date>-<plan name>)")
+    r.add_argument("--seed", type=_seed, help="seed (default: the plan's)")
+    r.add_argument("--dry-run", action="store_true",
+                   help="simulated devices behind a real cell's limits, tool geometry and workspace")
+    r.add_argument("--allow-stale-calibration", action="store_true",
+                   help="run a real cell even if its calibration is missing or too old")
+    r.add_argument("--quiet", action="store_true", help="no progress display")
+
+    rs = sub.add_parser("resume", help="continue a paused or killed session where it stopped")
+    rs.add_argument("dir", type=_existing_dir)
+    rs.add_argument("--quiet", action="store_true")
+
+    st = sub.add_parser("status", help="progress, state, faults and ETA of a session")
+    st.add_argument("dir", type=_existing_dir)
+    st.add_argument("--follow", action="store_true", help="keep printing new events until the session ends")
+    st.add_argument("--json", action="store_true")
+
+    pa = sub.add_parser("pause", help="ask a running session to pause after the step in flight (exit 3)")
+    pa.add_argument("dir", type=_existing_dir)
+    so = sub.add_parser("stop", help="ask a running session to stop safely now (exit 3)")
+    so.add_argument("dir", type=_existing_dir)
 
     d = sub.add_parser("diagram", help="write the state machine's Mermaid diagram")
     d.add_argument("--out", default=str(Path(__file__).resolve().parent.parent / "docs" / "state_machine.md"))

@@ -1,0 +1,74 @@
+"""Motion validation before anything is sent (DESIGN §5).
+
+A straight TCP path is accepted only if inverse kinematics exists along it within
+the joint limits without a branch flip (what moveL can execute) and the tool's
+collision shapes (probe, F/T sensor, scanner, flange) clear the object mesh, the
+keep-out boxes and stay inside the workspace along the whole path, not only at
+its end. During contact moves the last millimetres of the probe may touch.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .config import SessionInputs
+from .devices import Cell
+from .errors import MotionRefused
+from .geometry import Pose
+from .kinematics import ArmModel, inverse, linear_path_joints, ur5e
+
+
+def arm_model_for(inputs: SessionInputs) -> ArmModel:
+    """The arm model of a cell: UR5e kinematics, its TCP, and the cell's joint limits."""
+    cell = inputs.cell
+    limits = None
+    if cell.robot.joint_limits_deg is not None:
+        limits = np.radians(np.array(cell.robot.joint_limits_deg, dtype=float))
+    return ur5e(cell.tool.flange_to_tcp.pose(), limits)
+
+
+class PathValidator:
+    """Checks straight TCP paths for reachability and collisions; raises MotionRefused."""
+
+    def __init__(self, model: ArmModel, checker: object | None, seed_joints: np.ndarray,
+                 contact_allowance_mm: float) -> None:
+        self.model = model
+        self.checker = checker
+        self.seed_joints = np.asarray(seed_joints, dtype=float)
+        self.contact_allowance_mm = contact_allowance_mm
+
+    def validate_path(self, start: Pose, end: Pose, contact_allowed: bool = False) -> None:
+        joints = linear_path_joints(self.model, start, end, self.seed_joints)
+        if joints is None:
+            raise MotionRefused(f"no joint path for the straight move to {np.round(end.position_mm, 1).tolist()} mm "
+                                f"(unreachable, outside the joint limits, or through a singularity)")
+        if self.checker is not None:
+            allowance = self.contact_allowance_mm if contact_allowed else 0.0
+            hits = self.checker.check_path(start, end, ignore_tip_mm=allowance)   # type: ignore[attr-defined]
+            if hits:
+                first = hits[0]
+                raise MotionRefused(f"collision: {first.message}")
+        self.seed_joints = np.asarray(joints[-1], dtype=float)
+
+    def reachable_at_all_angles(self, poses: list[Pose]) -> bool:
+        """IK exists within the joint limits for every pose (e.g. every angle of a target)."""
+        return all(inverse(self.model, p, self.seed_joints) is not None for p in poses)
+
+
+def build_validator(inputs: SessionInputs, cell: Cell, object_mesh: object) -> PathValidator:
+    """A validator for a cell: its kinematics, tool shapes, object mesh in the base frame, boxes."""
+    from .collision import Box, SceneChecker, ToolShape
+
+    spec = inputs.cell
+    shapes = [ToolShape(name=s.name, kind=s.kind, pose_in_tcp=s.pose.pose(), radius_mm=s.radius_mm,
+                        length_mm=s.length_mm, size_mm=s.size_mm) for s in spec.tool.shapes]
+    mesh_base = None
+    if object_mesh is not None:
+        mesh_base = object_mesh.copy()            # type: ignore[attr-defined]
+        mesh_base.apply_transform(cell.base_to_object.matrix())
+    lim = spec.limits
+    keep_out = [Box(b.name, np.array(b.min_mm), np.array(b.max_mm)) for b in lim.keep_out]
+    workspace = Box("workspace", np.array(lim.workspace.min_mm), np.array(lim.workspace.max_mm))
+    checker = SceneChecker(shapes, mesh_base, keep_out, workspace)
+    pr = inputs.plan.probing
+    allowance = pr.standoff_mm + lim.search_distance_mm + spec.tool.tip_radius_mm
+    return PathValidator(arm_model_for(inputs), checker, cell.arm.status().joints_rad, allowance)
