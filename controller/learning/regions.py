@@ -1,0 +1,431 @@
+"""Regions of similar elasticity from the survey (DESIGN §2, §7; the paper's clusters).
+
+Input: per surveyed point a feature vector from the cheap probes (see
+:func:`survey_features`: peak depth and dent width at each survey force, compliance
+slope), and the surface graph (neighbour pairs of the neural-gas units).
+
+1. Features are standardised and projected on their principal components (enough for
+   95 % of the variance, at most ``max_dims``), which decorrelates the strongly
+   correlated depth features so a small mixture can describe them.
+2. The number of regions comes from the data: Gaussian mixtures for k = 1..kmax,
+   the one with the lowest BIC wins. Optionally, clusters whose centroids differ by
+   less than ``merge_sigmas`` measurement noises in every feature are merged (the
+   mixture may split a material whose features are not Gaussian).
+3. Spatial coherence on the surface graph: a few passes of iterated conditional
+   modes (each point takes the region maximising its feature log-likelihood plus
+   ``beta`` per neighbour already in that region: ambiguous points follow their
+   neighbours, clear ones keep their own), then connected components per label
+   smaller than ``min_island_points`` are relabelled to their neighbours' majority
+   (recorded in ``stats["islands"]``, so densification can look there again).
+4. Region ids are sorted by the mean of one feature (default column 0, the peak depth
+   at the smallest survey force: region 0 is the stiffest), so reruns on the same data
+   give the same ids.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.special import logsumexp
+
+_MAX_ICM_PASSES = 20
+_MAX_ISLAND_PASSES = 10
+
+
+# -- features ----------------------------------------------------------------------------------
+
+def _half_max_width_mm(x_mm: np.ndarray, depth_mm: np.ndarray) -> tuple[float, float]:
+    """(peak depth, full width at half peak) of one profile; widths interpolated between samples."""
+    ok = np.isfinite(depth_mm)
+    if np.count_nonzero(ok) < 3:
+        return np.nan, np.nan
+    x, d = x_mm[ok], depth_mm[ok]
+    i = int(np.argmax(d))
+    peak = float(d[i])
+    if peak <= 0.0:
+        return peak, 0.0
+    half = peak / 2.0
+
+    def crossing(step: int) -> float:
+        j = i
+        while 0 <= j + step < d.size and d[j + step] > half:
+            j += step
+        k = j + step
+        if not 0 <= k < d.size:
+            return float(x[j])
+        # Linear interpolation between the last sample above half and the first below.
+        frac = (d[j] - half) / (d[j] - d[k]) if d[j] != d[k] else 0.0
+        return float(x[j] + frac * (x[k] - x[j]))
+
+    return peak, crossing(1) - crossing(-1)
+
+
+def survey_features(depth_mm: np.ndarray, x_mm: np.ndarray, forces_n: np.ndarray
+                    ) -> tuple[np.ndarray, list[str]]:
+    """Features (N,D) of surveyed points and their names.
+
+    ``depth_mm`` (N,F,L): each point's averaged profile at each survey force (same angle,
+    e.g. 90°); ``forces_n`` (F,) the measured (or commanded) forces, increasing.
+    Features: ``peak_mm@F`` and ``width_mm@F`` (full width at half peak) for each force,
+    and ``compliance_mm_per_n`` (least-squares slope of peak depth against force) when F > 1.
+    """
+    d = np.asarray(depth_mm, dtype=float)
+    x = np.asarray(x_mm, dtype=float)
+    f = np.asarray(forces_n, dtype=float).reshape(-1)
+    if d.ndim != 3 or d.shape[1] != f.shape[0] or d.shape[2] != x.shape[0]:
+        raise ValueError(f"need (N,F,L) depths for F forces on an L grid; got {d.shape}")
+    n, nf, _ = d.shape
+    peaks = np.empty((n, nf))
+    widths = np.empty((n, nf))
+    for i in range(n):
+        for j in range(nf):
+            peaks[i, j], widths[i, j] = _half_max_width_mm(x, d[i, j])
+    names = [f"peak_mm@{v:g}N" for v in f] + [f"width_mm@{v:g}N" for v in f]
+    cols = [peaks, widths]
+    if nf > 1:
+        fc = f - f.mean()
+        slope = ((peaks - np.nanmean(peaks, axis=1, keepdims=True)) * fc).sum(axis=1) / (fc ** 2).sum()
+        cols.append(slope[:, None])
+        names.append("compliance_mm_per_n")
+    return np.concatenate(cols, axis=1), names
+
+
+# -- graph helpers -----------------------------------------------------------------------------
+
+def _adjacency(n: int, edges: np.ndarray) -> list[np.ndarray]:
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    e = e[(e[:, 0] != e[:, 1])]
+    if e.size and (e.min() < 0 or e.max() >= n):
+        raise ValueError("an edge names a point that does not exist")
+    both = np.concatenate([e, e[:, ::-1]]) if e.size else np.zeros((0, 2), dtype=np.int64)
+    order = np.lexsort((both[:, 1], both[:, 0]))
+    both = both[order]
+    starts = np.searchsorted(both[:, 0], np.arange(n + 1))
+    return [np.unique(both[starts[i]:starts[i + 1], 1]) for i in range(n)]
+
+
+def _neighbour_counts(labels: np.ndarray, neighbours: list[np.ndarray], k: int, idx: int) -> np.ndarray:
+    nb = neighbours[idx]
+    lab = labels[nb]
+    lab = lab[lab >= 0]
+    return np.bincount(lab, minlength=k).astype(float)
+
+
+# -- the region map ----------------------------------------------------------------------------
+
+@dataclass
+class RegionMap:
+    """Regions of the surveyed points.
+
+    ``labels`` (N,): region id per point (0..n_regions-1); ``centroids``/``spread`` (K,D):
+    mean and std of the raw features per region; ``counts`` (K,); ``feature_names``;
+    the classifier (standardisation, projection, per-region Gaussians with a pooled
+    covariance) used by :func:`label_new_points` and :meth:`loglik`; ``stats`` holds the
+    BIC per k, the chosen k, merges, ICM changes and the relabelled islands.
+    """
+
+    labels: np.ndarray
+    n_regions: int
+    centroids: np.ndarray
+    spread: np.ndarray
+    counts: np.ndarray
+    feature_names: list[str]
+    scaler_mean: np.ndarray
+    scaler_std: np.ndarray
+    projection: np.ndarray          # (P,D): standardised features -> model space
+    region_means: np.ndarray        # (K,P) in model space
+    pooled_cov: np.ndarray          # (P,P)
+    log_prior: np.ndarray           # (K,)
+    stats: dict[str, Any] = field(default_factory=dict)
+
+    def transform(self, features: np.ndarray) -> np.ndarray:
+        """Raw features (M,D) -> model space (M,P); NaN features are replaced by the mean."""
+        z = (np.asarray(features, dtype=float) - self.scaler_mean) / self.scaler_std
+        return np.where(np.isfinite(z), z, 0.0) @ self.projection.T
+
+    def loglik(self, features: np.ndarray) -> np.ndarray:
+        """(M,K) log prior + log density of each point's features under each region."""
+        z = self.transform(features)
+        return _gauss_loglik(z, self.region_means, self.pooled_cov) + self.log_prior
+
+    def posterior(self, features: np.ndarray) -> np.ndarray:
+        """(M,K) region probabilities from the features alone."""
+        ll = self.loglik(features)
+        return np.exp(ll - logsumexp(ll, axis=1, keepdims=True))
+
+    def ambiguity(self, features: np.ndarray) -> np.ndarray:
+        """(M,) 1 − (p_best − p_second) in [0, 1]: 1 = the features cannot tell two regions apart."""
+        if self.n_regions < 2:
+            return np.zeros(np.asarray(features).shape[0])
+        p = np.sort(self.posterior(features), axis=1)
+        return 1.0 - (p[:, -1] - p[:, -2])
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form for the journal."""
+        out: dict[str, Any] = {}
+        for k, v in self.__dict__.items():
+            out[k] = v.tolist() if isinstance(v, np.ndarray) else v
+        out["stats"] = _jsonable(self.stats)
+        return out
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> "RegionMap":
+        arrays = {"labels", "centroids", "spread", "counts", "scaler_mean", "scaler_std", "projection",
+                  "region_means", "pooled_cov", "log_prior"}
+        kw = {k: (np.asarray(v, dtype=np.int64 if k in ("labels", "counts") else float) if k in arrays else v)
+              for k, v in d.items()}
+        return RegionMap(**kw)
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
+
+
+def _gauss_loglik(z: np.ndarray, means: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    p = z.shape[1]
+    chol = np.linalg.cholesky(cov)
+    logdet = 2.0 * np.log(np.diag(chol)).sum()
+    out = np.empty((z.shape[0], means.shape[0]))
+    for k in range(means.shape[0]):
+        sol = np.linalg.solve(chol, (z - means[k]).T)
+        out[:, k] = -0.5 * (np.sum(sol ** 2, axis=0) + logdet + p * np.log(2.0 * np.pi))
+    return out
+
+
+def _fit_gaussians(z: np.ndarray, labels: np.ndarray, k: int, reg: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-region means, a pooled within-region covariance (robust for small regions), log priors."""
+    p = z.shape[1]
+    means = np.stack([z[labels == j].mean(axis=0) for j in range(k)])
+    resid = z - means[labels]
+    dof = max(z.shape[0] - k, 1)
+    cov = resid.T @ resid / dof + reg * np.eye(p)
+    counts = np.bincount(labels, minlength=k).astype(float)
+    return means, cov, np.log(counts / counts.sum())
+
+
+def _standardise(features: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    mean = np.nanmean(features, axis=0)
+    std = np.nanstd(features, axis=0)
+    std = np.where(std > 1e-12 * np.maximum(np.abs(mean), 1.0), std, 1.0)
+    z = (features - mean) / std
+    return np.where(np.isfinite(z), z, 0.0), mean, std
+
+
+def _projection(z: np.ndarray, max_dims: int, variance: float = 0.95) -> np.ndarray:
+    if z.shape[0] < 2:
+        return np.eye(z.shape[1])[:1]
+    _, s, vt = np.linalg.svd(z - z.mean(axis=0), full_matrices=False)
+    var = s ** 2
+    if var.sum() <= 0:
+        return vt[:1]
+    keep = int(np.searchsorted(np.cumsum(var) / var.sum(), variance) + 1)
+    return vt[:max(1, min(keep, max_dims, z.shape[0] - 1))]
+
+
+def _choose_mixture(z: np.ndarray, kmax: int, seed: int) -> tuple[np.ndarray, dict[int, float]]:
+    """Labels from the Gaussian mixture with the lowest BIC over k = 1..kmax."""
+    from sklearn.mixture import GaussianMixture
+
+    n = z.shape[0]
+    bics: dict[int, float] = {}
+    best_labels = np.zeros(n, dtype=np.int64)
+    best_bic = np.inf
+    for k in range(1, max(1, min(kmax, n // 2)) + 1):
+        gm = GaussianMixture(n_components=k, covariance_type="full", reg_covar=1e-3, n_init=4,
+                             random_state=seed, max_iter=300)
+        gm.fit(z)
+        bic = float(gm.bic(z))
+        bics[k] = bic
+        if bic < best_bic:
+            best_bic, best_labels = bic, gm.predict(z).astype(np.int64)
+    return best_labels, bics
+
+
+def _compact(labels: np.ndarray) -> tuple[np.ndarray, int]:
+    uniq, inv = np.unique(labels, return_inverse=True)
+    return inv.astype(np.int64), int(uniq.shape[0])
+
+
+def _merge_by_noise(features: np.ndarray, labels: np.ndarray, noise: np.ndarray, sigmas: float
+                    ) -> tuple[np.ndarray, int]:
+    """Merge clusters whose mean features differ by less than ``sigmas`` noises in every feature."""
+    merges = 0
+    while True:
+        labels, k = _compact(labels)
+        if k < 2:
+            return labels, merges
+        cent = np.stack([np.nanmean(features[labels == j], axis=0) for j in range(k)])
+        best: tuple[float, int, int] | None = None
+        for i in range(k):
+            for j in range(i + 1, k):
+                sep = float(np.nanmax(np.abs(cent[i] - cent[j]) / noise))
+                if sep < sigmas and (best is None or sep < best[0]):
+                    best = (sep, i, j)
+        if best is None:
+            return labels, merges
+        labels = np.where(labels == best[2], best[1], labels)
+        merges += 1
+
+
+def _icm(loglik: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray], beta: float,
+         free: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """Iterated conditional modes of loglik + beta * (neighbours in the region); bounded passes."""
+    labels = labels.copy()
+    k = loglik.shape[1]
+    idx = np.arange(labels.shape[0]) if free is None else np.flatnonzero(free)
+    changes = 0
+    for _ in range(_MAX_ICM_PASSES):
+        changed = 0
+        for i in idx:
+            score = loglik[i] + beta * _neighbour_counts(labels, neighbours, k, i)
+            best = int(np.argmax(score))
+            if best != labels[i] and score[best] > score[labels[i]] + 1e-12:
+                labels[i] = best
+                changed += 1
+        changes += changed
+        if not changed:
+            break
+    return labels, changes
+
+
+def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.ndarray],
+                    min_island_points: int) -> tuple[np.ndarray, list[int]]:
+    """Relabel connected same-label components smaller than ``min_island_points`` to the
+    majority label of the points bordering them; isolated points (no neighbours) are kept."""
+    labels = labels.copy()
+    n = labels.shape[0]
+    relabelled: list[int] = []
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    for _ in range(_MAX_ISLAND_PASSES):
+        same = e[labels[e[:, 0]] == labels[e[:, 1]]] if e.size else e
+        graph = coo_matrix((np.ones(same.shape[0]), (same[:, 0], same[:, 1])), shape=(n, n))
+        _, comp = connected_components(graph, directed=False)
+        sizes = np.bincount(comp)
+        changed = False
+        # Smallest islands first, so a pair of touching islands resolves predictably.
+        for c in np.argsort(sizes, kind="stable"):
+            if sizes[c] >= min_island_points:
+                break
+            members = np.flatnonzero(comp == c)
+            border = np.concatenate([neighbours[i] for i in members]) if members.size else members
+            border = border[labels[border] != labels[members[0]]]
+            if border.size == 0:
+                continue
+            votes = np.bincount(labels[border])
+            new = int(np.argmax(votes))
+            labels[members] = new
+            relabelled.extend(int(i) for i in members)
+            changed = True
+        if not changed:
+            break
+    return labels, sorted(set(relabelled))
+
+
+def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list[str] | None = None, *,
+                    kmax: int = 6, beta: float = 1.5, min_island_points: int = 2,
+                    feature_noise: np.ndarray | None = None, merge_sigmas: float = 4.0,
+                    max_dims: int = 3, order_feature: int = 0, seed: int = 0) -> RegionMap:
+    """Cluster surveyed points (features (N,D), surface graph edges (E,2)) into regions.
+
+    ``feature_noise`` (D,): measurement noise of each feature (e.g. the standard error of
+    the peak depth); when given, clusters closer than ``merge_sigmas`` noises in every
+    feature are merged. See the module docstring for the steps.
+    """
+    x = np.asarray(features, dtype=float)
+    if x.ndim != 2 or x.shape[0] == 0:
+        raise ValueError("features must be (N,D) with N >= 1")
+    n, d = x.shape
+    names = list(feature_names) if feature_names is not None else [f"f{i}" for i in range(d)]
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    neighbours = _adjacency(n, e)
+    z_std, mean, std = _standardise(x)
+    proj = _projection(z_std, max_dims)
+    z = z_std @ proj.T
+
+    stats: dict[str, Any] = {}
+    if n >= 4:
+        labels, bics = _choose_mixture(z, kmax, seed)
+    else:
+        labels, bics = np.zeros(n, dtype=np.int64), {1: float("nan")}
+    stats["bic"] = {int(k): v for k, v in bics.items()}
+    labels, k = _compact(labels)
+    stats["mixture_k"] = k
+    merges = 0
+    if feature_noise is not None and k > 1:
+        labels, merges = _merge_by_noise(x, labels, np.asarray(feature_noise, dtype=float), merge_sigmas)
+        labels, k = _compact(labels)
+    stats["merged"] = merges
+
+    reg = 1e-3
+    icm_changes = 0
+    if k > 1:
+        means, cov, log_prior = _fit_gaussians(z, labels, k, reg)
+        labels, icm_changes = _icm(_gauss_loglik(z, means, cov) + log_prior, labels, neighbours, beta)
+        labels, islands = _remove_islands(labels, e, neighbours, min_island_points)
+        labels, k = _compact(labels)
+    else:
+        islands = []
+    stats["icm_changes"] = icm_changes
+    stats["islands"] = islands
+
+    # Stable ids: sort regions by the mean of one feature (then by size, then by first index).
+    order_key = [(float(np.nanmean(x[labels == j, order_feature])), -int(np.sum(labels == j)),
+                  int(np.flatnonzero(labels == j)[0])) for j in range(k)]
+    order = sorted(range(k), key=lambda j: order_key[j])
+    remap = np.empty(k, dtype=np.int64)
+    remap[order] = np.arange(k)
+    labels = remap[labels]
+    means, cov, log_prior = _fit_gaussians(z, labels, k, reg)
+    centroids = np.stack([np.nanmean(x[labels == j], axis=0) for j in range(k)])
+    spread = np.stack([np.nanstd(x[labels == j], axis=0) for j in range(k)])
+    stats["n_regions"] = k
+    return RegionMap(labels=labels, n_regions=k, centroids=centroids, spread=spread,
+                     counts=np.bincount(labels, minlength=k).astype(np.int64), feature_names=names,
+                     scaler_mean=mean, scaler_std=std, projection=proj, region_means=means,
+                     pooled_cov=cov, log_prior=log_prior, stats=stats)
+
+
+def label_new_points(region_map: RegionMap, new_features: np.ndarray, edges: np.ndarray,
+                     beta: float = 1.5) -> np.ndarray:
+    """Labels (M,) of densified points, without re-clustering.
+
+    ``edges`` (E,2) index the combined set: 0..N-1 are the map's points (their labels
+    stay fixed), N..N+M-1 the new ones in order. Each new point takes the region that
+    maximises its feature log-likelihood plus ``beta`` per neighbour in the region.
+    """
+    f = np.asarray(new_features, dtype=float)
+    n_old = region_map.labels.shape[0]
+    m = f.shape[0]
+    if m == 0:
+        return np.zeros(0, dtype=np.int64)
+    ll = region_map.loglik(f)
+    total = np.concatenate([region_map.labels, np.argmax(ll, axis=1)])
+    full_ll = np.zeros((n_old + m, region_map.n_regions))
+    full_ll[n_old:] = ll
+    free = np.zeros(n_old + m, dtype=bool)
+    free[n_old:] = True
+    labels, _ = _icm(full_ll, total, _adjacency(n_old + m, edges), beta, free=free)
+    return labels[n_old:]
+
+
+def propagate_labels(unit_positions_mm: np.ndarray, unit_labels: np.ndarray,
+                     points_mm: np.ndarray) -> np.ndarray:
+    """Region of every cloud point (P,3): the label of its nearest labelled unit."""
+    from scipy.spatial import cKDTree
+
+    _, idx = cKDTree(np.asarray(unit_positions_mm, dtype=float)).query(np.asarray(points_mm, dtype=float))
+    return np.asarray(unit_labels)[idx]

@@ -1,0 +1,119 @@
+import json
+
+import numpy as np
+import pytest
+
+from elastoprobe.controller.learning.profiles import ProfileGrid
+from elastoprobe.controller.learning.regions import (
+    RegionMap, cluster_regions, label_new_points, propagate_labels, survey_features,
+)
+
+X_MM = ProfileGrid(80.0, 256).x_mm
+FORCES_N = np.array([4.0, 12.0])
+
+
+def hertz_normal_mm(x_mm, force_n, e_mpa, nu=0.45, tip_radius_mm=5.0):
+    """Hertz surface displacement under a normal load (mm)."""
+    a = (3 * force_n * tip_radius_mm * (1 - nu ** 2) / (4 * e_mpa)) ** (1 / 3)
+    r = np.abs(x_mm)
+    w = np.empty_like(r)
+    inside = r <= a
+    w[inside] = a ** 2 / tip_radius_mm - r[inside] ** 2 / (2 * tip_radius_mm)
+    ro = r[~inside]
+    w[~inside] = a ** 2 / (np.pi * tip_radius_mm) * ((2 - ro ** 2 / a ** 2) * np.arcsin(a / ro)
+                                                   + np.sqrt(ro ** 2 / a ** 2 - 1))
+    return w
+
+
+def grid_graph(n, spacing_mm=10.0):
+    gx, gy = np.meshgrid(np.arange(n) * spacing_mm, np.arange(n) * spacing_mm, indexing="ij")
+    pos = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(n * n)])
+    edges = [(i * n + j, (i + 1) * n + j) for i in range(n - 1) for j in range(n)]
+    edges += [(i * n + j, i * n + j + 1) for i in range(n) for j in range(n - 1)]
+    return pos, np.array(edges)
+
+
+def survey(seed, e_mpa_of_point, noise_mm=0.02, variability=0.05):
+    """Averaged survey profiles at 90° for each point's modulus, with material variability and noise."""
+    rng = np.random.default_rng(seed)
+    e = np.asarray(e_mpa_of_point, dtype=float) * (1 + variability * rng.normal(size=len(e_mpa_of_point)))
+    d = np.stack([[hertz_normal_mm(X_MM, f, ei) for f in FORCES_N] for ei in e])
+    d += rng.normal(0, noise_mm, d.shape)
+    d[rng.random(d.shape) < 0.03] = np.nan
+    return survey_features(d, X_MM, FORCES_N)
+
+
+N = 8
+POS, EDGES = grid_graph(N)
+TRUE_TWO = (POS[:, 0] >= 40.0).astype(int)        # right half is the stiffer material
+
+
+def test_features_have_names_and_physical_values():
+    f, names = survey(0, [1.0, 3.0], noise_mm=0.0, variability=0.0)
+    assert names == ["peak_mm@4N", "peak_mm@12N", "width_mm@4N", "width_mm@12N", "compliance_mm_per_n"]
+    soft, stiff = f
+    assert soft[0] > stiff[0] and soft[1] > soft[0]
+    assert np.isclose(soft[4], (soft[1] - soft[0]) / 8.0)
+    # Peak equals the Hertz approach δ = a²/R, resolved by the grid.
+    a = (3 * 4.0 * 5.0 * (1 - 0.45 ** 2) / 4.0) ** (1 / 3)
+    assert abs(soft[0] - a ** 2 / 5.0) < 0.01
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_two_materials_give_two_regions(seed):
+    feats, names = survey(seed, np.where(TRUE_TWO == 1, 2.0, 0.8))
+    rm = cluster_regions(feats, EDGES, names, seed=0)
+    assert rm.n_regions == 2
+    # Region 0 is the stiffest (shallowest dent), so ids are stable: 0 = right half here.
+    assert np.mean(rm.labels == 1 - TRUE_TWO) >= 0.97
+    assert rm.centroids[0, 0] < rm.centroids[1, 0]
+    again = cluster_regions(feats, EDGES, names, seed=0)
+    assert np.array_equal(again.labels, rm.labels)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_homogeneous_gives_one_region(seed):
+    feats, names = survey(seed, np.full(N * N, 1.2))
+    rm = cluster_regions(feats, EDGES, names, seed=0)
+    assert rm.n_regions == 1 and np.all(rm.labels == 0)
+
+
+def test_planted_island_is_removed_and_recorded():
+    e = np.where(TRUE_TWO == 1, 2.0, 0.8)
+    island = 2 * N + 2                                  # an interior point of the soft half
+    e[island] = 2.0
+    feats, names = survey(4, e)
+    rm = cluster_regions(feats, EDGES, names, seed=0)
+    assert rm.n_regions == 2
+    assert rm.labels[island] == rm.labels[island + 1] == rm.labels[island - 1]
+    assert island in rm.stats["islands"]
+    # Without the coherence pass (islands allowed) the point keeps its own features' label.
+    raw = cluster_regions(feats, EDGES, names, seed=0, min_island_points=1, beta=0.0)
+    assert raw.labels[island] != raw.labels[island + 1]
+
+
+def test_new_points_labelled_and_map_serialises():
+    feats, names = survey(5, np.where(TRUE_TWO == 1, 2.0, 0.8))
+    rm = cluster_regions(feats, EDGES, names, seed=0)
+    new_feats, _ = survey(6, [0.8, 2.0])
+    # New point N*N sits next to point 0 (soft), N*N+1 next to the last point (stiff).
+    new_edges = np.vstack([EDGES, [[0, N * N], [N * N - 1, N * N + 1]]])
+    new_labels = label_new_points(rm, new_feats, new_edges)
+    assert new_labels.tolist() == [rm.labels[0], rm.labels[N * N - 1]]
+    assert rm.ambiguity(feats).max() < 0.5
+    back = RegionMap.from_dict(json.loads(json.dumps(rm.to_dict())))
+    assert np.array_equal(back.labels, rm.labels)
+    assert np.allclose(back.loglik(new_feats), rm.loglik(new_feats))
+
+
+def test_noise_based_merge_joins_indistinguishable_clusters():
+    feats, names = survey(7, np.where(TRUE_TWO == 1, 2.0, 0.8))
+    huge_noise = np.nanstd(feats, axis=0) * 10
+    rm = cluster_regions(feats, EDGES, names, seed=0, feature_noise=huge_noise)
+    assert rm.n_regions == 1 and rm.stats["merged"] == 1
+
+
+def test_propagate_labels_nearest_unit():
+    units = np.array([[0.0, 0, 0], [10.0, 0, 0]])
+    pts = np.array([[1.0, 0, 0], [9.0, 1, 0], [4.9, 0, 0]])
+    assert propagate_labels(units, np.array([3, 7]), pts).tolist() == [3, 7, 3]
