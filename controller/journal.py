@@ -656,6 +656,7 @@ class Journal:
             conn = cls._connect(path, readonly=False)
             journal = cls(d, conn, readonly=False, lock=held, run_id=None)
             journal._start_run("resume")
+            journal._note_resume(held)
             return journal
         except BaseException:
             if held is not None:
@@ -712,6 +713,14 @@ class Journal:
     def __exit__(self, exc_type: object, *exc: object) -> None:
         self.close("error" if exc_type is not None else None)
 
+    def _note_resume(self, held: SessionLock | None) -> None:
+        """Journal what the previous run left behind: a dead holder's lock, interrupted steps."""
+        if held is not None and held.took_over_from:
+            self.log_event("stale_lock_taken_over", {"previous_holder": held.took_over_from})
+        interrupted = [s.step_id for s in self.steps(statuses=["in_progress"])]
+        if interrupted:
+            self.log_event("interrupted_steps", {"step_ids": interrupted})
+
     def _start_run(self, mode: str) -> None:
         with self.transaction() as c:
             cur = c.execute("INSERT INTO runs (mode, started_utc, pid, host) VALUES (?,?,?,?)",
@@ -743,7 +752,8 @@ class Journal:
             yield self._conn
         except BaseException:
             self._depth = 0
-            self._conn.execute("ROLLBACK")
+            with contextlib.suppress(sqlite3.Error):   # never mask the original error
+                self._conn.execute("ROLLBACK")
             raise
         self._depth = 0
         try:

@@ -239,6 +239,19 @@ def test_kill9_soak_many_random_kills(tmp_path: Path) -> None:
     _kill_and_resume(tmp_path, n_timer_kills=80, seed=2, rounds=12, step_pause_s=0.06)
 
 
+def test_resume_journals_what_the_killed_run_left(tmp_path: Path) -> None:
+    session = tmp_path / "s"
+    assert _run_child(session, crash_at="commit_step:after_arrays@1", step_pause_s=0.0) == -signal.SIGKILL
+    with Journal.open(session, min_free_bytes=0) as j:
+        assert [s.step_id for s in j.steps(statuses=["in_progress"])] == [0]
+        assert j.status_counts()["done"] == 0
+        assert j.events("interrupted_steps")[0]["record"] == {"step_ids": [0]}
+        holder = j.events("stale_lock_taken_over")[0]["record"]["previous_holder"]
+        assert holder["alive"] is False and isinstance(holder["pid"], int)
+        assert [r["mode"] for r in j.summary()["runs"]] == ["create", "resume"]
+        assert j.pending_steps()[0].step_id == 0 and j.pending_steps()[0].attempts == 1
+
+
 def test_check_sound_can_fail(tmp_path: Path) -> None:
     """The oracle itself catches a lost step (so the crash test can fail)."""
     session = tmp_path / "s"
