@@ -287,17 +287,37 @@ def path_samples(start: Pose, end: Pose, step_mm: float, step_deg: float) -> np.
     return np.linspace(0.0, 1.0, n + 1)
 
 
+def singularity_margins(model: ArmModel, joints_rad: np.ndarray) -> tuple[float, float, float]:
+    """How far a configuration is from the UR's three singularities:
+    (wrist: |theta5| folded into [0, 90] deg, elbow: |theta3| folded likewise (deg),
+    shoulder: horizontal distance (mm) of the wrist centre from the plane through the
+    base axis parallel to the shoulder axis, sqrt(r^2 - d4^2))."""
+    q = np.asarray(joints_rad, dtype=float).reshape(6)
+    wrist_deg = math.degrees(math.asin(min(1.0, abs(math.sin(q[4])))))
+    elbow_deg = math.degrees(math.asin(min(1.0, abs(math.sin(q[2])))))
+    p05 = joint_frames(model, q)[5][:3, 3]
+    r2 = p05[0] ** 2 + p05[1] ** 2
+    shoulder_mm = math.sqrt(max(r2 - model.dh_d_mm[3] ** 2, 0.0))
+    return wrist_deg, elbow_deg, shoulder_mm
+
+
 def linear_path_joints(model: ArmModel, start: Pose, end: Pose, seed_joints_rad: np.ndarray | None,
                        step_mm: float = 5.0, step_deg: float = 5.0,
-                       max_joint_step_rad: float = math.radians(15.0)) -> np.ndarray | None:
+                       max_joint_step_rad: float = math.radians(30.0), min_wrist_deg: float = 2.0,
+                       min_elbow_deg: float = 2.0, min_shoulder_mm: float = 20.0) -> np.ndarray | None:
     """Joint angles (N, 6) along the straight TCP path start -> end (positions linear,
-    rotation geodesic), each waypoint seeded by the previous one.
+    rotation geodesic), each waypoint seeded by the previous one (the first by the seed).
 
-    None when moveL cannot do that path: a waypoint is out of reach or limits, or the
-    joints jump between waypoints by more than ``max_joint_step_rad`` (a branch flip or
-    the joint-speed blow-up near a singularity). The waypoints are at most ``step_mm``
-    and ``step_deg`` apart, where a regular configuration moves every joint by well
-    under the bound (about 1 deg per 5 mm, and the wrist about 1:1 with rotation).
+    None when moveL cannot do that path:
+    - a waypoint is out of reach or needs a joint outside its limits;
+    - the joints jump between waypoints by more than ``max_joint_step_rad``: a branch
+      flip, or the joint-rate blow-up beside a singularity. Waypoints are at most
+      ``step_mm`` and ``step_deg`` apart; a regular configuration moves each joint by
+      about 1 deg per 5 mm and the wrist about 1:1 with the tool's rotation, so the
+      default bound (30 deg per waypoint) leaves a wide margin;
+    - a waypoint lies within the given margins of a singularity (see
+      :func:`singularity_margins`): passing exactly through one can be smooth in joint
+      space, but the real controller stops a moveL there.
     """
     fractions = path_samples(start, end, step_mm, step_deg)
     seed = None if seed_joints_rad is None else np.asarray(seed_joints_rad, dtype=float).reshape(6)
@@ -307,6 +327,9 @@ def linear_path_joints(model: ArmModel, start: Pose, end: Pose, seed_joints_rad:
         if q is None:
             return None
         if k > 0 and float(np.max(np.abs(q - out[k - 1]))) > max_joint_step_rad:
+            return None
+        wrist_deg, elbow_deg, shoulder_mm = singularity_margins(model, q)
+        if wrist_deg < min_wrist_deg or elbow_deg < min_elbow_deg or shoulder_mm < min_shoulder_mm:
             return None
         out[k] = q
         seed = q
