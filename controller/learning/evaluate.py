@@ -1,0 +1,219 @@
+"""Honest metrics against the simulator's ground truth (DESIGN §7).
+
+Profiles: RMSE in mm against the noise-free truth over a region of interest (ROI):
+by default, per profile, the samples where the true depth exceeds ``ROI_FRACTION``
+of that profile's true peak (the dent and its rim; the flat far field would dilute
+the error), or any mask the caller passes (e.g. a fixed |x| window). The noise floor
+is the same RMSE of the averaged measured profiles themselves, the best a model
+trained on them can be expected to reach.
+
+Region maps: scored over the points the caller passes, which must be the reachable
+scanned surface only (cloud points with their area weights), after optimal matching
+of predicted to true labels (Hungarian, maximising the matched area).
+"""
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from .profiles import mirror, mirror_angle_deg
+
+ROI_FRACTION = 0.05
+
+
+def roi_mask(truth_mm: np.ndarray, fraction: float = ROI_FRACTION) -> np.ndarray:
+    """(K,L) True where the true depth exceeds ``fraction`` of that profile's true peak."""
+    t = np.atleast_2d(np.asarray(truth_mm, dtype=float))
+    peak = np.nanmax(np.where(np.isfinite(t), t, -np.inf), axis=1, keepdims=True)
+    return np.isfinite(t) & (t > fraction * np.maximum(peak, 0.0)) & (peak > 0)
+
+
+def window_mask(x_mm: np.ndarray, half_width_mm: float) -> np.ndarray:
+    """(L,) a fixed ROI |x| <= half_width_mm."""
+    return np.abs(np.asarray(x_mm, dtype=float)) <= half_width_mm
+
+
+def _rms(diff: np.ndarray, mask: np.ndarray) -> float | None:
+    ok = mask & np.isfinite(diff)
+    if not ok.any():
+        return None
+    return float(np.sqrt(np.mean(diff[ok] ** 2)))
+
+
+def profile_rmse_mm(predicted_mm: np.ndarray, truth_mm: np.ndarray,
+                    roi: np.ndarray | None = None) -> float | None:
+    """RMSE (mm) of predicted (K,L) against noise-free truth (K,L) over the ROI.
+
+    ``roi`` (K,L) or (L,) boolean; default :func:`roi_mask` of the truth. Samples where
+    the prediction is NaN are excluded (report coverage beside the RMSE when predictions
+    can be NaN, e.g. averaged measurements). None if nothing is left to score.
+    """
+    p = np.atleast_2d(np.asarray(predicted_mm, dtype=float))
+    t = np.atleast_2d(np.asarray(truth_mm, dtype=float))
+    mask = roi_mask(t) if roi is None else np.broadcast_to(np.asarray(roi, dtype=bool), t.shape)
+    return _rms(p - t, mask)
+
+
+def noise_floor_mm(averaged_mm: np.ndarray, truth_mm: np.ndarray, roi: np.ndarray | None = None) -> float | None:
+    """RMS (mm) of the averaged measured profiles against the truth over the ROI (NaN ignored)."""
+    return profile_rmse_mm(averaged_mm, truth_mm, roi)
+
+
+def _predict(model: Any, forces_n: np.ndarray, angles_deg: np.ndarray) -> np.ndarray:
+    if callable(model) and not hasattr(model, "predict_batch_mm"):
+        return np.asarray(model(forces_n, angles_deg), dtype=float)
+    return model.predict_batch_mm(forces_n, angles_deg)
+
+
+def mirror_residuals(model: Any, forces_n: np.ndarray, angles_deg: np.ndarray,
+                     x_mm: np.ndarray | None = None) -> np.ndarray:
+    """(F,A) relative mirror residuals: RMS over the grid of p(F, α) − mirror(p(F, 180° − α))
+    divided by the larger peak depth of the two profiles (unitless; 0 = perfect mirror).
+
+    ``model``: a RegionModel, or a callable (forces (Q,), angles (Q,)) -> (Q,L) with ``x_mm``.
+    """
+    x = np.asarray(x_mm if x_mm is not None else model.x_mm, dtype=float)
+    f = np.asarray(forces_n, dtype=float).reshape(-1)
+    a = np.asarray(angles_deg, dtype=float).reshape(-1)
+    ff, aa = np.meshgrid(f, a, indexing="ij")
+    p = _predict(model, ff.ravel(), aa.ravel())
+    q = mirror(_predict(model, ff.ravel(), mirror_angle_deg(aa.ravel())), x)
+    peak = np.maximum(np.nanmax(p, axis=1), np.nanmax(q, axis=1))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = np.sqrt(np.nanmean((p - q) ** 2, axis=1)) / peak
+    rel = np.where(peak > 0, rel, np.nan)
+    return rel.reshape(ff.shape)
+
+
+def mirror_residual(model: Any, forces_n: np.ndarray, angles_deg: np.ndarray,
+                    x_mm: np.ndarray | None = None) -> float:
+    """The mean of :func:`mirror_residuals` (unitless)."""
+    return float(np.nanmean(mirror_residuals(model, forces_n, angles_deg, x_mm)))
+
+
+def depth_monotone_in_force(model: Any, forces_n: np.ndarray, angles_deg: np.ndarray,
+                            tol_mm: float = 1e-3, roi_fraction: float = 0.25,
+                            x_mm: np.ndarray | None = None) -> dict[str, float]:
+    """Does depth grow with force? For each angle, over increasing ``forces_n``:
+
+    ``peak_fraction``: share of consecutive force pairs whose peak depth does not drop by
+    more than ``tol_mm``; ``sample_fraction``: the same per sample, over the samples where
+    the deepest-force profile exceeds ``roi_fraction`` of its peak (the dent itself: the
+    rim may legitimately move as a tangential load shifts the dent).
+    """
+    f = np.sort(np.asarray(forces_n, dtype=float).reshape(-1))
+    a = np.asarray(angles_deg, dtype=float).reshape(-1)
+    ok_peak = ok_samples = n_peak = n_samples = 0
+    for ang in a:
+        p = _predict(model, f, np.full_like(f, ang))
+        peaks = np.nanmax(p, axis=1)
+        ok_peak += int(np.sum(np.diff(peaks) >= -tol_mm))
+        n_peak += f.shape[0] - 1
+        roi = p[-1] > roi_fraction * peaks[-1]
+        step = np.diff(p[:, roi], axis=0)
+        ok_samples += int(np.sum(step >= -tol_mm))
+        n_samples += step.size
+    return {"peak_fraction": ok_peak / n_peak if n_peak else 1.0,
+            "sample_fraction": ok_samples / n_samples if n_samples else 1.0}
+
+
+# -- region maps ---------------------------------------------------------------------------------
+
+def boundary_points(labels: np.ndarray, positions_mm: np.ndarray, radius_mm: float) -> np.ndarray:
+    """Indices of points with a differently-labelled point within ``radius_mm``."""
+    from scipy.spatial import cKDTree
+
+    lab = np.asarray(labels)
+    pos = np.asarray(positions_mm, dtype=float)
+    tree = cKDTree(pos)
+    pairs = tree.query_pairs(radius_mm, output_type="ndarray")
+    if pairs.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    diff = pairs[lab[pairs[:, 0]] != lab[pairs[:, 1]]]
+    return np.unique(diff.ravel())
+
+
+def default_radius_mm(positions_mm: np.ndarray) -> float:
+    """1.5 x the median nearest-neighbour spacing of the points."""
+    from scipy.spatial import cKDTree
+
+    pos = np.asarray(positions_mm, dtype=float)
+    d, _ = cKDTree(pos).query(pos, k=2)
+    return 1.5 * float(np.median(d[:, 1]))
+
+
+def region_map_scores(pred_labels: np.ndarray, true_labels: np.ndarray, area_weights: np.ndarray | None,
+                      positions_mm: np.ndarray, radius_mm: float | None = None) -> dict[str, Any]:
+    """Score a predicted region map against the true material labels.
+
+    All arrays are over the same points (the reachable scanned surface only); ``area_weights``
+    (P,) the surface area each point stands for (None = equal). Predicted labels are matched
+    to true ones by the assignment maximising the matched area; unmatched predicted regions
+    (more predicted than true) count as mislabelled, unmatched true regions get IoU 0.
+
+    Returns ``mislabelled_fraction`` (area), ``per_region_iou`` {true label: IoU},
+    ``worst_region_iou``, ``matching`` {pred: true}, and the boundary distance in mm both
+    ways (every predicted boundary point to the nearest true one and vice versa, pooled):
+    ``boundary_mm_mean``, ``boundary_mm_p90`` — 0 when neither map has a boundary, None
+    when only one has. A boundary point has a differently-labelled point within
+    ``radius_mm`` (default 1.5 x the median point spacing), so distances resolve no finer
+    than the point spacing.
+    """
+    from scipy.spatial import cKDTree
+
+    pred = np.asarray(pred_labels).reshape(-1)
+    true = np.asarray(true_labels).reshape(-1)
+    pos = np.asarray(positions_mm, dtype=float).reshape(-1, 3)
+    w = np.ones(pred.shape[0]) if area_weights is None else np.asarray(area_weights, dtype=float).reshape(-1)
+    if not (pred.shape == true.shape == w.shape) or pos.shape[0] != pred.shape[0]:
+        raise ValueError("labels, weights and positions must cover the same points")
+    p_ids, p_inv = np.unique(pred, return_inverse=True)
+    t_ids, t_inv = np.unique(true, return_inverse=True)
+    overlap = np.zeros((p_ids.size, t_ids.size))
+    np.add.at(overlap, (p_inv, t_inv), w)
+    rows, cols = linear_sum_assignment(overlap, maximize=True)
+    total = float(w.sum())
+    matched = float(overlap[rows, cols].sum())
+    area_p = overlap.sum(axis=1)
+    area_t = overlap.sum(axis=0)
+    per_iou: dict[Any, float] = {t.item(): 0.0 for t in t_ids}
+    for r, c in zip(rows, cols):
+        inter = overlap[r, c]
+        union = area_p[r] + area_t[c] - inter
+        per_iou[t_ids[c].item()] = float(inter / union) if union > 0 else 0.0
+
+    radius = default_radius_mm(pos) if radius_mm is None else float(radius_mm)
+    bp = boundary_points(pred, pos, radius)
+    bt = boundary_points(true, pos, radius)
+    if bp.size == 0 and bt.size == 0:
+        b_mean: float | None = 0.0
+        b_p90: float | None = 0.0
+    elif bp.size == 0 or bt.size == 0:
+        b_mean = b_p90 = None
+    else:
+        d_pt, _ = cKDTree(pos[bt]).query(pos[bp])
+        d_tp, _ = cKDTree(pos[bp]).query(pos[bt])
+        both = np.concatenate([d_pt, d_tp])
+        b_mean, b_p90 = float(both.mean()), float(np.percentile(both, 90))
+    return {
+        "mislabelled_fraction": 1.0 - matched / total if total > 0 else None,
+        "worst_region_iou": min(per_iou.values()) if per_iou else None,
+        "per_region_iou": per_iou,
+        "matching": {p_ids[r].item(): t_ids[c].item() for r, c in zip(rows, cols)},
+        "n_pred_regions": int(p_ids.size),
+        "n_true_regions": int(t_ids.size),
+        "boundary_mm_mean": b_mean,
+        "boundary_mm_p90": b_p90,
+        "boundary_radius_mm": radius,
+    }
+
+
+def heldout_profile_rmse_mm(model: Any, forces_n: np.ndarray, angles_deg: np.ndarray,
+                            truth_fn: Callable[[float, float], np.ndarray]) -> float | None:
+    """RMSE (mm, default ROI) of a model at held-out (F, α) against ``truth_fn(F, α) -> (L,)``."""
+    f = np.asarray(forces_n, dtype=float).reshape(-1)
+    a = np.asarray(angles_deg, dtype=float).reshape(-1)
+    truth = np.stack([truth_fn(float(fi), float(ai)) for fi, ai in zip(f, a)])
+    return profile_rmse_mm(_predict(model, f, a), truth)
