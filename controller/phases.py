@@ -1,0 +1,470 @@
+"""The session's phases (DESIGN §2): cloud, sampling, survey, regions, characterize, models,
+densify rounds, final map.
+
+Each ``phase_*`` either reads its committed outputs back from the journal (a resumed
+session continues from exactly the same targets) or computes them and commits them
+in one transaction together with the steps it plans. ``run_all`` strings them
+together; the session runs the planned steps between them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from .geometry import probe_tcp_pose, scan_direction
+from .journal import StepPlan
+from .learning import profiles as prof
+from .probe import ProbeTarget, StepData
+
+if TYPE_CHECKING:
+    from .learning.models import RegionModel
+    from .session import Session
+
+SURVEY, CHARACTERIZE = "survey", "characterize"
+
+
+@dataclass
+class PhaseContext:
+    session: "Session"
+    cloud_mm: np.ndarray | None = None
+    cloud_normals: np.ndarray | None = None
+    targets: dict[int, ProbeTarget] = field(default_factory=dict)
+    edge_flag: dict[int, bool] = field(default_factory=dict)
+    labels: dict[int, int] = field(default_factory=dict)         # target index -> region
+    n_regions: int = 0
+    models: dict[int, "RegionModel"] = field(default_factory=dict)
+    model_round: int = -1
+
+    @property
+    def grid(self) -> prof.ProfileGrid:
+        m = self.session.inputs.plan.model
+        return prof.ProfileGrid(span_mm=m.profile_span_mm, samples=m.profile_samples)
+
+
+# --------------------------------------------------------------------------- helpers
+def step_profile(session: "Session", target: ProbeTarget, data: StepData) -> tuple[np.ndarray, np.ndarray]:
+    """Averaged depth profile (L,) of one force step on the plan's grid, and the grid x (mm)."""
+    m = session.inputs.plan.model
+    grid = prof.ProfileGrid(span_mm=m.profile_span_mm, samples=m.profile_samples)
+    cell = session.cell
+    assert cell is not None
+    scans = prof.step_scan_points(data.scans_xz_mm, data.scan_pose, cell.tcp_to_scanner, cell.base_to_object)
+    refs = prof.step_scan_points(data.reference_xz_mm, data.reference_pose, cell.tcp_to_scanner,
+                                 cell.base_to_object)
+    depth = prof.profile_from_scans(scans, target.point_mm, target.normal, target.t, grid, refs)
+    return depth, grid.x_mm
+
+
+def _targets_from_arrays(arrays: dict[str, np.ndarray], first_index: int = 0) -> dict[int, ProbeTarget]:
+    pts, nrm, tt = arrays["target_points_mm"], arrays["target_normals"], arrays["target_t"]
+    idx = arrays.get("target_index", np.arange(first_index, first_index + len(pts)))
+    return {int(i): ProbeTarget(int(i), pts[k], nrm[k], tt[k]) for k, i in enumerate(idx)}
+
+
+def _plan_steps(ctx: PhaseContext, target_ids: list[int], angles_deg: list[float], forces_n: list[float],
+                start_order: int) -> list[StepPlan]:
+    """Steps for targets in the given order: per target, per angle, increasing force."""
+    j = ctx.session.journal
+    assert j is not None
+    step_id = j.next_step_id()
+    order = start_order
+    steps = []
+    for ti in target_ids:
+        tgt = ctx.targets[ti]
+        for a in angles_deg:
+            for f in sorted(forces_n):
+                steps.append(StepPlan(step_id=step_id, target_index=ti, point_mm=tgt.point_mm, normal=tgt.normal,
+                                      t=tgt.t, angle_deg=float(a), force_n=float(f), order_index=order))
+                step_id += 1
+                order += 1
+    return steps
+
+
+def _next_order(ctx: PhaseContext) -> int:
+    j = ctx.session.journal
+    assert j is not None
+    recs = j.steps()
+    return (max(r.plan.order_index for r in recs) + 1) if recs else 0
+
+
+def _ordered(ctx: PhaseContext, ids: list[int]) -> list[int]:
+    from .ordering import order_targets
+
+    if len(ids) < 3:
+        return ids
+    cell = ctx.session.cell
+    assert cell is not None
+    pts = cell.base_to_object.apply(np.array([ctx.targets[i].point_mm for i in ids]))
+    order, _, _ = order_targets(pts, travel_z_mm=float(pts[:, 2].max()) + 60.0)
+    return [ids[k] for k in order]
+
+
+# --------------------------------------------------------------------------- phases
+def phase_cloud(ctx: PhaseContext) -> None:
+    from .acquire import acquire_cloud
+    from .learning import cloud as cl
+
+    s = ctx.session
+    j, cell = s.journal, s.cell
+    assert j is not None and cell is not None
+    rec = j.phase("cloud", 0)
+    if rec is not None:
+        ctx.cloud_mm, ctx.cloud_normals = rec.arrays["points_mm"].astype(float), rec.arrays["normals"].astype(float)
+        return
+    plan = s.inputs.plan
+    if plan.cloud.source == "file":
+        pts, normals = cl.load_cloud(s.inputs.resolve(s.inputs.plan_path, plan.cloud.file or ""),
+                                     n_samples=plan.cloud.max_points, seed=s.seed)
+        robot_s = 0.0
+    else:
+        s.machine.fire("sweep")
+        mesh = s.world.object_mesh
+        verts = cell.base_to_object.apply(np.asarray(mesh.vertices))
+        pts, robot_s = acquire_cloud(s.executor, verts.min(axis=0), verts.max(axis=0),
+                                     plan.cloud.sweep_spacing_mm, plan.cloud.sweep_height_mm,
+                                     max_points=plan.cloud.max_points, seed=s.seed)
+        normals = None
+        j.add_robot_time("sweep", robot_s)
+    obj_pts, plane = cl.remove_table(pts, seed=s.seed)
+    if normals is None or len(normals) != len(obj_pts):
+        normals = cl.estimate_normals(obj_pts, k=16)
+    ctx.cloud_mm, ctx.cloud_normals = obj_pts, normals
+    j.commit_phase("cloud", 0, {"n_points": int(len(obj_pts)), "cloud_sha256": cl.cloud_hash(obj_pts),
+                                "table_plane": {"normal": np.asarray(plane[0]).tolist(), "offset_mm": float(plane[1])},
+                                "robot_s": robot_s},
+                   {"points_mm": obj_pts.astype(np.float32), "normals": normals.astype(np.float32)})
+    s._log("phase", name="cloud", n_points=int(len(obj_pts)))
+
+
+def phase_sampling(ctx: PhaseContext) -> None:
+    """Neural gas units -> probe targets (on the surface, away from edges) -> survey steps."""
+    from .learning import neural_gas as ng
+    from .learning import targets as tg
+    from .learning import cloud as cl
+
+    s = ctx.session
+    j = s.journal
+    assert j is not None
+    rec = j.phase("sampling", 0)
+    if rec is None:
+        plan = s.inputs.plan
+        pts, nrm = ctx.cloud_mm, ctx.cloud_normals
+        assert pts is not None and nrm is not None
+        curv = cl.curvature(pts, k=16)
+        feats = ng.geometry_features(pts, nrm, curv, normal_weight_mm=plan.sampling.geometry_weight * 10.0)
+        result = ng.train_neural_gas(feats.astype(np.float32), n_units=plan.sampling.units,
+                                     n_steps=plan.sampling.units * plan.sampling.steps_per_unit,
+                                     batch_size=256, seed=s.seed)
+        units = np.asarray(result.units)[:, :3]
+        found = tg.make_targets(units, pts, nrm, tip_radius_mm=s.inputs.cell.tool.tip_radius_mm,
+                                edge_clearance_mm=plan.sampling.edge_clearance_mm,
+                                max_tilt_deg=plan.sampling.max_tilt_deg,
+                                reference_direction=np.array(plan.sampling.reference_direction))
+        t_dirs = np.array([scan_direction(n, np.array(plan.sampling.reference_direction)) for n in found.normals])
+        pts_t, nrm_t = np.asarray(found.points_mm), np.asarray(found.normals)
+        for k, extra in enumerate(plan.targets):
+            n = np.asarray(extra.normal, float) / np.linalg.norm(extra.normal)
+            pts_t = np.vstack([pts_t, extra.point_mm])
+            nrm_t = np.vstack([nrm_t, n])
+            t_dirs = np.vstack([t_dirs, scan_direction(n, np.array(plan.sampling.reference_direction))])
+        keep = _reachable(ctx, pts_t, nrm_t, t_dirs)
+        pts_t, nrm_t, t_dirs = pts_t[keep], nrm_t[keep], t_dirs[keep]
+        edge = np.zeros(len(pts_t), bool)
+        edge[: int(np.sum(keep[: len(found.points_mm)]))] = np.asarray(found.edge_flag)[keep[: len(found.points_mm)]]
+        ctx.targets = {i: ProbeTarget(i, pts_t[i], nrm_t[i], t_dirs[i]) for i in range(len(pts_t))}
+        sv = plan.phases.survey
+        steps = _plan_steps(ctx, _ordered(ctx, list(ctx.targets)), sv.angles_deg, sv.forces_n, 0)
+        j.commit_phase("sampling", 0, {"n_units": int(len(units)), "n_targets": int(len(pts_t)),
+                                       "dropped_unreachable": int((~keep).sum()), "ng_qe": float(result.quantization_error)},
+                       {"units": units.astype(np.float64), "target_points_mm": pts_t, "target_normals": nrm_t,
+                        "target_t": t_dirs, "target_index": np.arange(len(pts_t)), "edge_flag": edge.astype(np.int8)},
+                       steps)
+        s._log("phase", name="sampling", targets=int(len(pts_t)), survey_steps=len(steps))
+        rec = j.phase("sampling", 0)
+        assert rec is not None
+    ctx.targets.update(_targets_from_arrays(rec.arrays))
+
+
+def _reachable(ctx: PhaseContext, pts: np.ndarray, nrm: np.ndarray, t_dirs: np.ndarray) -> np.ndarray:
+    """Targets whose standoff pose has IK within the joint limits at every planned angle."""
+    s = ctx.session
+    cell = s.cell
+    assert cell is not None
+    plan = s.inputs.plan
+    angles = sorted(set(plan.phases.survey.angles_deg) | set(plan.phases.characterize.angles_deg))
+    off = plan.probing.standoff_mm + s.inputs.cell.tool.tip_radius_mm
+    b2o = cell.base_to_object
+    keep = np.zeros(len(pts), bool)
+    validator = s.executor.validator
+    for i in range(len(pts)):
+        p, n, t = b2o.apply(pts[i]), b2o.apply_vector(nrm[i]), b2o.apply_vector(t_dirs[i])
+        poses = [probe_tcp_pose(p, n, t, a, offset_mm=off) for a in angles]
+        keep[i] = validator.reachable_at_all_angles(poses)   # type: ignore[attr-defined]
+    return keep
+
+
+def _survey_profiles(ctx: PhaseContext, target_ids: list[int]) -> tuple[list[int], np.ndarray, np.ndarray]:
+    """Survey profiles (N, F, L) at the first survey angle for targets whose survey is complete."""
+    s = ctx.session
+    j = s.journal
+    assert j is not None
+    sv = s.inputs.plan.phases.survey
+    angle = sv.angles_deg[0]
+    forces = sorted(sv.forces_n)
+    by_target: dict[int, dict[float, np.ndarray]] = {}
+    for rec in j.steps(phase=SURVEY, statuses=["done"]):
+        if abs(rec.plan.angle_deg - angle) > 1e-9 or rec.plan.target_index not in target_ids:
+            continue
+        res = j.step_result(rec.step_id)
+        by_target.setdefault(rec.plan.target_index, {})[rec.plan.force_n] = res.profile_depth_mm
+    ids = [i for i in target_ids if i in by_target and all(f in by_target[i] for f in forces)]
+    depth = np.array([[by_target[i][f] for f in forces] for i in ids]) if ids else np.zeros((0, len(forces), 0))
+    return ids, depth, np.array(forces)
+
+
+def phase_regions(ctx: PhaseContext, round_: int) -> None:
+    """Cluster the surveyed targets into regions; plan characterization where a region lacks it."""
+    from .learning import regions as rg
+    from .learning import targets as tg
+
+    s = ctx.session
+    j = s.journal
+    assert j is not None
+    rec = j.phase("regions", round_)
+    if rec is None:
+        ids, depth, forces = _survey_profiles(ctx, sorted(ctx.targets))
+        if len(ids) == 0:
+            raise RuntimeError("no surveyed target has a complete survey: cannot find regions")
+        feats, names = rg.survey_features(depth, ctx.grid.x_mm, forces)
+        pts = np.array([ctx.targets[i].point_mm for i in ids])
+        nrm = np.array([ctx.targets[i].normal for i in ids])
+        edges = tg.surface_graph(pts, nrm)
+        rmap = rg.cluster_regions(feats, edges, names, seed=s.seed)
+        labels = {i: int(l) for i, l in zip(ids, rmap.labels)}
+        chosen = _characterize_choice(ctx, labels, rmap.n_regions, pts, ids)
+        ch = s.inputs.plan.phases.characterize
+        steps = _plan_steps(ctx, _ordered(ctx, chosen), ch.angles_deg, ch.forces_n, _next_order(ctx)) if chosen else []
+        j.commit_phase("regions", round_, {"n_regions": int(rmap.n_regions), "feature_names": names,
+                                           "stats": rg._jsonable(rmap.stats), "characterize_targets": chosen},
+                       {"labelled_targets": np.array(ids, dtype=np.int64), "labels": rmap.labels.astype(np.int64),
+                        "features": feats}, steps)
+        s._log("phase", name="regions", round=round_, n_regions=int(rmap.n_regions), characterize=chosen)
+        rec = j.phase("regions", round_)
+        assert rec is not None
+    ids = rec.arrays["labelled_targets"]
+    ctx.labels = {int(i): int(l) for i, l in zip(ids, rec.arrays["labels"])}
+    ctx.n_regions = int(rec.outputs["n_regions"])
+
+
+def _characterize_choice(ctx: PhaseContext, labels: dict[int, int], n_regions: int, pts: np.ndarray,
+                         ids: list[int]) -> list[int]:
+    """Up to points_per_region interior targets per region that has fewer characterized points."""
+    s = ctx.session
+    j = s.journal
+    assert j is not None
+    per = s.inputs.plan.phases.characterize.points_per_region
+    already = {r.plan.target_index for r in j.steps(phase=CHARACTERIZE)}
+    lab = np.array([labels[i] for i in ids])
+    chosen: list[int] = []
+    for region in range(n_regions):
+        have = sum(1 for t in already if labels.get(t) == region)
+        need = per - have
+        if need <= 0:
+            continue
+        members = np.flatnonzero(lab == region)
+        others = np.flatnonzero(lab != region)
+        cand = [k for k in members if ids[k] not in already and not ctx.edge_flag.get(ids[k], False)]
+        if not cand:
+            continue
+        # Interior first: far from every target of another region, then spread apart.
+        if len(others):
+            interior = np.array([np.min(np.linalg.norm(pts[others] - pts[k], axis=1)) for k in cand])
+        else:
+            centre = pts[members].mean(axis=0)
+            interior = -np.array([np.linalg.norm(pts[k] - centre) for k in cand])
+        picked: list[int] = []
+        for k in [cand[i] for i in np.argsort(-interior)]:
+            if all(np.linalg.norm(pts[k] - pts[p]) > 20.0 for p in picked):
+                picked.append(k)
+            if len(picked) == need:
+                break
+        chosen += [ids[k] for k in picked]
+    return chosen
+
+
+def region_dataset(ctx: PhaseContext, region: int) -> dict[str, np.ndarray]:
+    """Every done step at targets of ``region``: measured |F|, commanded angle, profile, point id."""
+    s = ctx.session
+    j = s.journal
+    assert j is not None
+    forces, angles, depths, pids, noise = [], [], [], [], []
+    recs = [r for r in j.steps(statuses=["done"]) if ctx.labels.get(r.plan.target_index) == region]
+    for r in recs:
+        res = j.step_result(r.step_id)
+        forces.append(float(np.linalg.norm(np.nanmean(res.scan_force_n, axis=0))))
+        angles.append(r.plan.angle_deg)
+        depths.append(res.profile_depth_mm)
+        pids.append(r.plan.target_index)
+    return {"force_n": np.array(forces), "angle_deg": np.array(angles),
+            "depth_mm": np.array(depths) if depths else np.zeros((0, ctx.grid.samples)),
+            "point_ids": np.array(pids, dtype=np.int64)}
+
+
+def phase_models(ctx: PhaseContext, round_: int) -> None:
+    """Fit (or load) one model ensemble per region; files written atomically, hashes committed."""
+    from .learning.models import RegionModel, TrainConfig, fit_region_model
+
+    s = ctx.session
+    j = s.journal
+    assert j is not None
+    rec = j.phase("models", round_)
+    model_dir = s.dir / "models" / f"round{round_}"
+    if rec is None:
+        if s.machine.can("learn"):
+            s.machine.fire("learn")
+        m = s.inputs.plan.model
+        outputs: dict[str, Any] = {"regions": {}}
+        for region in range(ctx.n_regions):
+            data = region_dataset(ctx, region)
+            if len(data["force_n"]) < 3:
+                outputs["regions"][str(region)] = {"skipped": f"only {len(data['force_n'])} profiles"}
+                continue
+            cfg = TrainConfig(hidden_units=m.hidden_units, ensemble=m.ensemble - 1,
+                              epochs_per_stage=max(10, m.max_epochs // 5), seed=s.seed * 1000 + region)
+            model = fit_region_model(data["force_n"], data["angle_deg"], data["depth_mm"], ctx.grid.x_mm,
+                                     point_ids=data["point_ids"], config=cfg)
+            path = model.save(model_dir / f"region{region}.npz")
+            digest = j.record_model(region, 0, path, {"round": round_, "n_profiles": int(len(data["force_n"]))})
+            outputs["regions"][str(region)] = {"path": str(Path(path).relative_to(s.dir)), "sha256": digest,
+                                               "model_hash": model.model_hash(),
+                                               "n_profiles": int(len(data["force_n"]))}
+        j.commit_phase("models", round_, outputs)
+        s._log("phase", name="models", round=round_, regions=list(outputs["regions"]))
+        if s.machine.can("plan"):
+            s.machine.fire("plan")
+        rec = j.phase("models", round_)
+        assert rec is not None
+    ctx.models = {}
+    for region, info in rec.outputs["regions"].items():
+        if "path" in info:
+            ctx.models[int(region)] = RegionModel.load(s.dir / info["path"])
+    ctx.model_round = round_
+
+
+def phase_densify(ctx: PhaseContext, round_: int) -> bool:
+    """Add survey targets where adjacent regions' models disagree; False when resolved or out of budget."""
+    from .learning import densify as dn
+    from .learning import targets as tg
+
+    s = ctx.session
+    j = s.journal
+    assert j is not None
+    rec = j.phase("densify", round_)
+    if rec is None:
+        plan = s.inputs.plan
+        dp = plan.phases.densify
+        ids = sorted(ctx.labels)
+        pts = np.array([ctx.targets[i].point_mm for i in ids])
+        nrm = np.array([ctx.targets[i].normal for i in ids])
+        labels = np.array([ctx.labels[i] for i in ids])
+        edges = tg.surface_graph(pts, nrm)
+        proposal = dn.propose_for_session(pts, nrm, labels, edges, ctx.models, ctx.cloud_mm, ctx.cloud_normals,
+                                          survey_forces_n=plan.phases.survey.forces_n,
+                                          survey_angle_deg=plan.phases.survey.angles_deg[0],
+                                          budget=dp.points_per_round, min_spacing_mm=dp.min_spacing_mm,
+                                          resolution_mm=dp.resolution_mm)
+        new_pts, new_nrm = proposal.points_mm, proposal.normals
+        first = max(ctx.targets) + 1 if ctx.targets else 0
+        t_dirs = np.array([scan_direction(n, np.array(plan.sampling.reference_direction)) for n in new_nrm]) \
+            if len(new_pts) else np.zeros((0, 3))
+        keep = _reachable(ctx, new_pts, new_nrm, t_dirs) if len(new_pts) else np.zeros(0, bool)
+        new_pts, new_nrm, t_dirs = new_pts[keep], new_nrm[keep], t_dirs[keep]
+        idx = np.arange(first, first + len(new_pts))
+        for k, i in enumerate(idx):
+            ctx.targets[int(i)] = ProbeTarget(int(i), new_pts[k], new_nrm[k], t_dirs[k])
+        sv = plan.phases.survey
+        steps = _plan_steps(ctx, _ordered(ctx, [int(i) for i in idx]), sv.angles_deg, sv.forces_n,
+                            _next_order(ctx)) if len(idx) else []
+        j.commit_phase("densify", round_, {"resolved": bool(proposal.resolved), "reason": proposal.reason,
+                                           "n_new": int(len(idx)), "record": proposal.record},
+                       {"target_points_mm": new_pts.reshape(-1, 3), "target_normals": new_nrm.reshape(-1, 3),
+                        "target_t": t_dirs.reshape(-1, 3), "target_index": idx.astype(np.int64)}, steps)
+        s._log("phase", name="densify", round=round_, new_targets=int(len(idx)), reason=proposal.reason)
+        rec = j.phase("densify", round_)
+        assert rec is not None
+    if len(rec.arrays["target_index"]):
+        ctx.targets.update(_targets_from_arrays(rec.arrays))
+    return int(rec.outputs["n_new"]) > 0
+
+
+def phase_final(ctx: PhaseContext) -> None:
+    """The region map over the whole cloud, and the report."""
+    from .learning.regions import propagate_labels
+    from .report import write_report
+
+    s = ctx.session
+    j = s.journal
+    assert j is not None
+    rec = j.phase("final", 0)
+    if rec is None:
+        ids = sorted(ctx.labels)
+        pts = np.array([ctx.targets[i].point_mm for i in ids])
+        cloud_labels = propagate_labels(pts, np.array([ctx.labels[i] for i in ids]), ctx.cloud_mm)
+        j.commit_phase("final", 0, {"n_regions": ctx.n_regions, "model_round": ctx.model_round,
+                                    "robot_hours": j.robot_time_s()["total"] / 3600.0},
+                       {"cloud_labels": cloud_labels.astype(np.int64)})
+    write_report(s.dir)
+
+
+def run_all(ctx: PhaseContext) -> None:
+    from .session import BudgetSpent
+
+    s = ctx.session
+    plan = s.inputs.plan
+    phase_cloud(ctx)
+    if s.machine.state == "sweeping" or s.machine.can("plan") and s.machine.state == "preflight":
+        s.machine.fire("plan")
+    phase_sampling(ctx)
+    s.progress.steps_total = len(s.journal.steps())   # type: ignore[union-attr]
+    try:
+        s.run_steps(SURVEY, 0, ctx.targets)
+        phase_regions(ctx, 0)
+        s.progress.steps_total = len(s.journal.steps())   # type: ignore[union-attr]
+        s.run_steps(CHARACTERIZE, 0, ctx.targets)
+        phase_models(ctx, 0)
+        for r in range(1, plan.phases.densify.rounds + 1):
+            if not phase_densify(ctx, r):
+                break
+            s.progress.steps_total = len(s.journal.steps())   # type: ignore[union-attr]
+            s.run_steps(SURVEY, r, ctx.targets)
+            phase_regions(ctx, r)
+            s.progress.steps_total = len(s.journal.steps())   # type: ignore[union-attr]
+            s.run_steps(CHARACTERIZE, r, ctx.targets)
+            phase_models(ctx, r)
+    except BudgetSpent as exc:
+        s._log("budget_spent", reason=str(exc))
+        _wrap_up_after_budget(ctx)
+    if s.machine.can("learn"):
+        s.machine.fire("learn")
+    phase_final(ctx)
+
+
+def _wrap_up_after_budget(ctx: PhaseContext) -> None:
+    """With the budget spent, model what was measured: regions and models from the data at hand."""
+    s = ctx.session
+    j = s.journal
+    assert j is not None
+    r = 0
+    while j.phase("regions", r + 1) is not None:
+        r += 1
+    if j.phase("regions", r) is None:
+        phase_regions(ctx, 0)
+    else:
+        phase_regions(ctx, r)
+    m = r
+    while j.phase("models", m) is not None:
+        m += 1
+    phase_models(ctx, m)
