@@ -317,3 +317,25 @@ def test_free_disk_checked(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="MiB free"):
         Journal.create(tmp_path / "s", _meta(tmp_path), min_free_bytes=2**62)
     assert not (tmp_path / "s" / "journal.sqlite").exists()
+
+
+def test_from_probe_step_data(journal: Journal) -> None:
+    """The probe executor's StepData goes into the journal as is, plus the averaged profile."""
+    from elastoprobe.controller.probe import StepData
+
+    rng = np.random.default_rng(2)
+    forces = np.tile([0.0, 0.0, 3.0], (5, 1)) + rng.normal(0, 0.01, (5, 3))   # on the tool: push along -z
+    data = StepData(step_id=0, force_target_n=3.0, angle_deg=90.0,
+                    scans_xz_mm=rng.normal(size=(5, 16, 2)).astype(np.float32), scan_t_s=np.arange(5) * 0.02,
+                    scan_pose=rng.normal(size=(5, 6)), scan_force_n=forces,
+                    reference_xz_mm=rng.normal(size=(3, 16, 2)).astype(np.float32),
+                    reference_pose=rng.normal(size=(3, 6)), robot_time_s=0.8)
+    journal.commit_phase("survey", 0, {}, {}, _plans(0, 1))
+    profile = np.linspace(0, 1, 16)
+    journal.commit_step(0, journal.begin_step(0), StepResult.from_step_data(data, profile, np.arange(16.0)))
+    back = journal.step_result(0)
+    np.testing.assert_allclose(back.force_direction, [0, 0, -1], atol=0.01)
+    assert back.summary["force_measured_n"] == pytest.approx(3.0, abs=0.02)
+    np.testing.assert_array_equal(back.reference_pose, data.reference_pose)
+    np.testing.assert_array_equal(back.profile_depth_mm, profile)
+    assert journal.robot_time_s()["probing"] == pytest.approx(0.8)
