@@ -1077,10 +1077,14 @@ class Journal:
             self.record_transition(source, dest, trigger, float(now_s()), current_step())
         return on_transition
 
-    def transitions(self, run_id: int | None = None) -> list[dict[str, Any]]:
+    def transitions(self, run_id: int | None = None, last: int | None = None) -> list[dict[str, Any]]:
+        """Journaled transitions, oldest first (only the ``last`` n if given)."""
         sql = "SELECT id, run_id, t_robot_s, t_wall_utc, from_state, to_state, trigger, step_id FROM transitions"
-        rows = self._q(sql + (" WHERE run_id=?" if run_id is not None else "") + " ORDER BY id",
-                       (run_id,) if run_id is not None else ())
+        args: tuple[Any, ...] = (run_id,) if run_id is not None else ()
+        sql += " WHERE run_id=?" if run_id is not None else ""
+        if last is not None:
+            sql = f"SELECT * FROM ({sql} ORDER BY id DESC LIMIT {int(last)})"
+        rows = self._q(sql + " ORDER BY id", args)
         keys = ("id", "run_id", "t_robot_s", "t_wall_utc", "from_state", "to_state", "trigger", "step_id")
         return [dict(zip(keys, r)) for r in rows]
 
@@ -1100,11 +1104,14 @@ class Journal:
             _crash_point("record_fault:before_commit")
             return int(cur.lastrowid)
 
-    def faults(self) -> list[FaultRecord]:
-        """All faults, raw data verified."""
+    def faults(self, step_id: int | None = None, with_raw: bool = True) -> list[FaultRecord]:
+        """Faults (of one step, if given), oldest first; raw F/T data verified, or left out
+        (``raw=None``) with ``with_raw=False`` — cheap for counting retries."""
+        raw_cols = "raw_dtype, raw_shape, raw_sha256, raw" if with_raw else "NULL, NULL, NULL, NULL"
+        sql = (f"SELECT fault_id, kind, t_robot_s, t_wall_utc, step_id, message, policy_action, {raw_cols} "
+               f"FROM faults" + (" WHERE step_id=?" if step_id is not None else "") + " ORDER BY fault_id")
         out = []
-        for r in self._q("SELECT fault_id, kind, t_robot_s, t_wall_utc, step_id, message, policy_action, "
-                         "raw_dtype, raw_shape, raw_sha256, raw FROM faults ORDER BY fault_id"):
+        for r in self._q(sql, (int(step_id),) if step_id is not None else ()):
             raw = None if r[10] is None else decode_array(r[7], r[8], r[9], r[10], f"fault {r[0]} raw F/T")
             out.append(FaultRecord(fault_id=r[0], kind=r[1], t_robot_s=r[2], t_wall_utc=r[3], step_id=r[4],
                                    message=r[5], policy_action=r[6], raw=raw))

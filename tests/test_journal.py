@@ -339,3 +339,19 @@ def test_from_probe_step_data(journal: Journal) -> None:
     np.testing.assert_array_equal(back.reference_pose, data.reference_pose)
     np.testing.assert_array_equal(back.profile_depth_mm, profile)
     assert journal.robot_time_s()["probing"] == pytest.approx(0.8)
+
+
+def test_fault_and_transition_queries(journal: Journal) -> None:
+    journal.commit_phase("survey", 0, {}, {}, _plans(0, 2))
+    block = type("Block", (), {"t_s": np.arange(3.0), "force_n": np.ones((3, 3)), "torque_nm": np.zeros((3, 3))})()
+    journal.record_fault("force", "a", 1.0, 0, "retry", block)
+    journal.record_fault("slip", "b", 2.0, 1, "skip_target")
+    journal.record_fault("stale", "c", 3.0, 0, "retry", np.zeros((4, 7)))
+    assert [f.message for f in journal.faults(step_id=0)] == ["a", "c"]
+    assert all(f.raw is None for f in journal.faults(with_raw=False))
+    np.testing.assert_array_equal(journal.faults()[0].raw[:, 1:4], np.ones((3, 3)))
+    assert journal.faults()[0].raw[:, 0].tolist() == [0.0, 1.0, 2.0]
+    for k in range(5):
+        journal.record_transition("a", "b", f"t{k}", float(k))
+    assert [t["trigger"] for t in journal.transitions(last=2)] == ["t3", "t4"]
+    assert len(journal.transitions()) == 5
