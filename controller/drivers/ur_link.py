@@ -1,0 +1,667 @@
+"""The low-level UR link: the real ur_rtde 1.6.5 in a supervised child process.
+
+Why a child process (DESIGN §5, §9): ur_rtde 1.6.5 can crash its process (segfault)
+while reconnecting after a dropped connection, its constructors hold the GIL while they
+block on the network, and a blocking call starves the RTDE watchdog. So the library
+runs in a ``spawn``-ed child that
+
+- dies with its parent (``prctl(PR_SET_PDEATHSIG, SIGKILL)`` plus a parent-pid check),
+- refuses to run unless ``ur_rtde`` is exactly 1.6.5 (its register protocol changes
+  between versions),
+- connects the dashboard, receive and control interfaces with bounded retries
+  (constructor flags passed by keyword: ``flags=``),
+- sets the robot-side watchdog (``setWatchdog(min_hz)``) and kicks it ONLY while the
+  parent's safety heartbeat (:meth:`URLink.heartbeat`, a shared timestamp) is fresh —
+  if the parent dies or hangs, the kicks stop and the control script stops the arm,
+- sends only asynchronous or real-time commands (moveL async, stopL async, speedL,
+  forceMode), so nothing in it blocks for long,
+- reports a lost connection or an unexpected program stop and exits (it never lets
+  ur_rtde's own reconnect path run on for long).
+
+The parent side (:class:`URLink`) talks to it over a pipe with a deadline per call.
+If the child dies, hangs past the deadline or loses the robot, the parent kills it,
+starts a new one (bounded by ``max_restarts``) — whose control script upload replaces
+the old program, so the arm is stopped — and reports a :class:`DeviceError`.
+
+Units: ur_rtde's — poses ``[x, y, z, rx, ry, rz]`` in m and rad (rotation vector),
+speeds m/s, accelerations m/s^2, base frame. Convert with ``Pose.from_ur``/``to_ur``.
+"""
+from __future__ import annotations
+
+import ctypes
+import importlib.metadata
+import multiprocessing as mp
+import os
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..errors import DeviceError, DeviceTimeout
+
+UR_RTDE_VERSION = "1.6.5"
+PR_SET_PDEATHSIG = 1
+
+# Safety status bits (RTDE safety_status_bits).
+SAFETY_BIT_PROTECTIVE_STOPPED = 2
+SAFETY_BIT_EMERGENCY_STOPPED = 7
+ROBOT_STATUS_BIT_PROGRAM_RUNNING = 1
+
+# What the receive interface streams (few variables keep the 500 Hz stream cheap).
+RECEIVE_VARIABLES = ["timestamp", "actual_q", "actual_TCP_pose", "actual_TCP_speed", "actual_TCP_force",
+                     "robot_status_bits", "safety_status_bits", "runtime_state", "robot_mode", "safety_mode"]
+
+
+@dataclass(frozen=True)
+class URLinkConfig:
+    """Tunables of the link; every wait below is bounded by one of them.
+
+    ``watchdog_min_hz``: the control script stops the program (and the arm) if the
+    watchdog variable is not updated at least this often. ``kick_period_s``: the
+    child's kick cycle (must be well below 1/watchdog_min_hz). ``heartbeat_timeout_s``:
+    the parent's heartbeat is considered dead after this long. ``call_timeout_s``:
+    default deadline of one call to the child. ``connect_attempts``/``connect_backoff_s``:
+    bounded connection retries in the child. ``start_timeout_s``: how long the parent
+    waits for a new child to be ready. ``max_restarts``: child restarts allowed over the
+    link's life. ``unlock_wait_s``: wait after a protective stop before unlocking (a
+    controller refuses earlier). ``recovery_attempts``: unlock attempts. ``frequency_hz``:
+    RTDE frequency for both interfaces (-1: the controller's default, 500 Hz on e-Series).
+    ``child_lifetime_s``: the child exits by itself after this long (bounded loops).
+    """
+
+    watchdog_min_hz: float = 10.0
+    kick_period_s: float = 0.02
+    heartbeat_timeout_s: float = 0.25
+    call_timeout_s: float = 5.0
+    connect_attempts: int = 3
+    connect_backoff_s: float = 0.5
+    start_timeout_s: float = 30.0
+    max_restarts: int = 3
+    unlock_wait_s: float = 5.0
+    recovery_attempts: int = 3
+    frequency_hz: float = -1.0
+    child_lifetime_s: float = 24 * 3600.0
+
+
+@dataclass(frozen=True)
+class URState:
+    """One reading of the arm through the link (ur_rtde units, base frame).
+
+    ``async_progress``: getAsyncOperationProgress — -1 when no asynchronous operation
+    runs, >= 0 while one does. ``kicking``: the child is kicking the watchdog (the
+    parent's heartbeat is fresh and the program runs). ``t_s``: parent monotonic time.
+    """
+
+    t_s: float
+    tcp_pose_ur: np.ndarray
+    joints_rad: np.ndarray
+    tcp_speed_ur: np.ndarray
+    tcp_force_ur: np.ndarray
+    robot_status_bits: int
+    safety_status_bits: int
+    program_running: bool
+    protective_stopped: bool
+    emergency_stopped: bool
+    async_progress: int
+    connected: bool
+    kicking: bool
+
+    @property
+    def tcp_speed_m_s(self) -> float:
+        return float(np.linalg.norm(self.tcp_speed_ur[:3]))
+
+
+@dataclass(frozen=True)
+class LinkFault:
+    """A failure of the link the parent noticed (the child was killed/restarted after it)."""
+
+    t_s: float
+    kind: str        # child_died, call_timeout, connection_lost, program_stopped, start_failed
+    message: str
+
+
+@dataclass
+class LinkMove:
+    """An asynchronous moveL in flight: fraction done from the measured pose."""
+
+    start_pose_ur: np.ndarray
+    target_pose_ur: np.ndarray
+    t_start_s: float
+
+    def fraction_done(self, state: URState) -> float:
+        total = float(np.linalg.norm(self.target_pose_ur[:3] - self.start_pose_ur[:3]))
+        if total < 1e-9:
+            return 1.0 if state.async_progress < 0 else 0.0
+        left = float(np.linalg.norm(self.target_pose_ur[:3] - state.tcp_pose_ur[:3]))
+        return float(np.clip(1.0 - left / total, 0.0, 1.0))
+
+    def is_running(self, state: URState) -> bool:
+        """True while the controller still runs this move (its async operation)."""
+        return state.async_progress >= 0
+
+
+# ====================================================================== child side
+def _set_parent_death_signal() -> None:
+    """Linux: have the kernel SIGKILL this process when its parent dies."""
+    if not sys.platform.startswith("linux"):
+        return
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
+        raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+
+
+def check_ur_rtde_version() -> str:
+    """The installed ur_rtde version; raises DeviceError unless it is exactly 1.6.5."""
+    try:
+        version = importlib.metadata.version("ur_rtde")
+    except importlib.metadata.PackageNotFoundError as exc:
+        raise DeviceError("ur_rtde is not installed (ur-rtde==1.6.5 is required)") from exc
+    if version != UR_RTDE_VERSION:
+        raise DeviceError(f"ur_rtde {version} is installed; the UR link needs exactly {UR_RTDE_VERSION} "
+                          "(its register protocol changes between versions)")
+    return version
+
+
+class _ChildLink:
+    """Runs inside the child: owns the three ur_rtde interfaces and the kick loop."""
+
+    def __init__(self, conn: Any, host: str, cfg: URLinkConfig, heartbeat: Any, parent_pid: int) -> None:
+        self.conn = conn
+        self.host = host
+        self.cfg = cfg
+        self.heartbeat = heartbeat
+        self.parent_pid = parent_pid
+        self.db: Any = None
+        self.rcv: Any = None
+        self.ctl: Any = None
+        self.pstop_seen_s: float | None = None
+        self.program_expected = False
+        self.kicking = False
+
+    # -- setup
+    def connect(self) -> None:
+        import dashboard_client
+        import rtde_control
+        import rtde_receive
+        last: Exception | None = None
+        for attempt in range(self.cfg.connect_attempts):
+            try:
+                self.db = dashboard_client.DashboardClient(self.host)
+                self.db.connect()
+                self.rcv = rtde_receive.RTDEReceiveInterface(self.host, frequency=self.cfg.frequency_hz,
+                                                             variables=RECEIVE_VARIABLES)
+                self.ctl = rtde_control.RTDEControlInterface(
+                    self.host, frequency=self.cfg.frequency_hz,
+                    flags=rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT)
+                break
+            except Exception as exc:  # noqa: BLE001 — ur_rtde raises RuntimeError and others
+                last = exc
+                time.sleep(self.cfg.connect_backoff_s * (attempt + 1))
+        else:
+            raise DeviceError(f"could not connect to the UR controller at {self.host} after "
+                              f"{self.cfg.connect_attempts} attempts: {last}")
+        self._arm_watchdog()
+
+    def _arm_watchdog(self) -> None:
+        if not self.ctl.setWatchdog(self.cfg.watchdog_min_hz):
+            raise DeviceError("setWatchdog was refused (control script not running?)")
+        self.program_expected = True
+
+    def identity(self) -> dict[str, str]:
+        out = {"host": self.host, "ur_rtde": UR_RTDE_VERSION}
+        for key, call in (("polyscope", "polyscopeVersion"), ("serial", "getSerialNumber"),
+                          ("model", "getRobotModel")):
+            try:
+                out[key] = str(getattr(self.db, call)())
+            except Exception as exc:  # noqa: BLE001 — older PolyScope lacks some queries
+                out[key] = f"unavailable ({exc})"
+        return out
+
+    # -- loop
+    def parent_alive(self) -> bool:
+        return os.getppid() == self.parent_pid
+
+    def heartbeat_fresh(self) -> bool:
+        return time.monotonic() - float(self.heartbeat.value) <= self.cfg.heartbeat_timeout_s
+
+    def run(self) -> int:
+        end_s = time.monotonic() + self.cfg.child_lifetime_s
+        while time.monotonic() < end_s:
+            if not self.parent_alive():
+                return 0
+            if not (self.ctl.isConnected() and self.rcv.isConnected()):
+                self.conn.send(("fault", "connection_lost", "RTDE connection to the controller lost"))
+                return 3
+            bits = int(self.rcv.getSafetyStatusBits())
+            protective = bool(bits >> SAFETY_BIT_PROTECTIVE_STOPPED & 1)
+            emergency = bool(bits >> SAFETY_BIT_EMERGENCY_STOPPED & 1)
+            if protective and self.pstop_seen_s is None:
+                self.pstop_seen_s = time.monotonic()
+            elif not protective:
+                self.pstop_seen_s = None
+            running = bool(self.ctl.isProgramRunning())
+            if self.program_expected and not running:
+                self.program_expected = False
+                if not (protective or emergency):
+                    # Neither safety stop explains it: the watchdog (stale heartbeat or a
+                    # lost link) or someone else stopped the program.
+                    kind = "program_stopped" if not self.heartbeat_fresh() else "connection_lost"
+                    self.conn.send(("fault", kind, "the control program stopped (watchdog or connection)"))
+                    if kind == "connection_lost":
+                        return 3
+            self.kicking = running and self.heartbeat_fresh()
+            if self.kicking:
+                self.ctl.kickWatchdog()
+            if self.conn.poll(self.cfg.kick_period_s):
+                try:
+                    msg = self.conn.recv()
+                except EOFError:
+                    return 0
+                if msg[0] == "close":
+                    self.close()
+                    return 0
+                if msg[0] == "call":
+                    self._answer(msg[1], msg[2], msg[3])
+        return 0
+
+    def _answer(self, rid: int, name: str, args: tuple[Any, ...]) -> None:
+        try:
+            result = getattr(self, "op_" + name)(*args)
+            self.conn.send(("ok", rid, result))
+        except Exception as exc:  # noqa: BLE001 — every failure goes back to the parent
+            self.conn.send(("err", rid, f"{type(exc).__name__}: {exc}"))
+
+    def close(self) -> None:
+        for obj, method in ((self.ctl, "stopScript"), (self.ctl, "disconnect"), (self.rcv, "disconnect"),
+                            (self.db, "disconnect")):
+            try:
+                if obj is not None:
+                    getattr(obj, method)()
+            except Exception:  # noqa: BLE001 — closing is best effort
+                pass
+
+    # -- operations (each returns plain data)
+    def _require_program(self) -> None:
+        if not self.ctl.isProgramRunning():
+            raise DeviceError("the control program is not running (protective stop, e-stop or watchdog)")
+
+    def op_identity(self) -> dict[str, str]:
+        return self.identity()
+
+    def op_state(self) -> dict[str, Any]:
+        bits = int(self.rcv.getSafetyStatusBits())
+        status = int(self.rcv.getRobotStatus())
+        return {
+            "pose": list(self.rcv.getActualTCPPose()), "q": list(self.rcv.getActualQ()),
+            "speed": list(self.rcv.getActualTCPSpeed()), "force": list(self.rcv.getActualTCPForce()),
+            "robot_status_bits": status, "safety_status_bits": bits,
+            "program_running": bool(self.ctl.isProgramRunning()),
+            "protective": bool(self.rcv.isProtectiveStopped()), "emergency": bool(self.rcv.isEmergencyStopped()),
+            "async_progress": int(self.ctl.getAsyncOperationProgress()),
+            "connected": bool(self.ctl.isConnected() and self.rcv.isConnected()), "kicking": self.kicking,
+        }
+
+    def op_move_linear(self, pose_ur: list[float], speed_m_s: float, accel_m_s2: float) -> bool:
+        self._require_program()
+        if not self.ctl.moveL(list(pose_ur), float(speed_m_s), float(accel_m_s2), True):
+            raise DeviceError("moveL was refused by the controller")
+        return True
+
+    def op_stop_linear(self, decel_m_s2: float) -> bool:
+        if self.ctl.isProgramRunning():
+            self.ctl.stopL(float(decel_m_s2), True)
+        return True
+
+    def op_speed_linear(self, xd: list[float], accel_m_s2: float) -> bool:
+        self._require_program()
+        return bool(self.ctl.speedL(list(xd), float(accel_m_s2), 0.0))
+
+    def op_speed_stop(self, decel_m_s2: float) -> bool:
+        if self.ctl.isProgramRunning():
+            self.ctl.speedStop(float(decel_m_s2))
+        return True
+
+    def op_force_mode(self, task_frame: list[float], selection: list[int], wrench: list[float], mode: int,
+                      limits: list[float]) -> bool:
+        self._require_program()
+        return bool(self.ctl.forceMode(list(task_frame), [int(v) for v in selection], list(wrench), int(mode),
+                                       list(limits)))
+
+    def op_force_mode_stop(self) -> bool:
+        self._require_program()
+        return bool(self.ctl.forceModeStop())
+
+    def op_zero_ft_sensor(self) -> bool:
+        self._require_program()
+        return bool(self.ctl.zeroFtSensor())
+
+    def op_recover(self) -> dict[str, Any]:
+        """Bounded protective-stop recovery; never touches an emergency stop."""
+        if self.rcv.isEmergencyStopped():
+            return {"ok": False, "reason": "emergency stop: only an operator can release it"}
+        attempts = 0
+        if self.rcv.isProtectiveStopped():
+            seen = self.pstop_seen_s if self.pstop_seen_s is not None else time.monotonic()
+            # A controller refuses the unlock for ~5 s after the stop; waiting is bounded.
+            while time.monotonic() - seen < self.cfg.unlock_wait_s:
+                if not self.parent_alive():
+                    return {"ok": False, "reason": "parent died"}
+                time.sleep(0.05)
+            last = ""
+            for attempts in range(1, self.cfg.recovery_attempts + 1):
+                try:
+                    self.db.unlockProtectiveStop()
+                    break
+                except Exception as exc:  # noqa: BLE001 — refused: wait and retry
+                    last = str(exc)
+                    time.sleep(1.0)
+            else:
+                return {"ok": False, "reason": f"unlock refused {attempts} times: {last}", "attempts": attempts}
+            self.db.closeSafetyPopup()
+            deadline = time.monotonic() + 2.0
+            while self.rcv.isProtectiveStopped() and time.monotonic() < deadline:
+                time.sleep(0.01)
+            if self.rcv.isProtectiveStopped():
+                return {"ok": False, "reason": "still protective-stopped after unlocking", "attempts": attempts}
+        if not self.ctl.isProgramRunning():
+            self.ctl.reuploadScript()
+            deadline = time.monotonic() + 5.0
+            while not self.ctl.isProgramRunning() and time.monotonic() < deadline:
+                time.sleep(0.01)
+            if not self.ctl.isProgramRunning():
+                return {"ok": False, "reason": "the control script did not start", "attempts": attempts}
+            self._arm_watchdog()
+        # Re-seed from where the arm actually is: the caller plans from this pose.
+        return {"ok": True, "pose": list(self.rcv.getActualTCPPose()), "q": list(self.rcv.getActualQ()),
+                "attempts": attempts}
+
+    def op_debug_sleep(self, seconds: float) -> bool:
+        """Block the child (as a hung ur_rtde call would): used to test the call deadline."""
+        time.sleep(float(seconds))
+        return True
+
+
+def _child_main(conn: Any, host: str, cfg: URLinkConfig, heartbeat: Any, parent_pid: int) -> None:
+    """Entry point of the child process (spawned)."""
+    _set_parent_death_signal()
+    if os.getppid() != parent_pid:     # the parent died before prctl took effect
+        os._exit(0)
+    try:
+        check_ur_rtde_version()
+        link = _ChildLink(conn, host, cfg, heartbeat, parent_pid)
+        link.connect()
+        conn.send(("ready", link.identity()))
+    except Exception as exc:  # noqa: BLE001 — report why, then exit
+        try:
+            conn.send(("fatal", f"{type(exc).__name__}: {exc}"))
+        finally:
+            os._exit(2)
+    code = link.run()
+    conn.close()
+    # os._exit: skip ur_rtde's destructors, which may block on a dead connection.
+    os._exit(code)
+
+
+# ====================================================================== parent side
+class URLink:
+    """The supervised ur_rtde link to one UR controller at ``host``.
+
+    ``start()`` spawns the child and waits until it is connected with the watchdog
+    armed. Call :meth:`heartbeat` from the safety path at least every
+    ``heartbeat_timeout_s``; the child kicks the robot's watchdog only while it does.
+    Every other method is a call to the child with a deadline; a failure raises
+    :class:`DeviceError` after the child has been killed and restarted (the restart
+    replaces the control program, so the arm stops).
+    """
+
+    def __init__(self, host: str, config: URLinkConfig | None = None) -> None:
+        self.host = host
+        self.cfg = config or URLinkConfig()
+        self._ctx = mp.get_context("spawn")
+        self._heartbeat = self._ctx.Value("d", time.monotonic(), lock=False)
+        self._lock = threading.RLock()
+        self._proc: Any = None
+        self._conn: Any = None
+        self._rid = 0
+        self._closing = False
+        self._dead_reason: str | None = None
+        self._unreported: list[LinkFault] = []
+        self.faults: list[LinkFault] = []
+        self.restarts = 0
+        self.identity_info: dict[str, str] = {}
+        self._supervisor: threading.Thread | None = None
+        self._stop_supervisor = threading.Event()
+
+    # -- lifecycle
+    def start(self) -> "URLink":
+        with self._lock:
+            self._spawn()
+        self._supervisor = threading.Thread(target=self._supervise, name=f"urlink-supervisor-{self.host}",
+                                            daemon=True)
+        self._supervisor.start()
+        return self
+
+    def close(self, timeout_s: float = 3.0) -> None:
+        """Stop the control script, close the child, join the supervisor (bounded)."""
+        self._closing = True
+        self._stop_supervisor.set()
+        with self._lock:
+            if self._conn is not None and self._proc is not None and self._proc.is_alive():
+                try:
+                    self._conn.send(("close",))
+                except OSError:
+                    pass
+                self._proc.join(timeout_s)
+            self._kill_child()
+        if self._supervisor is not None and self._supervisor is not threading.current_thread():
+            self._supervisor.join(timeout_s)
+
+    def __enter__(self) -> "URLink":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def child_pid(self) -> int | None:
+        return None if self._proc is None else self._proc.pid
+
+    @property
+    def alive(self) -> bool:
+        return self._dead_reason is None and self._proc is not None and self._proc.is_alive()
+
+    def heartbeat(self) -> None:
+        """The parent's safety path is alive (cheap: one shared-memory store)."""
+        self._heartbeat.value = time.monotonic()
+
+    # -- commands
+    def identity(self) -> dict[str, str]:
+        return dict(self.identity_info)
+
+    def state(self) -> URState:
+        d = self._call("state")
+        return URState(time.monotonic(), np.asarray(d["pose"], dtype=float), np.asarray(d["q"], dtype=float),
+                       np.asarray(d["speed"], dtype=float), np.asarray(d["force"], dtype=float),
+                       int(d["robot_status_bits"]), int(d["safety_status_bits"]), bool(d["program_running"]),
+                       bool(d["protective"]), bool(d["emergency"]), int(d["async_progress"]),
+                       bool(d["connected"]), bool(d["kicking"]))
+
+    def move_linear(self, pose_ur: "np.ndarray | list[float]", speed_m_s: float, accel_m_s2: float) -> LinkMove:
+        """Start an asynchronous moveL; returns once the controller has accepted it."""
+        start = self.state().tcp_pose_ur
+        target = np.asarray(pose_ur, dtype=float).reshape(6)
+        self._call("move_linear", [float(v) for v in target], float(speed_m_s), float(accel_m_s2))
+        return LinkMove(start, target, time.monotonic())
+
+    def stop_linear(self, decel_m_s2: float = 10.0) -> None:
+        """stopL (asynchronous on the controller: returns at once, the arm decelerates)."""
+        self._call("stop_linear", float(decel_m_s2))
+
+    def speed_linear(self, xd: "np.ndarray | list[float]", accel_m_s2: float) -> None:
+        self._call("speed_linear", [float(v) for v in np.asarray(xd, dtype=float).reshape(6)], float(accel_m_s2))
+
+    def speed_stop(self, decel_m_s2: float = 10.0) -> None:
+        self._call("speed_stop", float(decel_m_s2))
+
+    def force_mode(self, task_frame_ur: "np.ndarray | list[float]", selection: "list[int]",
+                   wrench: "np.ndarray | list[float]", mode: int, limits: "np.ndarray | list[float]") -> None:
+        self._call("force_mode", [float(v) for v in task_frame_ur], [int(v) for v in selection],
+                   [float(v) for v in wrench], int(mode), [float(v) for v in limits])
+
+    def force_mode_stop(self) -> None:
+        self._call("force_mode_stop")
+
+    def zero_ft_sensor(self) -> None:
+        self._call("zero_ft_sensor")
+
+    def recover_protective_stop(self) -> dict[str, Any]:
+        """Bounded recovery: wait >= unlock_wait_s after the stop, unlock, close the popup,
+        re-upload the control script, re-arm the watchdog; returns ``{"ok", "pose", ...}``
+        with the measured pose to re-seed from. Never clears an emergency stop."""
+        timeout = self.cfg.unlock_wait_s + self.cfg.recovery_attempts * 2.0 + 10.0
+        return dict(self._call("recover", timeout_s=timeout))
+
+    def take_faults(self) -> list[LinkFault]:
+        """Faults noticed since the last call (also raised once by the next command)."""
+        with self._lock:
+            out, self._unreported = self._unreported, []
+        return out
+
+    # -- machinery
+    def _spawn(self) -> None:
+        parent_conn, child_conn = self._ctx.Pipe(duplex=True)
+        self.heartbeat()
+        proc = self._ctx.Process(target=_child_main, name=f"urlink-{self.host}",
+                                 args=(child_conn, self.host, self.cfg, self._heartbeat, os.getpid()), daemon=True)
+        proc.start()
+        child_conn.close()
+        self._proc, self._conn = proc, parent_conn
+        deadline = time.monotonic() + self.cfg.start_timeout_s
+        while time.monotonic() < deadline:
+            if parent_conn.poll(0.05):
+                try:
+                    msg = parent_conn.recv()
+                except EOFError:
+                    break
+                if msg[0] == "ready":
+                    self.identity_info = dict(msg[1])
+                    return
+                if msg[0] == "fatal":
+                    self._kill_child()
+                    raise DeviceError(f"UR link to {self.host} failed to start: {msg[1]}")
+            elif not proc.is_alive():
+                break
+        code = proc.exitcode
+        self._kill_child()
+        raise DeviceError(f"UR link child for {self.host} did not become ready (exit code {code})")
+
+    def _kill_child(self) -> None:
+        if self._proc is not None and self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(2.0)
+        if self._conn is not None:
+            try:
+                self._conn.close()
+            except OSError:
+                pass
+        self._conn = None
+
+    def _fault(self, kind: str, message: str, reported: bool) -> LinkFault:
+        """Record a fault, kill the child and start a new one (bounded)."""
+        fault = LinkFault(time.monotonic(), kind, message)
+        self.faults.append(fault)
+        if not reported:
+            self._unreported.append(fault)
+        self._kill_child()
+        if self._closing:
+            return fault
+        if self.restarts >= self.cfg.max_restarts:
+            self._dead_reason = f"{kind}: {message}; gave up after {self.restarts} restarts"
+            return fault
+        self.restarts += 1
+        try:
+            self._spawn()
+        except DeviceError as exc:
+            self._dead_reason = f"restart failed: {exc}"
+        return fault
+
+    def _handle_unsolicited(self, msg: tuple[Any, ...]) -> None:
+        if msg[0] == "fault":
+            # connection_lost: the child exits; program_stopped: it stays, waiting for recover().
+            if msg[1] == "program_stopped":
+                fault = LinkFault(time.monotonic(), msg[1], msg[2])
+                self.faults.append(fault)
+                self._unreported.append(fault)
+            else:
+                self._fault(str(msg[1]), str(msg[2]), reported=False)
+
+    def _raise_unreported(self) -> None:
+        if self._unreported:
+            faults, self._unreported = self._unreported, []
+            raise DeviceError("UR link fault: " + "; ".join(f"{f.kind}: {f.message}" for f in faults))
+
+    def _call(self, name: str, *args: Any, timeout_s: float | None = None) -> Any:
+        with self._lock:
+            self._raise_unreported()
+            if self._dead_reason is not None:
+                raise DeviceError(f"UR link to {self.host} is down: {self._dead_reason}")
+            if self._conn is None:
+                raise DeviceError(f"UR link to {self.host} is not started")
+            self._rid += 1
+            rid = self._rid
+            try:
+                self._conn.send(("call", rid, name, args))
+            except OSError as exc:
+                self._fault("child_died", f"pipe to the child broke: {exc}", reported=True)
+                raise DeviceError(f"UR link child died during {name}; restarted, arm stopped") from exc
+            deadline = time.monotonic() + (self.cfg.call_timeout_s if timeout_s is None else timeout_s)
+            while True:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    self._fault("call_timeout", f"{name} did not answer in time", reported=True)
+                    raise DeviceTimeout(f"UR link call {name} hung; child killed and restarted, arm stopped")
+                try:
+                    ready = self._conn.poll(min(remaining, 0.05))
+                    msg = self._conn.recv() if ready else None
+                except (EOFError, OSError):
+                    msg, ready = None, False
+                    if self._proc is not None:
+                        self._proc.join(0.5)
+                if msg is None:
+                    if self._proc is None or not self._proc.is_alive():
+                        code = None if self._proc is None else self._proc.exitcode
+                        self._fault("child_died", f"child exited (code {code}) during {name}", reported=True)
+                        raise DeviceError(f"UR link child died during {name} (code {code}); restarted, arm stopped")
+                    continue
+                if msg[0] == "ok" and msg[1] == rid:
+                    return msg[2]
+                if msg[0] == "err" and msg[1] == rid:
+                    raise DeviceError(f"UR {name} failed: {msg[2]}")
+                self._handle_unsolicited(msg)
+                if self._conn is None or (self._proc is not None and not self._proc.is_alive()):
+                    self._raise_unreported()
+                    raise DeviceError(f"UR link lost during {name}")
+
+    def _supervise(self) -> None:
+        """Notice a dead child or an unsolicited fault while no call is in flight."""
+        while not self._stop_supervisor.wait(0.05):
+            if not self._lock.acquire(timeout=0.01):
+                continue
+            try:
+                if self._closing or self._dead_reason is not None:
+                    continue
+                # Read what the child said before it went (e.g. "connection_lost").
+                proc = self._proc
+                try:
+                    while self._conn is not None and self._conn.poll(0):
+                        self._handle_unsolicited(self._conn.recv())
+                except (EOFError, OSError):
+                    pass
+                if self._proc is proc and proc is not None and not proc.is_alive():
+                    self._fault("child_died", f"child exited (code {proc.exitcode})", reported=False)
+            finally:
+                self._lock.release()
