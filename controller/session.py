@@ -257,7 +257,7 @@ class Session:
         """Faults recorded against a step: its retry number (kills do not count, so a
         resumed session draws the same simulator noise as an uninterrupted one)."""
         assert self.journal is not None
-        return sum(1 for f in self.journal.faults() if f.step_id == step_id)
+        return len(self.journal.faults(step_id=step_id, with_raw=False))
 
     def _run_contact(self, target: ProbeTarget, group: list[StepRecord], targets: dict[int, ProbeTarget]) -> None:
         from . import phases
