@@ -249,6 +249,7 @@ class ScannerCounters:
     short_bursts: int = 0
     timeouts: int = 0
     unexpected_lines: int = 0
+    discarded_frames: int = 0
 
 
 @dataclass
@@ -327,7 +328,11 @@ class SerialLineScanner:
         return self._rate_hz
 
     def start_burst(self, count: int) -> None:
-        """Ask for ``count`` profiles at ``rate_hz``; they arrive through ``read_scans``."""
+        """Ask for ``count`` profiles at ``rate_hz``; they arrive through ``read_scans``.
+
+        Profiles not yet read that the device sent before accepting the burst are
+        dropped (counted in ``discarded_frames``): a burst delivers only its own.
+        """
         if count < 1:
             raise ValueError("a burst needs at least one profile")
         self.sync_clock()
@@ -336,8 +341,12 @@ class SerialLineScanner:
         self._burst = _Burst(requested=int(count), ok_event=match_event,
                              deadline_s=self.clock.now_s() + count / self._rate_hz + self.timeout_s,
                              bad_frames_at_start=self._parser.counters.bad_frames)
-        # Frames that followed the OK in the same read are already queued: count them.
-        self._burst.received = sum(1 for event_no, _ in self._ready if event_no > match_event)
+        # Frames from before the OK (a stream, an abandoned burst) belong to no burst: drop
+        # them; those that followed the OK in the same read are the burst's first.
+        stale = sum(1 for event_no, _ in self._ready if event_no <= match_event)
+        self._counters.discarded_frames += stale
+        self._ready = [(event_no, scan) for event_no, scan in self._ready if event_no > match_event]
+        self._burst.received = len(self._ready)
 
     def read_scans(self) -> list[Scan]:
         """Profiles completed since the previous call, oldest first.
