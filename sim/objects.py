@@ -316,7 +316,9 @@ class SimObject:
         components = []
         for lab, weight in self._blend(p, label):
             q, nq = (p, n) if lab == label else self._closest_on_region(p, lab)
-            components.append(Component(weight, self._response(lab, q, nq, tip_radius_mm), self._support(lab, n, d)))
+            # Each material is evaluated where it is (its own nearest point and normal), so the
+            # blend stays continuous across a corner where the two regions meet.
+            components.append(Component(weight, self._response(lab, q, nq, tip_radius_mm), self._support(lab, nq, d)))
         residual = self._residual_fn(p, tt, n)
         model = ContactModel(components, angle_deg, self.materials[label], label, residual)
         if len(self._cache) >= CACHE_SIZE:

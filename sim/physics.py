@@ -577,21 +577,30 @@ class ContactModel:
         permanent dent. ``hold_s`` < inf gives the partly crept dent under a held force.
         """
         x = np.asarray(x_mm, dtype=float)
-        f = self.effective_force_n(max(float(force_n), 0.0), hold_s)
         out = np.zeros_like(x)
-        if f > 0.0:
-            p, q = self.loads_n(f)
-            p, q = float(p), float(q)
-            shift = self.tip_shift_mm(f)
-            xs = x - shift
-            for c in self.components:
-                part = c.response.symmetric_depth_mm(xs, p) + c.response.odd_depth_mm(xs, p, q)
-                if c.support is not None:
-                    part = part + c.support.depth_mm(f)
-                out = out + c.weight * part
+        for c, part in zip(self.components, self.component_profiles_mm(x, force_n, hold_s)):
+            out = out + c.weight * part
         if self._residual is not None:
             out = out + self._residual(x)
         return out
+
+    def component_profiles_mm(self, x_mm: np.ndarray, force_n: float, hold_s: float = math.inf) -> list[np.ndarray]:
+        """Each component's own (unweighted) dent, sharing the tip shift; without permanent dents.
+        The profile is the weighted sum of these (plus the residual of permanent dents)."""
+        x = np.asarray(x_mm, dtype=float)
+        f = self.effective_force_n(max(float(force_n), 0.0), hold_s)
+        if f <= 0.0:
+            return [np.zeros_like(x) for _ in self.components]
+        p, q = self.loads_n(f)
+        p, q = float(p), float(q)
+        xs = x - self.tip_shift_mm(f)
+        parts = []
+        for c in self.components:
+            part = c.response.symmetric_depth_mm(xs, p) + c.response.odd_depth_mm(xs, p, q)
+            if c.support is not None:
+                part = part + c.support.depth_mm(f)
+            parts.append(part)
+        return parts
 
     def validity_problems(self, force_n: float) -> list[str]:
         """What is out of its model's validity at |F| = ``force_n`` at this angle."""
