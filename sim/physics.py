@@ -265,8 +265,8 @@ def solve_foam_obstacle(tip_depth_mm: float, tip_radius_mm: float, k0_n_mm3: flo
             ab[2, :-1] = upper
             step = solve_banded((1, 1), ab, rhs)
             # Damp so the iterate stays below the densification singularity.
-            limit = np.where(step > 0, (w_cap - w) * 0.9 / np.maximum(step, 1e-300), np.inf)
-            scale = min(1.0, float(np.min(limit)))
+            rising = step > 0
+            scale = min(1.0, float(np.min(0.9 * (w_cap - w[rising]) / step[rising]))) if np.any(rising) else 1.0
             w = w + scale * step
             if float(np.max(np.abs(scale * step))) < 1e-10 * max(tip_depth_mm, 1.0):
                 break
