@@ -173,32 +173,49 @@ class Collision:
 # Mesh sampling
 
 
+def _divisions(mesh: trimesh.Trimesh, spacing_mm: float) -> np.ndarray:
+    tris = np.asarray(mesh.triangles, dtype=float)
+    edges = np.linalg.norm(tris - np.roll(tris, 1, axis=1), axis=2).max(axis=1)
+    return np.maximum(1, np.ceil(edges / spacing_mm - 1e-9)).astype(np.int64)
+
+
+def mesh_spacing_for(mesh: trimesh.Trimesh, spacing_mm: float, max_samples: int) -> float:
+    """The smallest spacing >= ``spacing_mm`` whose sample count stays under ``max_samples``
+    (a large object is sampled more coarsely, and its checks are more conservative)."""
+    spacing = float(spacing_mm)
+    for _ in range(60):
+        n = _divisions(mesh, spacing)
+        count = int(np.sum(np.where(n == 1, 0, (n + 1) * (n + 2) // 2))) + len(mesh.vertices)
+        if count <= max_samples:
+            return spacing
+        spacing *= 1.15
+    return spacing
+
+
 def sample_mesh_surface(mesh: trimesh.Trimesh, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """Deterministic surface samples (N, 3) and their outward face normals (N, 3).
+    """Deterministic surface samples (N, 3) and outward normals (N, 3).
 
     Each triangle gets a barycentric grid with ``ceil(longest edge / spacing)``
     divisions per edge, so every point of the surface lies within spacing / sqrt(3) of
-    a sample.
+    a sample. Triangles already smaller than the spacing contribute their vertices once
+    (with the vertex normal); larger ones their grid (points on shared edges repeat,
+    which costs a little memory and nothing else).
     """
     tris = np.asarray(mesh.triangles, dtype=float)
     normals = np.asarray(mesh.face_normals, dtype=float)
-    edges = np.linalg.norm(tris - np.roll(tris, 1, axis=1), axis=2).max(axis=1)
-    divisions = np.maximum(1, np.ceil(edges / spacing_mm - 1e-9)).astype(int)
-    points, point_normals = [], []
-    for n in np.unique(divisions):
+    divisions = _divisions(mesh, spacing_mm)
+    small = np.nonzero(divisions == 1)[0]
+    vertex_ids = np.unique(np.asarray(mesh.faces)[small].ravel())
+    points = [np.asarray(mesh.vertices, dtype=float)[vertex_ids]]
+    point_normals = [np.asarray(mesh.vertex_normals, dtype=float)[vertex_ids]]
+    for n in np.unique(divisions[divisions > 1]):
         idx = np.nonzero(divisions == n)[0]
         i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
         keep = (i + j) <= n
         w = np.stack([i[keep], j[keep], n - i[keep] - j[keep]], axis=1) / n      # (G, 3)
-        pts = np.einsum("gk,tkc->tgc", w, tris[idx]).reshape(-1, 3)
-        points.append(pts)
+        points.append(np.einsum("gk,tkc->tgc", w, tris[idx]).reshape(-1, 3))
         point_normals.append(np.repeat(normals[idx], w.shape[0], axis=0))
-    pts = np.vstack(points)
-    nrm = np.vstack(point_normals)
-    # Shared edges and vertices are sampled by every triangle that has them: keep one.
-    _, first = np.unique(np.round(pts, 6), axis=0, return_index=True)
-    first.sort()
-    return pts[first], nrm[first]
+    return np.vstack(points), np.vstack(point_normals)
 
 
 # ---------------------------------------------------------------------------------------
@@ -224,14 +241,16 @@ class SceneChecker:
     ``object_mesh_base``: the object's mesh in the base frame (None: no object check).
     ``clearance_mm``: the smallest allowed gap to the object and keep-outs. The workspace
     is a hard boundary: the TCP and every shape must lie inside it (no clearance).
-    ``mesh_spacing_mm``: surface sampling of the mesh (see the module doc).
+    ``mesh_spacing_mm``: surface sampling of the mesh (see the module doc), coarsened
+    if the mesh would need more than ``max_mesh_samples`` samples.
     ``tip_zone_radius_mm``: lateral radius around the tool axis of the zone near the tip
     that ``ignore_tip_mm`` exempts.
     """
 
     def __init__(self, tool_shapes: list[ToolShape], object_mesh_base: trimesh.Trimesh | None,
                  keep_out: list[Box], workspace: Box, clearance_mm: float = 2.0,
-                 mesh_spacing_mm: float = 1.5, tip_zone_radius_mm: float = 20.0) -> None:
+                 mesh_spacing_mm: float = 1.5, tip_zone_radius_mm: float = 20.0,
+                 max_mesh_samples: int = 600_000) -> None:
         if clearance_mm < 0:
             raise ValueError("clearance_mm must be >= 0")
         self.clearance_mm = float(clearance_mm)
@@ -242,6 +261,7 @@ class SceneChecker:
         self._reach_mm = max([s.reach_mm for s in self._shapes], default=0.0)
         self._tree: cKDTree | None = None
         if object_mesh_base is not None and len(object_mesh_base.faces):
+            mesh_spacing_mm = mesh_spacing_for(object_mesh_base, mesh_spacing_mm, max_mesh_samples)
             pts, nrm = sample_mesh_surface(object_mesh_base, mesh_spacing_mm)
             self._mesh_points, self._mesh_normals = pts, nrm
             self._tree = cKDTree(pts)
@@ -263,6 +283,11 @@ class SceneChecker:
     @property
     def mesh_sample_count(self) -> int:
         return 0 if self._tree is None else int(self._tree.n)
+
+    @property
+    def mesh_spacing_mm(self) -> float | None:
+        """The mesh sampling in use (None without an object); checks err by up to spacing / sqrt(3)."""
+        return None if self._tree is None else self._mesh_spacing_mm
 
     # -- public ---------------------------------------------------------------------------
     def check_pose(self, tcp_pose: Pose, ignore_tip_mm: float = 0.0) -> list[Collision]:
