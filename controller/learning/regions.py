@@ -239,13 +239,20 @@ def _projection(z: np.ndarray, max_dims: int, variance: float = 0.95) -> np.ndar
 def _choose_mixture(z: np.ndarray, kmax: int, seed: int) -> tuple[np.ndarray, dict[int, float]]:
     """Labels from the Gaussian mixture with the lowest BIC over k = 1..kmax."""
     from sklearn.mixture import GaussianMixture
+    from threadpoolctl import threadpool_limits   # a dependency of scikit-learn
 
+    # The matrices are tiny: multithreaded BLAS only contends (10x slower on a busy machine).
+    with threadpool_limits(limits=1):
+        return _bic_search(z, kmax, seed, GaussianMixture)
+
+
+def _bic_search(z: np.ndarray, kmax: int, seed: int, mixture: Any) -> tuple[np.ndarray, dict[int, float]]:
     n = z.shape[0]
     bics: dict[int, float] = {}
     best_labels = np.zeros(n, dtype=np.int64)
     best_bic = np.inf
     for k in range(1, max(1, min(kmax, n // 2)) + 1):
-        gm = GaussianMixture(n_components=k, covariance_type="full", reg_covar=1e-3, n_init=4,
+        gm = mixture(n_components=k, covariance_type="full", reg_covar=1e-3, n_init=4,
                              random_state=seed, max_iter=300)
         gm.fit(z)
         bic = float(gm.bic(z))

@@ -1,0 +1,266 @@
+"""Densification: probe again where adjacent region models disagree (DESIGN §2, §7).
+
+Score of a surface-graph edge whose ends carry different region labels: how far apart
+the two regions' models put the profile at the survey probe settings, relative to what
+the data can resolve:
+
+    score = max over settings of RMS_roi(p_a − p_b) / sqrt(noise² + s_a² + s_b²)
+
+with ``noise`` the standard error of averaged scans (mm, :func:`averaged_noise_mm`),
+``s_a``, ``s_b`` the RMS ensemble spreads (bootstrap over probe points) and the RMS taken
+over the samples where either profile is deeper than ``ROI_FRACTION`` of the deeper
+peak. A score well above 1 (default threshold 3) means the boundary is real and
+worth localising; below it the two regions are indistinguishable at survey settings.
+A point whose features sit between two regions (ambiguity from the region map) scores
+its ambiguity times the score of those two regions.
+
+New survey points are the midpoints of high-scoring edges (and of the edges around
+ambiguous points), snapped to the measured surface if a cloud is given, accepted
+greedily by score while keeping ``min_spacing_mm`` from every existing and accepted
+point. The boundary is resolved when every disagreeing edge is shorter than
+``resolution_mm``. A midpoint is half an edge from its ends, so edges shorter than
+2 x min_spacing_mm cannot be split: choose resolution_mm >= 2 x min_spacing_mm, or the
+rounds end "spacing-limited" (``DensifyRound.stop`` with ``resolved`` False).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Protocol
+
+import numpy as np
+
+ROI_FRACTION = 0.05
+DEFAULT_THRESHOLD = 3.0
+
+
+class ProfileModel(Protocol):
+    def predict_batch_mm(self, force_n: np.ndarray, angle_deg: np.ndarray) -> np.ndarray: ...
+
+    def predict_ensemble(self, force_n: np.ndarray, angle_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+def averaged_noise_mm(std_mm: np.ndarray, count: np.ndarray) -> float:
+    """Typical standard error (mm) of averaged profiles: median over samples of std/sqrt(count).
+
+    ``std_mm``, ``count``: as returned by :func:`profiles.average_profiles` (any shape).
+    """
+    s = np.asarray(std_mm, dtype=float)
+    c = np.asarray(count, dtype=float)
+    ok = np.isfinite(s) & (c > 1)
+    if not ok.any():
+        raise ValueError("no sample was seen by two scans: the noise cannot be estimated")
+    return float(np.median(s[ok] / np.sqrt(c[ok])))
+
+
+def model_distance(model_a: ProfileModel, model_b: ProfileModel, forces_n: np.ndarray,
+                   angles_deg: np.ndarray) -> tuple[float, float]:
+    """(RMS difference mm, RMS combined ensemble spread mm) at the setting where the two
+    models differ most, over the region of interest of that setting."""
+    f, a = np.meshgrid(np.asarray(forces_n, dtype=float), np.asarray(angles_deg, dtype=float), indexing="ij")
+    f, a = f.ravel(), a.ravel()
+    pa, pb = model_a.predict_batch_mm(f, a), model_b.predict_batch_mm(f, a)
+    sa = _spread(model_a, f, a, pa.shape)
+    sb = _spread(model_b, f, a, pb.shape)
+    best = (0.0, 0.0)
+    for i in range(f.shape[0]):
+        peak = max(float(np.max(pa[i])), float(np.max(pb[i])), 0.0)
+        roi = np.maximum(pa[i], pb[i]) > ROI_FRACTION * peak
+        if not roi.any():
+            continue
+        diff = float(np.sqrt(np.mean((pa[i, roi] - pb[i, roi]) ** 2)))
+        spread = float(np.sqrt(np.mean(sa[i, roi] ** 2 + sb[i, roi] ** 2)))
+        if diff >= best[0]:
+            best = (diff, spread)
+    return best
+
+
+def _spread(model: Any, f: np.ndarray, a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    if hasattr(model, "predict_ensemble"):
+        return np.asarray(model.predict_ensemble(f, a)[1], dtype=float).reshape(shape)
+    return np.zeros(shape)
+
+
+def pair_scores(labels_present: np.ndarray, models: Mapping[int, ProfileModel], forces_n: np.ndarray,
+                angles_deg: np.ndarray, noise_mm: float, missing_score: float = np.inf
+                ) -> dict[tuple[int, int], float]:
+    """Score of every pair of regions (a < b); a region without a model scores ``missing_score``."""
+    regions = sorted(int(v) for v in np.unique(labels_present))
+    out: dict[tuple[int, int], float] = {}
+    for i, ra in enumerate(regions):
+        for rb in regions[i + 1:]:
+            if ra not in models or rb not in models:
+                out[(ra, rb)] = missing_score
+                continue
+            diff, spread = model_distance(models[ra], models[rb], forces_n, angles_deg)
+            out[(ra, rb)] = diff / float(np.sqrt(noise_mm ** 2 + spread ** 2))
+    return out
+
+
+def _pair(scores: Mapping[tuple[int, int], float], a: int, b: int) -> float:
+    return 0.0 if a == b else scores[(min(a, b), max(a, b))]
+
+
+def edge_scores(edges: np.ndarray, labels: np.ndarray, scores: Mapping[tuple[int, int], float]) -> np.ndarray:
+    """(E,) score of each surface-graph edge: 0 within a region, the pair score across regions."""
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    lab = np.asarray(labels)
+    return np.array([_pair(scores, int(lab[i]), int(lab[j])) for i, j in e], dtype=float)
+
+
+def point_scores(posterior: np.ndarray, scores: Mapping[tuple[int, int], float]) -> np.ndarray:
+    """(N,) ambiguity x pair score of each point's two most likely regions.
+
+    ``posterior`` (N,K): region probabilities from the features (``RegionMap.posterior``).
+    """
+    p = np.asarray(posterior, dtype=float)
+    if p.ndim != 2 or p.shape[1] < 2:
+        return np.zeros(p.shape[0])
+    order = np.argsort(-p, axis=1, kind="stable")
+    top = np.take_along_axis(p, order[:, :2], axis=1)
+    ambiguity = 1.0 - (top[:, 0] - top[:, 1])
+    return np.array([amb * _pair(scores, int(o[0]), int(o[1])) for amb, o in zip(ambiguity, order)])
+
+
+def snap_to_surface(points_mm: np.ndarray, surface_points_mm: np.ndarray) -> np.ndarray:
+    """Each point moved to its nearest measured surface point (object frame, mm)."""
+    from scipy.spatial import cKDTree
+
+    surf = np.asarray(surface_points_mm, dtype=float)
+    _, idx = cKDTree(surf).query(np.asarray(points_mm, dtype=float).reshape(-1, 3))
+    return surf[idx]
+
+
+def candidate_points(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np.ndarray,
+                     point_score: np.ndarray | None = None, surface_points_mm: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate new survey points (C,3) and their scores (C,).
+
+    Midpoints of edges with a positive score; for points with a positive ambiguity score,
+    the midpoints of all their edges (a ring around the doubtful point) carry that score.
+    Duplicate midpoints keep their highest score.
+    """
+    pos = np.asarray(positions_mm, dtype=float).reshape(-1, 3)
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    s = np.asarray(edge_score, dtype=float).copy()
+    if point_score is not None:
+        ps = np.asarray(point_score, dtype=float)
+        s = np.maximum(s, np.maximum(ps[e[:, 0]], ps[e[:, 1]]))
+    keep = s > 0
+    mids = 0.5 * (pos[e[keep, 0]] + pos[e[keep, 1]])
+    if surface_points_mm is not None and mids.shape[0]:
+        mids = snap_to_surface(mids, surface_points_mm)
+    return mids, s[keep]
+
+
+def propose_points(candidates_mm: np.ndarray, scores: np.ndarray, existing_mm: np.ndarray, budget: int,
+                   min_spacing_mm: float, min_score: float = DEFAULT_THRESHOLD) -> np.ndarray:
+    """Indices (K,) into ``candidates_mm`` of the new survey points, best score first.
+
+    Greedy: candidates scoring at least ``min_score`` in decreasing score order (ties by
+    index), each accepted only if it keeps ``min_spacing_mm`` from every existing point
+    and every point already accepted; at most ``budget`` points.
+    """
+    cand = np.asarray(candidates_mm, dtype=float).reshape(-1, 3)
+    sc = np.asarray(scores, dtype=float).reshape(-1)
+    order = [int(i) for i in np.lexsort((np.arange(sc.size), -np.nan_to_num(sc, nan=-np.inf)))
+             if sc[i] >= min_score]
+    taken = [np.asarray(p, dtype=float) for p in np.asarray(existing_mm, dtype=float).reshape(-1, 3)]
+    accepted: list[int] = []
+    for i in order:
+        if len(accepted) >= budget:
+            break
+        if taken:
+            d = np.linalg.norm(np.asarray(taken) - cand[i], axis=1)
+            if float(d.min()) < min_spacing_mm:
+                continue
+        accepted.append(i)
+        taken.append(cand[i])
+    return np.asarray(accepted, dtype=np.int64)
+
+
+def boundaries_resolved(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np.ndarray,
+                        resolution_mm: float, threshold: float = DEFAULT_THRESHOLD) -> tuple[bool, str]:
+    """Stop rule: (resolved, reason). Resolved when no edge disagrees beyond ``threshold``
+    or every disagreeing edge is shorter than ``resolution_mm``."""
+    pos = np.asarray(positions_mm, dtype=float).reshape(-1, 3)
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    hot = np.asarray(edge_score, dtype=float) >= threshold
+    if not hot.any():
+        return True, f"no adjacent regions disagree beyond {threshold:g} x noise"
+    lengths = np.linalg.norm(pos[e[hot, 0]] - pos[e[hot, 1]], axis=1)
+    longest = float(lengths.max())
+    if longest <= resolution_mm:
+        return True, f"all {int(hot.sum())} disagreeing edges are within {resolution_mm:g} mm (longest {longest:.1f} mm)"
+    return False, (f"{int(np.sum(lengths > resolution_mm))} of {int(hot.sum())} disagreeing edges are longer "
+                   f"than {resolution_mm:g} mm (longest {longest:.1f} mm)")
+
+
+@dataclass
+class DensifyRound:
+    """One densification round, as journaled: what was scored, what was proposed, and why."""
+
+    round_index: int
+    n_points: int
+    n_regions: int
+    noise_mm: float
+    threshold: float
+    pair_scores: dict[str, float | None]
+    disagreeing_edges: list[list[int]]
+    disagreeing_scores: list[float | None]
+    proposed_mm: list[list[float]]
+    proposed_scores: list[float | None]
+    resolved: bool
+    reason: str
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def stop(self) -> bool:
+        """True when densifying should end: resolved, or nothing could be placed (spacing)."""
+        return self.resolved or not self.proposed_mm
+
+    def to_dict(self) -> dict[str, Any]:
+        out = {k: v for k, v in self.__dict__.items()}
+        out["stop"] = self.stop
+        return out
+
+
+def _finite_or_none(v: float) -> float | None:
+    return float(v) if np.isfinite(v) else None
+
+
+def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, labels: np.ndarray,
+               models: Mapping[int, ProfileModel], forces_n: np.ndarray, angles_deg: np.ndarray,
+               noise_mm: float, budget: int, min_spacing_mm: float, resolution_mm: float,
+               threshold: float = DEFAULT_THRESHOLD, posterior: np.ndarray | None = None,
+               surface_points_mm: np.ndarray | None = None) -> DensifyRound:
+    """Score the current map, apply the stop rule and propose the next survey points.
+
+    ``forces_n``, ``angles_deg``: the survey probe settings; ``posterior`` (N,K) optional
+    feature posteriors for ambiguous points; ``surface_points_mm``: the cloud to snap to.
+    When resolved, nothing is proposed; when nothing can be placed (spacing), the reason says so.
+    """
+    lab = np.asarray(labels)
+    pscores = pair_scores(lab if posterior is None else np.arange(np.asarray(posterior).shape[1]),
+                          models, forces_n, angles_deg, noise_mm)
+    es = edge_scores(edges, lab, pscores)
+    ps = point_scores(posterior, pscores) if posterior is not None else None
+    resolved, reason = boundaries_resolved(positions_mm, edges, es, resolution_mm, threshold)
+    proposed = np.zeros((0, 3))
+    proposed_scores = np.zeros(0)
+    if ps is not None and resolved and np.any(ps >= threshold):
+        resolved, reason = False, f"{int(np.sum(ps >= threshold))} points have ambiguous features between disagreeing regions"
+    if not resolved:
+        cand, cs = candidate_points(positions_mm, edges, es, ps, surface_points_mm)
+        idx = propose_points(cand, cs, positions_mm, budget, min_spacing_mm, threshold)
+        proposed, proposed_scores = cand[idx], cs[idx]
+        if idx.size == 0:
+            reason += f"; no candidate keeps {min_spacing_mm:g} mm from existing points"
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    hot = es >= threshold
+    return DensifyRound(
+        round_index=round_index, n_points=int(lab.shape[0]), n_regions=int(np.unique(lab).shape[0]),
+        noise_mm=float(noise_mm), threshold=float(threshold),
+        pair_scores={f"{a}-{b}": _finite_or_none(v) for (a, b), v in pscores.items()},
+        disagreeing_edges=e[hot].tolist(), disagreeing_scores=[_finite_or_none(v) for v in es[hot]],
+        proposed_mm=proposed.tolist(), proposed_scores=[_finite_or_none(v) for v in proposed_scores],
+        resolved=resolved, reason=reason)

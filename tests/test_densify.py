@@ -1,0 +1,126 @@
+import json
+
+import numpy as np
+import pytest
+
+from elastoprobe.controller.learning.densify import (
+    averaged_noise_mm, boundaries_resolved, candidate_points, edge_scores, pair_scores, plan_round,
+    point_scores, propose_points,
+)
+from elastoprobe.controller.learning.models import TrainConfig, fit_region_model
+from elastoprobe.controller.learning.profiles import ProfileGrid, average_profiles
+
+X_MM = ProfileGrid(80.0, 256).x_mm
+SURVEY_F = np.array([4.0, 12.0])
+SURVEY_A = np.array([90.0])
+NOISE_MM = 0.02
+
+
+def hertz_normal_mm(x_mm, force_n, e_mpa, nu=0.45, tip_radius_mm=5.0):
+    a = (3 * force_n * tip_radius_mm * (1 - nu ** 2) / (4 * e_mpa)) ** (1 / 3)
+    r = np.abs(x_mm)
+    w = np.where(r <= a, a ** 2 / tip_radius_mm - r ** 2 / (2 * tip_radius_mm), 0.0)
+    ro = np.maximum(r, a)
+    out = a ** 2 / (np.pi * tip_radius_mm) * ((2 - ro ** 2 / a ** 2) * np.arcsin(a / ro) + np.sqrt(ro ** 2 / a ** 2 - 1))
+    return np.where(r <= a, w, out)
+
+
+def region_model(e_mpa, seed):
+    """A region model from 3 surveyed points of one material (averaged noisy profiles)."""
+    rng = np.random.default_rng(seed)
+    forces = np.array([2.0, 4.0, 8.0, 12.0, 16.0])
+    f = np.tile(forces, 3)
+    ids = np.repeat(np.arange(3), forces.size)
+    e = np.repeat(e_mpa * (1 + 0.03 * rng.normal(size=3)), forces.size)
+    d = np.stack([hertz_normal_mm(X_MM, fi, ei) for fi, ei in zip(f, e)]) + rng.normal(0, NOISE_MM, (f.size, X_MM.size))
+    cfg = TrainConfig(ensemble=3, stages=1, epochs_per_stage=300, seed=seed)
+    return fit_region_model(f, np.full(f.size, 90.0), d, X_MM, point_ids=ids, config=cfg, noise_mm=NOISE_MM)
+
+
+@pytest.fixture(scope="module")
+def models():
+    return {0: region_model(2.0, 1), 1: region_model(0.7, 2), 2: region_model(2.0, 3)}
+
+
+def grid_graph(n, spacing_mm=10.0):
+    gx, gy = np.meshgrid(np.arange(n) * spacing_mm, np.arange(n) * spacing_mm, indexing="ij")
+    pos = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(n * n)])
+    edges = [(i * n + j, (i + 1) * n + j) for i in range(n - 1) for j in range(n)]
+    edges += [(i * n + j, i * n + j + 1) for i in range(n) for j in range(n - 1)]
+    return pos, np.array(edges)
+
+
+N = 10
+POS, EDGES = grid_graph(N)
+LABELS = (POS[:, 0] >= 50.0).astype(int)          # boundary between x = 40 and x = 50
+
+
+def test_different_materials_disagree_same_material_does_not(models):
+    scores = pair_scores(np.array([0, 1, 2]), models, SURVEY_F, SURVEY_A, NOISE_MM)
+    assert scores[(0, 1)] > 10.0 and scores[(1, 2)] > 10.0
+    assert scores[(0, 2)] < 3.0
+    missing = pair_scores(np.array([0, 5]), models, SURVEY_F, SURVEY_A, NOISE_MM)
+    assert missing[(0, 5)] == np.inf
+
+
+def test_proposes_on_the_boundary_not_in_interiors(models):
+    rnd = plan_round(0, POS, EDGES, LABELS, {0: models[0], 1: models[1]}, SURVEY_F, SURVEY_A, NOISE_MM,
+                     budget=6, min_spacing_mm=4.0, resolution_mm=8.0)
+    assert not rnd.resolved and not rnd.stop and "longer than 8 mm" in rnd.reason
+    prop = np.asarray(rnd.proposed_mm)
+    assert prop.shape == (6, 3)
+    assert np.all(np.abs(prop[:, 0] - 45.0) < 1e-9)           # midpoints of crossing edges
+    gaps = np.linalg.norm(prop[:, None] - prop[None], axis=2) + np.eye(6) * 1e9
+    assert gaps.min() >= 4.0
+    assert len(rnd.disagreeing_edges) == N
+    json.dumps(rnd.to_dict(), allow_nan=False)
+    # Midpoints 5 mm from their ends cannot keep 6 mm: the round says so and stops.
+    tight = plan_round(1, POS, EDGES, LABELS, {0: models[0], 1: models[1]}, SURVEY_F, SURVEY_A, NOISE_MM,
+                       budget=6, min_spacing_mm=6.0, resolution_mm=8.0)
+    assert tight.stop and not tight.resolved and "6 mm" in tight.reason
+
+
+def test_no_proposals_when_regions_agree(models):
+    rnd = plan_round(0, POS, EDGES, LABELS, {0: models[0], 1: models[2]}, SURVEY_F, SURVEY_A, NOISE_MM,
+                     budget=6, min_spacing_mm=6.0, resolution_mm=4.0)
+    assert rnd.resolved and rnd.proposed_mm == [] and "disagree" in rnd.reason
+
+
+def test_stop_rule_on_edge_length():
+    pos = np.array([[0.0, 0, 0], [3.0, 0, 0], [10.0, 0, 0]])
+    edges = np.array([[0, 1], [1, 2]])
+    assert boundaries_resolved(pos, edges, np.array([5.0, 0.0]), resolution_mm=4.0)[0]
+    assert not boundaries_resolved(pos, edges, np.array([5.0, 5.0]), resolution_mm=4.0)[0]
+    assert boundaries_resolved(pos, edges, np.array([1.0, 2.0]), resolution_mm=4.0)[0]
+
+
+def test_propose_respects_spacing_budget_and_threshold():
+    cand = np.array([[0.0, 0, 0], [1.0, 0, 0], [10.0, 0, 0], [20.0, 0, 0], [30.0, 0, 0]])
+    scores = np.array([9.0, 8.0, 2.0, 7.0, np.inf])
+    existing = np.array([[19.0, 0, 0]])
+    idx = propose_points(cand, scores, existing, budget=5, min_spacing_mm=5.0, min_score=3.0)
+    assert idx.tolist() == [4, 0]          # inf first; 1 too close to 0; 2 below threshold; 3 too close
+    assert propose_points(cand, scores, existing, budget=1, min_spacing_mm=5.0).tolist() == [4]
+
+
+def test_ambiguous_points_and_candidates():
+    scores = {(0, 1): 10.0}
+    post = np.array([[0.5, 0.5], [0.99, 0.01], [0.2, 0.8]])
+    ps = point_scores(post, scores)
+    assert np.isclose(ps[0], 10.0) and ps[1] < 0.3 and np.isclose(ps[2], 4.0)
+    pos = np.array([[0.0, 0, 0], [10.0, 0, 0], [20.0, 0, 0]])
+    edges = np.array([[0, 1], [1, 2]])
+    es = edge_scores(edges, np.array([0, 0, 0]), scores)
+    assert es.tolist() == [0.0, 0.0]
+    cand, cs = candidate_points(pos, edges, es, ps)
+    assert np.allclose(cand[:, 0], [5.0, 15.0]) and np.allclose(cs, [10.0, 4.0])
+    surface = np.array([[5.0, 0, 1.0], [15.0, 0, 2.0]])
+    cand, _ = candidate_points(pos, edges, es, ps, surface_points_mm=surface)
+    assert np.allclose(cand, surface)
+
+
+def test_averaged_noise_from_scan_statistics():
+    rng = np.random.default_rng(0)
+    scans = rng.normal(0, 0.08, (16, 256))
+    _, count, std = average_profiles(scans)
+    assert abs(averaged_noise_mm(std, count) - 0.02) < 0.003
