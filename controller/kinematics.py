@@ -168,67 +168,78 @@ def manipulability(model: ArmModel, joints_rad: np.ndarray, length_scale_mm: flo
 # Inverse kinematics
 
 
-def _inverse_flange_all(model: ArmModel, flange: np.ndarray, theta6_hint: float = 0.0) -> list[np.ndarray]:
-    """All analytic solutions (up to 8, angles in (-pi, pi]) for ``base <- flange`` (4x4, mm).
-
-    At the wrist singularity (sin theta5 = 0) joints 4 and 6 are coupled; theta6 is then
-    set to ``theta6_hint`` (the seed's) and theta4 absorbs the rest.
-    """
-    a, d = model.dh_a_mm, model.dh_d_mm
-    rot, p06 = flange[:3, :3], flange[:3, 3]
-    # Wrist centre (frame 5 origin): back along the flange z by d6.
-    p05 = p06 - d[5] * rot[:, 2]
-    r_xy = math.hypot(p05[0], p05[1])
-    if r_xy < abs(d[3]) - _ACOS_SLACK:
-        return []            # the wrist centre is inside the shoulder's cylinder: unreachable
-    phi = math.acos(min(1.0, abs(d[3]) / r_xy)) if r_xy > 0 else 0.0
-    psi = math.atan2(p05[1], p05[0])
-    solutions: list[np.ndarray] = []
-    for shoulder in (1.0, -1.0):
-        th1 = psi + shoulder * phi + math.pi / 2
-        s1, c1 = math.sin(th1), math.cos(th1)
-        cos5 = (p06[0] * s1 - p06[1] * c1 - d[3]) / d[5]
-        if abs(cos5) > 1.0 + 1e-7:
-            continue
-        cos5 = max(-1.0, min(1.0, cos5))
-        for wrist in (1.0, -1.0):
-            th5 = wrist * math.acos(cos5)
-            s5 = math.sin(th5)
-            # Inverse rotation's columns give theta6 (T60 = inv(T06)).
-            r_inv = rot.T
-            x60, y60 = r_inv[:, 0], r_inv[:, 1]
-            if abs(s5) < _WRIST_SINGULAR_SIN:
-                th6 = theta6_hint
-            else:
-                th6 = math.atan2((-x60[1] * s1 + y60[1] * c1) / s5, (x60[0] * s1 - y60[0] * c1) / s5)
-            t01 = _dh_matrix(a[0], d[0], model.dh_alpha_rad[0], th1)
-            t45 = _dh_matrix(a[4], d[4], model.dh_alpha_rad[4], th5)
-            t56 = _dh_matrix(a[5], d[5], model.dh_alpha_rad[5], th6)
-            t14 = _rigid_inverse(t01) @ flange @ _rigid_inverse(t45 @ t56)
-            # Frame 4's origin in frame 1: the planar shoulder-elbow pair works in the
-            # x1-y1 plane (p14 = a2 [c2, s2] + a3 [c23, s23], with d4 along z1).
-            px, py = t14[0, 3], t14[1, 3]
-            r2 = px * px + py * py
-            cos3 = (r2 - a[1] ** 2 - a[2] ** 2) / (2.0 * a[1] * a[2])
-            if abs(cos3) > 1.0 + 1e-7:
-                continue     # out of the arm's reach for this shoulder/wrist branch
-            cos3 = max(-1.0, min(1.0, cos3))
-            for elbow in (1.0, -1.0):
-                th3 = elbow * math.acos(cos3)
-                th2 = math.atan2(py, px) - math.atan2(a[2] * math.sin(th3), a[1] + a[2] * math.cos(th3))
-                # Joints 2-4 are parallel (alpha = 0): their angles add up to the
-                # rotation of frame 4 about z1.
-                th4 = math.atan2(t14[1, 0], t14[0, 0]) - th2 - th3
-                q = np.array([th1, th2, th3, th4, th5, th6])
-                solutions.append(np.arctan2(np.sin(q), np.cos(q)))
-    return solutions
-
-
-def _rigid_inverse(m: np.ndarray) -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3] = m[:3, :3].T
-    out[:3, 3] = -m[:3, :3].T @ m[:3, 3]
+def _dh_batch(a_mm: float, d_mm: float, alpha_rad: float, theta_rad: np.ndarray) -> np.ndarray:
+    """``Rz(theta) Tz(d) Tx(a) Rx(alpha)`` for an array of angles: (..., 4, 4)."""
+    ct, st = np.cos(theta_rad), np.sin(theta_rad)
+    ca, sa = math.cos(alpha_rad), math.sin(alpha_rad)
+    out = np.zeros(np.shape(theta_rad) + (4, 4))
+    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2], out[..., 0, 3] = ct, -st * ca, st * sa, a_mm * ct
+    out[..., 1, 0], out[..., 1, 1], out[..., 1, 2], out[..., 1, 3] = st, ct * ca, -ct * sa, a_mm * st
+    out[..., 2, 1], out[..., 2, 2], out[..., 2, 3] = sa, ca, d_mm
+    out[..., 3, 3] = 1.0
     return out
+
+
+def _rigid_inverse_batch(m: np.ndarray) -> np.ndarray:
+    """Inverse of rigid transforms (..., 4, 4)."""
+    out = np.zeros_like(m)
+    rt = np.swapaxes(m[..., :3, :3], -1, -2)
+    out[..., :3, :3] = rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", rt, m[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def _inverse_flange_batch(model: ArmModel, flange: np.ndarray, theta6_hint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The 8 analytic branches for each ``base <- flange`` (P, 4, 4) in mm, vectorised.
+
+    Returns (q (P, 8, 6) in (-pi, pi], exists (P, 8)). Branch index = 4 * shoulder +
+    2 * wrist + elbow (0 = +, 1 = -). At the wrist singularity (sin theta5 = 0) joints 4
+    and 6 are coupled; theta6 is then ``theta6_hint`` (P,) and theta4 absorbs the rest.
+    """
+    a, d, alpha = model.dh_a_mm, model.dh_d_mm, model.dh_alpha_rad
+    n_pose = flange.shape[0]
+    rot, p06 = flange[:, :3, :3], flange[:, :3, 3]
+    # Wrist centre (frame 5 origin): back along the flange z by d6.
+    p05 = p06 - d[5] * rot[:, :, 2]
+    r_xy = np.hypot(p05[:, 0], p05[:, 1])
+    # Inside the shoulder's cylinder (r < d4) nothing reaches the wrist centre.
+    exists_pose = r_xy >= abs(d[3]) - _ACOS_SLACK
+    phi = np.arccos(np.clip(abs(d[3]) / np.maximum(r_xy, 1e-12), -1.0, 1.0))
+    psi = np.arctan2(p05[:, 1], p05[:, 0])
+    signs = np.array([1.0, -1.0])
+    th1 = psi[:, None] + signs[None, :] * phi[:, None] + math.pi / 2                 # (P, 2)
+    s1, c1 = np.sin(th1), np.cos(th1)
+    cos5 = (p06[:, 0, None] * s1 - p06[:, 1, None] * c1 - d[3]) / d[5]
+    exists_5 = np.abs(cos5) <= 1.0 + 1e-7
+    th5 = signs[None, None, :] * np.arccos(np.clip(cos5, -1.0, 1.0))[:, :, None]      # (P, 2, 2)
+    s5 = np.sin(th5)
+    # theta6 from the rows of the flange rotation (the columns of its inverse).
+    num_s = (-rot[:, 0, 1, None] * s1 + rot[:, 1, 1, None] * c1)[:, :, None]
+    num_c = (rot[:, 0, 0, None] * s1 - rot[:, 1, 0, None] * c1)[:, :, None]
+    singular = np.abs(s5) < _WRIST_SINGULAR_SIN
+    safe_s5 = np.where(singular, 1.0, s5)
+    th6 = np.where(singular, theta6_hint[:, None, None], np.arctan2(num_s / safe_s5, num_c / safe_s5))
+    th1_b = np.broadcast_to(th1[:, :, None], th5.shape)
+    t01 = _dh_batch(a[0], d[0], alpha[0], th1_b)
+    t46 = _dh_batch(a[4], d[4], alpha[4], th5) @ _dh_batch(a[5], d[5], alpha[5], th6)
+    t14 = _rigid_inverse_batch(t01) @ flange[:, None, None] @ _rigid_inverse_batch(t46)   # (P, 2, 2, 4, 4)
+    # Frame 4's origin in frame 1: the planar shoulder-elbow pair works in the x1-y1
+    # plane (p14 = a2 [c2, s2] + a3 [c23, s23], with d4 along z1).
+    px, py = t14[..., 0, 3], t14[..., 1, 3]
+    cos3 = (px * px + py * py - a[1] ** 2 - a[2] ** 2) / (2.0 * a[1] * a[2])
+    exists_3 = np.abs(cos3) <= 1.0 + 1e-7
+    th3 = signs * np.arccos(np.clip(cos3, -1.0, 1.0))[..., None]                     # (P, 2, 2, 2)
+    th2 = np.arctan2(py, px)[..., None] - np.arctan2(a[2] * np.sin(th3), a[1] + a[2] * np.cos(th3))
+    # Joints 2-4 are parallel (alpha = 0): their angles add up to frame 4's rotation about z1.
+    th4 = np.arctan2(t14[..., 1, 0], t14[..., 0, 0])[..., None] - th2 - th3
+    shape = th3.shape
+    q = np.stack([np.broadcast_to(th1[:, :, None, None], shape), th2, th3, th4,
+                  np.broadcast_to(th5[..., None], shape), np.broadcast_to(th6[..., None], shape)], axis=-1)
+    q = np.arctan2(np.sin(q), np.cos(q)).reshape(n_pose, 8, 6)
+    exists = (exists_pose[:, None, None, None] & exists_5[:, :, None, None] & exists_3[..., None])
+    exists = np.broadcast_to(exists, shape).reshape(n_pose, 8)
+    return q, exists
 
 
 def _wrap_into_limits(q_rad: np.ndarray, limits_rad: np.ndarray, seed_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -248,24 +259,36 @@ def _wrap_into_limits(q_rad: np.ndarray, limits_rad: np.ndarray, seed_rad: np.nd
     return np.clip(wrapped, lo, hi), ok
 
 
+def _tcp_to_flange(model: ArmModel, tcp_matrices: np.ndarray) -> np.ndarray:
+    return tcp_matrices @ _rigid_inverse_batch(model.flange_to_tcp.matrix())
+
+
+def _valid_branches(model: ArmModel, flange: np.ndarray, theta6_hint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(q (P, 8, 6), valid (P, 8)): branches that exist and reproduce the flange when
+    checked by forward kinematics (numerically poor ones at the edge of reach are not
+    offered). Joint limits are not applied yet."""
+    q, exists = _inverse_flange_batch(model, flange, theta6_hint)
+    got = forward_flange_batch(model, q.reshape(-1, 6)).reshape(q.shape[0], 8, 4, 4)
+    pos_err = np.linalg.norm(got[..., :3, 3] - flange[:, None, :3, 3], axis=-1)
+    rot_err = np.max(np.abs(got[..., :3, :3] - flange[:, None, :3, :3]), axis=(-1, -2))
+    return q, exists & (pos_err <= _IK_CHECK_POS_MM) & (rot_err <= _IK_CHECK_ROT)
+
+
+def _select(model: ArmModel, q: np.ndarray, valid: np.ndarray, seed: np.ndarray) -> list[np.ndarray]:
+    """Valid branches (8, 6) wrapped into the limits near ``seed``, nearest first."""
+    wrapped, ok = _wrap_into_limits(q, model.joint_limits_rad, seed)
+    keep = wrapped[valid & ok]
+    order = np.argsort(np.sum(np.abs(keep - seed), axis=1), kind="stable")
+    return [keep[i] for i in order]
+
+
 def inverse_all(model: ArmModel, tcp_pose: Pose, seed_joints_rad: np.ndarray | None = None) -> list[np.ndarray]:
     """Every IK solution within the joint limits (one per branch, each joint wrapped by
     +-2 pi to the value closest to the seed), sorted by distance to the seed (rad)."""
     seed = np.zeros(6) if seed_joints_rad is None else np.asarray(seed_joints_rad, dtype=float).reshape(6)
-    flange = tcp_pose.compose(model.flange_to_tcp.inverse()).matrix()
-    raw = _inverse_flange_all(model, flange, theta6_hint=float(seed[5]))
-    if not raw:
-        return []
-    q = np.array(raw)
-    got = forward_flange_batch(model, q)
-    pos_err = np.linalg.norm(got[:, :3, 3] - flange[:3, 3], axis=1)
-    rot_err = np.max(np.abs(got[:, :3, :3] - flange[:3, :3]), axis=(1, 2))
-    # Numerically poor branches (at the edge of reach) are not offered.
-    accurate = (pos_err <= _IK_CHECK_POS_MM) & (rot_err <= _IK_CHECK_ROT)
-    wrapped, ok = _wrap_into_limits(q, model.joint_limits_rad, seed)
-    keep = wrapped[accurate & ok]
-    order = np.argsort(np.sum(np.abs(keep - seed), axis=1), kind="stable")
-    return [keep[i] for i in order]
+    flange = _tcp_to_flange(model, tcp_pose.matrix()[None])
+    q, valid = _valid_branches(model, flange, seed[5:6])
+    return _select(model, q[0], valid[0], seed)
 
 
 def inverse(model: ArmModel, tcp_pose: Pose, seed_joints_rad: np.ndarray | None = None) -> np.ndarray | None:
@@ -287,18 +310,25 @@ def path_samples(start: Pose, end: Pose, step_mm: float, step_deg: float) -> np.
     return np.linspace(0.0, 1.0, n + 1)
 
 
+def singularity_margins_batch(model: ArmModel, joints_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`singularity_margins` for joint rows (N, 6): three arrays (N,)."""
+    q = np.asarray(joints_rad, dtype=float).reshape(-1, 6)
+    wrist_deg = np.degrees(np.arcsin(np.minimum(1.0, np.abs(np.sin(q[:, 4])))))
+    elbow_deg = np.degrees(np.arcsin(np.minimum(1.0, np.abs(np.sin(q[:, 2])))))
+    flange = forward_flange_batch(model, q)
+    p05 = flange[:, :3, 3] - model.dh_d_mm[5] * flange[:, :3, 2]
+    r2 = p05[:, 0] ** 2 + p05[:, 1] ** 2
+    shoulder_mm = np.sqrt(np.maximum(r2 - model.dh_d_mm[3] ** 2, 0.0))
+    return wrist_deg, elbow_deg, shoulder_mm
+
+
 def singularity_margins(model: ArmModel, joints_rad: np.ndarray) -> tuple[float, float, float]:
     """How far a configuration is from the UR's three singularities:
     (wrist: |theta5| folded into [0, 90] deg, elbow: |theta3| folded likewise (deg),
     shoulder: horizontal distance (mm) of the wrist centre from the plane through the
     base axis parallel to the shoulder axis, sqrt(r^2 - d4^2))."""
-    q = np.asarray(joints_rad, dtype=float).reshape(6)
-    wrist_deg = math.degrees(math.asin(min(1.0, abs(math.sin(q[4])))))
-    elbow_deg = math.degrees(math.asin(min(1.0, abs(math.sin(q[2])))))
-    p05 = joint_frames(model, q)[5][:3, 3]
-    r2 = p05[0] ** 2 + p05[1] ** 2
-    shoulder_mm = math.sqrt(max(r2 - model.dh_d_mm[3] ** 2, 0.0))
-    return wrist_deg, elbow_deg, shoulder_mm
+    w, e, s = singularity_margins_batch(model, joints_rad)
+    return float(w[0]), float(e[0]), float(s[0])
 
 
 def linear_path_joints(model: ArmModel, start: Pose, end: Pose, seed_joints_rad: np.ndarray | None,
@@ -320,19 +350,25 @@ def linear_path_joints(model: ArmModel, start: Pose, end: Pose, seed_joints_rad:
       space, but the real controller stops a moveL there.
     """
     fractions = path_samples(start, end, step_mm, step_deg)
-    seed = None if seed_joints_rad is None else np.asarray(seed_joints_rad, dtype=float).reshape(6)
+    seed = np.zeros(6) if seed_joints_rad is None else np.asarray(seed_joints_rad, dtype=float).reshape(6)
+    tcp = np.stack([interpolate_pose(start, end, float(f)).matrix() for f in fractions])
+    flange = _tcp_to_flange(model, tcp)
+    # All branches of all waypoints at once; at an exact wrist singularity theta6 keeps the seed's.
+    q_all, valid_all = _valid_branches(model, flange, np.full(fractions.size, seed[5]))
     out = np.empty((fractions.size, 6))
-    for k, f in enumerate(fractions):
-        q = inverse(model, interpolate_pose(start, end, float(f)), seed)
-        if q is None:
+    for k in range(fractions.size):
+        found = _select(model, q_all[k], valid_all[k], seed)
+        if not found:
             return None
+        q = found[0]
         if k > 0 and float(np.max(np.abs(q - out[k - 1]))) > max_joint_step_rad:
-            return None
-        wrist_deg, elbow_deg, shoulder_mm = singularity_margins(model, q)
-        if wrist_deg < min_wrist_deg or elbow_deg < min_elbow_deg or shoulder_mm < min_shoulder_mm:
             return None
         out[k] = q
         seed = q
+    wrist_deg, elbow_deg, shoulder_mm = singularity_margins_batch(model, out)
+    if (np.min(wrist_deg) < min_wrist_deg or np.min(elbow_deg) < min_elbow_deg
+            or np.min(shoulder_mm) < min_shoulder_mm):
+        return None
     return out
 
 
