@@ -512,12 +512,20 @@ def _materials(spec: ObjectSpec) -> tuple[list[str], list[Material]]:
     return names, [material_from_spec(n, spec.materials[n]) for n in names]
 
 
+def _key_error(doc: YamlDoc, loc: tuple, message: str) -> InputError:
+    """An error at the key that opens ``loc`` (for problems with a whole section)."""
+    if loc in doc.key_positions:
+        line, col = doc.key_positions[loc]
+        return InputError(message, path=doc.path, line=line, col=col)
+    return doc.error(loc, message)
+
+
 def _check_refs(spec: ObjectSpec, doc: YamlDoc) -> None:
     errors: list[InputError] = []
     sections = [k for k in ("ball", "composite", "mesh") if getattr(spec, k) is not None]
     if len(sections) != 1:
         where = (sections[1],) if len(sections) > 1 else ()
-        errors.append(doc.error(where, "an object needs exactly one of 'ball', 'composite', 'mesh'"))
+        errors.append(_key_error(doc, where, "an object needs exactly one of 'ball', 'composite', 'mesh'"))
     refs: list[tuple[tuple, str, str | None]] = []
     if spec.ball is not None:
         refs.append((("ball", "material"), spec.ball.material, "elastic"))
@@ -542,10 +550,10 @@ def _check_refs(spec: ObjectSpec, doc: YamlDoc) -> None:
             errors.append(doc.error(loc, f"material {name!r} is {spec.materials[name].kind!r}, here it must be {kind!r}"))
         elif spec.mesh is not None and spec.materials[name].kind == "plate_on_foam" \
                 and spec.materials[name].plate_radius_mm <= 0:
-            errors.append(doc.error(("materials", name), "a plate_on_foam on a mesh needs plate_radius_mm > 0"))
+            errors.append(_key_error(doc, ("materials", name), "a plate_on_foam on a mesh needs plate_radius_mm > 0"))
     for name in spec.materials:
         if name not in used:
-            errors.append(doc.error(("materials", name), f"material {name!r} is not used by any region"))
+            errors.append(_key_error(doc, ("materials", name), f"material {name!r} is not used by any region"))
     if errors:
         raise InputErrors(errors)
 
@@ -577,7 +585,7 @@ def _load_mesh_object(spec: ObjectSpec, doc: YamlDoc, path: Path) -> MeshObject:
         labels[match] = names.index(region.material)
     if np.any(labels < 0):
         if ms.default_material is None:
-            raise doc.error(("mesh", "regions"), f"{int(np.sum(labels < 0))} faces match no region colour "
+            raise _key_error(doc, ("mesh", "regions"), f"{int(np.sum(labels < 0))} faces match no region colour "
                                                  f"(add default_material)")
         labels[labels < 0] = names.index(ms.default_material)
     faces_keep = ~((mesh.triangles[:, :, 2].max(axis=1) < 1e-3) & (mesh.face_normals[:, 2] < -0.99))
@@ -599,6 +607,6 @@ def load_object(path: str | Path) -> SimObject:
         box = materials[names.index(spec.composite.box.material)]
         pillow = materials[names.index(spec.composite.pillow.material)]
         if names.index(spec.composite.box.material) != 0:
-            raise doc.error(("materials",), "list the box's material first (region 0), then the pillow's")
+            raise _key_error(doc, ("materials",), "list the box's material first (region 0), then the pillow's")
         return CompositeObject(spec.name, spec.composite, box, pillow, spec.blend_width_mm)
     return _load_mesh_object(spec, doc, Path(path))
