@@ -14,10 +14,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .geometry import probe_tcp_pose, scan_direction
+from .geometry import scan_direction
 from .journal import StepPlan
 from .learning import profiles as prof
-from .probe import ProbeTarget, StepData
+from .probe import ProbeTarget, StepData, standoff_pose
 
 if TYPE_CHECKING:
     from .learning.models import RegionModel
@@ -195,13 +195,13 @@ def _reachable(ctx: PhaseContext, pts: np.ndarray, nrm: np.ndarray, t_dirs: np.n
     assert cell is not None
     plan = s.inputs.plan
     angles = sorted(set(plan.phases.survey.angles_deg) | set(plan.phases.characterize.angles_deg))
-    off = plan.probing.standoff_mm + s.inputs.cell.tool.tip_radius_mm
+    radius, standoff = s.inputs.cell.tool.tip_radius_mm, plan.probing.standoff_mm
     b2o = cell.base_to_object
     keep = np.zeros(len(pts), bool)
     validator = s.executor.validator
     for i in range(len(pts)):
         p, n, t = b2o.apply(pts[i]), b2o.apply_vector(nrm[i]), b2o.apply_vector(t_dirs[i])
-        poses = [probe_tcp_pose(p, n, t, a, offset_mm=off) for a in angles]
+        poses = [standoff_pose(p, n, t, a, radius, standoff) for a in angles]
         keep[i] = validator.reachable_at_all_angles(poses)   # type: ignore[attr-defined]
     return keep
 

@@ -60,6 +60,18 @@ class StepData:
         return f / n if n > 0 else f
 
 
+def standoff_pose(point_mm: np.ndarray, normal: np.ndarray, t: np.ndarray, angle_deg: float,
+                  tip_radius_mm: float, standoff_mm: float) -> Pose:
+    """TCP (tip centre) pose ``standoff_mm`` back along the probe from touching ``point``.
+
+    A spherical tip touches a surface where the surface normal passes through its
+    centre, whatever the approach angle: the centre sits at ``point + R n`` at first
+    touch, and the probe approaches it along d from ``standoff_mm`` away.
+    """
+    centre = np.asarray(point_mm, dtype=float) + tip_radius_mm * np.asarray(normal, dtype=float)
+    return probe_tcp_pose(centre, normal, t, angle_deg, offset_mm=standoff_mm)
+
+
 class ProbeFault(Exception):
     """The probe could not be completed; ``kind`` matches the plan's fault policy keys."""
 
@@ -140,8 +152,7 @@ class ProbeExecutor:
         p = b2o.apply(target.point_mm)
         n = b2o.apply_vector(target.normal)
         t = b2o.apply_vector(target.t)
-        standoff = probe_tcp_pose(p, n, t, angle_deg, offset_mm=s.standoff_mm + s.tip_radius_mm)
-        contact_pose = probe_tcp_pose(p, n, t, angle_deg, offset_mm=s.tip_radius_mm)
+        standoff = standoff_pose(p, n, t, angle_deg, s.tip_radius_mm, s.standoff_mm)
         d = standoff.rotation[:, 2]
 
         self.machine.fire("go_to_target")
@@ -162,7 +173,6 @@ class ProbeExecutor:
                              f"(object moved or missing?)")
         self._expect(state, MotionState.CONTACT, "seek_contact")
         self.machine.fire("contact")
-        del contact_pose
         for k, level in enumerate(levels):
             if k > 0:
                 self.machine.fire("next_level")
