@@ -1,5 +1,4 @@
 import numpy as np
-import pytest
 
 from elastoprobe.controller.learning.evaluate import (
     boundary_points, depth_monotone_in_force, mirror_residual, mirror_residuals, noise_floor_mm,

@@ -204,7 +204,9 @@ def denormalize(depth_norm: np.ndarray, scale_mm: float) -> np.ndarray:
 
 def mirror_angle_deg(angle_deg: float | np.ndarray) -> float | np.ndarray:
     """α -> 180° − α: the same push seen with t flipped."""
-    return 180.0 - np.asarray(angle_deg, dtype=float) if np.ndim(angle_deg) else 180.0 - float(angle_deg)
+    if np.ndim(angle_deg):
+        return 180.0 - np.asarray(angle_deg, dtype=float)
+    return 180.0 - float(angle_deg)
 
 
 def mirror(profile: np.ndarray, x_mm: np.ndarray) -> np.ndarray:
