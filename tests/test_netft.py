@@ -16,6 +16,7 @@ import pytest
 from elastoprobe.controller.drivers.ati_netft import (
     CalInfo, NetFTClient, NetFTCounters, RDT_RECORD, SequenceTracker, build_rdt_request,
     parse_calinfo, parse_rdt_datagram, read_calinfo)
+from elastoprobe.controller.devices import ForceTorqueSensor
 from elastoprobe.controller.errors import DeviceTimeout, ProtocolError
 from elastoprobe.sim.servers.netft_server import (
     NetFTFaults, NetFTServer, constant_source, ramp_source)
@@ -124,9 +125,11 @@ def test_calinfo_silent_device_times_out(make_server):
 
 
 # ---------------------------------------------------------------- clean stream
-def test_clean_stream_delivers_every_record_in_order(make_server, make_client):
-    srv = make_server(rate_hz=1000.0)
-    client = make_client(srv, autostart=False)
+@pytest.mark.parametrize("buffered", [False, True])
+def test_clean_stream_delivers_every_record_in_order(make_server, make_client, buffered):
+    srv = make_server(rate_hz=1000.0, records_per_datagram=10)
+    client = make_client(srv, autostart=False, buffered=buffered)
+    assert isinstance(client, ForceTorqueSensor)
     block = collect_finite(srv, client, 800)
     assert len(block) == 800
     np.testing.assert_array_equal(block.seq, np.arange(1, 801))
@@ -136,7 +139,8 @@ def test_clean_stream_delivers_every_record_in_order(make_server, make_client):
     c = client.counters()
     assert (c.received, c.lost, c.reordered, c.duplicated, c.bad_datagrams) == (800, 0, 0, 0, 0)
     # Times come from the sequence: spaced at 1/rate (the anchor may creep 200 ppm), never
-    # backwards, whatever the arrival jitter.
+    # backwards, whatever the arrival jitter -- also for the ten records that share one
+    # buffered datagram (arrival stamps would give them all the same time).
     assert np.all(np.diff(block.t_s) >= 0)
     assert np.median(np.diff(block.t_s)) == pytest.approx(1e-3, rel=2.5e-4)
     assert client.read_block().t_s.size == 0        # nothing twice
