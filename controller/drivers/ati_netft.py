@@ -396,7 +396,8 @@ class NetFTClient:
                                      sample_count))
 
     def stop(self) -> None:
-        """Ask the device to stop streaming (records already in flight are still read)."""
+        """Ask the device to stop streaming; records still in flight are discarded (they
+        belong to no stream once stopped)."""
         with self._lock:
             self._streaming = False
         self._send(build_rdt_request(CMD_STOP))
