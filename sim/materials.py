@@ -29,6 +29,7 @@ Optical (the scanner engineer's inputs): ``scanner_noise_mm`` per-sample sigma,
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -81,9 +82,8 @@ class Material:
 
     def creep_factor(self, hold_s: float) -> float:
         """Fraction of the equilibrium indentation reached after holding a force for ``hold_s``."""
-        if self.creep_fraction <= 0.0 or hold_s == float("inf"):
+        if self.creep_fraction <= 0.0 or math.isinf(hold_s):
             return 1.0
-        import math
         return 1.0 - self.creep_fraction * math.exp(-max(hold_s, 0.0) / self.creep_tau_s)
 
 

@@ -336,15 +336,18 @@ class SimObject:
         return model.depth_profile_mm(x, force_n) - model.depth_profile_mm(x, 0.0)
 
     # -- permanent dents
-    def add_permanent_dent(self, point_mm: np.ndarray, normal: np.ndarray, force_n: float) -> None:
-        """Record the dent left by a normal load ``force_n`` (N) at a point, if its material yields there.
-        Later profiles near it include the residual dent and a softer local response."""
+    def add_permanent_dent(self, point_mm: np.ndarray, normal: np.ndarray, force_n: float,
+                           tip_radius_mm: float = 5.0) -> None:
+        """Record the dent left by the largest load ``force_n`` (N) pressed at a point, if its material
+        yields there (``yield_force_n``); depth ``dent_mm_per_n`` per newton above yield, radius the
+        local contact radius + 1 mm. Later profiles near it include the residual dent (in
+        ``depth_profile_mm``, at every force) and a softer local response (crushed flutes)."""
         surf, _, labels = self.closest_surface(np.asarray(point_mm, dtype=float)[None])
         m = self.materials[int(labels[0])]
         if m.yield_force_n is None or force_n <= m.yield_force_n:
             return
         depth = m.dent_mm_per_n * (force_n - m.yield_force_n)
-        radius = float(hertz_contact_radius_mm(force_n, 5.0, m.local_E_mpa / (1 - m.nu ** 2))) + 1.0
+        radius = float(hertz_contact_radius_mm(force_n, tip_radius_mm, m.local_E_mpa / (1 - m.nu ** 2))) + 1.0
         if len(self._dents) < 10_000:
             self._dents.append(Dent(surf[0], depth, radius))
 
