@@ -51,6 +51,9 @@ SAFETY_BIT_PROTECTIVE_STOPPED = 2
 SAFETY_BIT_EMERGENCY_STOPPED = 7
 ROBOT_STATUS_BIT_PROGRAM_RUNNING = 1
 
+# How long a program stop may stay unexplained by the safety bits before it is a fault.
+UNEXPLAINED_STOP_GRACE_S = 0.2
+
 # What the receive interface streams (few variables keep the 500 Hz stream cheap).
 RECEIVE_VARIABLES = ["timestamp", "actual_q", "actual_TCP_pose", "actual_TCP_speed", "actual_TCP_force",
                      "robot_status_bits", "safety_status_bits", "runtime_state", "robot_mode", "safety_mode"]
@@ -180,6 +183,7 @@ class _ChildLink:
         self.ctl: Any = None
         self.pstop_seen_s: float | None = None
         self.program_expected = False
+        self.unexplained_since_s: float | None = None
         self.kicking = False
 
     # -- setup
@@ -245,14 +249,25 @@ class _ChildLink:
                 self.pstop_seen_s = None
             running = bool(self.ctl.isProgramRunning())
             if self.program_expected and not running:
-                self.program_expected = False
-                if not (protective or emergency):
+                now = time.monotonic()
+                if protective or emergency:
+                    self.program_expected = False          # a safety stop: recover() handles it
+                    self.unexplained_since_s = None
+                elif self.unexplained_since_s is None:
+                    # The receive stream may lag the control stream by a packet or two:
+                    # give the safety bits a moment to explain the stop.
+                    self.unexplained_since_s = now
+                elif now - self.unexplained_since_s > UNEXPLAINED_STOP_GRACE_S:
                     # Neither safety stop explains it: the watchdog (stale heartbeat or a
                     # lost link) or someone else stopped the program.
+                    self.program_expected = False
+                    self.unexplained_since_s = None
                     kind = "program_stopped" if not self.heartbeat_fresh() else "connection_lost"
                     self.conn.send(("fault", kind, "the control program stopped (watchdog or connection)"))
                     if kind == "connection_lost":
                         return 3
+            else:
+                self.unexplained_since_s = None
             self.kicking = running and self.heartbeat_fresh()
             if self.kicking:
                 self.ctl.kickWatchdog()
