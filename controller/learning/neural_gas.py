@@ -224,3 +224,16 @@ def curvature_weights(curvature: np.ndarray, gain: float = 100.0) -> np.ndarray:
     default gain an edge (variation ~0.1) is drawn about ten times as often as a face.
     """
     return 1.0 + gain * np.asarray(curvature, dtype=float)
+
+
+def geometry_aware_inputs(points_mm: np.ndarray, normals: np.ndarray, curvature: np.ndarray,
+                          normal_weight_mm: float = 10.0, curvature_gain: float = 100.0
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """Features and sampling weights for geometry-aware NG -> (features (N,6) float32, weights (N,)).
+
+    Plain NG follows point density only. Drawing edge points more often is what pulls
+    units toward edges and corners; the scaled normals add units where the surface
+    bends smoothly (a pillow's rim) and keep units from straddling the two faces of
+    an edge. Units trained on these have positions (mm) in their first three columns.
+    """
+    return geometry_features(points_mm, normals, normal_weight_mm), curvature_weights(curvature, curvature_gain)
