@@ -280,8 +280,16 @@ class CharacterizeSpec(Spec):
 class DensifySpec(Spec):
     rounds: int = Field(2, ge=0, le=50)
     points_per_round: int = Field(8, ge=1, le=500)
-    min_spacing_mm: float = Field(6.0, gt=0, le=200)
-    resolution_mm: float = Field(8.0, gt=0, le=200)
+    min_spacing_mm: float = Field(5.0, gt=0, le=200)
+    resolution_mm: float = Field(12.0, gt=0, le=200)
+
+    @model_validator(mode="after")
+    def _splittable(self) -> "DensifySpec":
+        # A new point goes midway along a disagreeing edge: edges just above the
+        # resolution can be split only if half of them still keeps min_spacing_mm.
+        if self.resolution_mm < 2.0 * self.min_spacing_mm:
+            raise ValueError("resolution_mm must be at least 2 x min_spacing_mm, or no edge can be split")
+        return self
 
 
 class PhasesSpec(Spec):

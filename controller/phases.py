@@ -154,16 +154,18 @@ def phase_sampling(ctx: PhaseContext) -> None:
         pts, nrm = ctx.cloud_mm, ctx.cloud_normals
         assert pts is not None and nrm is not None
         curv = cl.curvature(pts, k=16)
-        feats = ng.geometry_features(pts, nrm, curv, normal_weight_mm=plan.sampling.geometry_weight * 10.0)
-        result = ng.train_neural_gas(feats.astype(np.float32), n_units=plan.sampling.units,
-                                     n_steps=plan.sampling.units * plan.sampling.steps_per_unit,
-                                     batch_size=256, seed=s.seed)
-        units = np.asarray(result.units)[:, :3]
-        found = tg.make_targets(units, pts, nrm, tip_radius_mm=s.inputs.cell.tool.tip_radius_mm,
-                                edge_clearance_mm=plan.sampling.edge_clearance_mm,
-                                max_tilt_deg=plan.sampling.max_tilt_deg,
-                                reference_direction=np.array(plan.sampling.reference_direction))
-        t_dirs = np.array([scan_direction(n, np.array(plan.sampling.reference_direction)) for n in found.normals])
+        feats, weights = ng.geometry_aware_inputs(pts, nrm, curv,
+                                                  normal_weight_mm=10.0 * plan.sampling.geometry_weight)
+        result = ng.train_neural_gas(feats, n_units=plan.sampling.units,
+                                     n_steps=plan.sampling.units * plan.sampling.steps_per_unit // 4,
+                                     batch_size=1024, seed=s.seed, sample_weights=weights)
+        units = np.asarray(result.units)[:, :3].astype(np.float64)
+        radius = s.inputs.cell.tool.tip_radius_mm
+        rules = tg.TargetRules(tip_radius_mm=radius, edge_clearance_radii=plan.sampling.edge_clearance_mm / radius,
+                               max_tilt_deg=plan.sampling.max_tilt_deg)
+        ref = np.array(plan.sampling.reference_direction)
+        found = tg.make_targets(units, pts, nrm, curv, rules=rules, reference_dir=ref)
+        t_dirs = np.asarray(found.t)
         pts_t, nrm_t = np.asarray(found.points_mm), np.asarray(found.normals)
         for k, extra in enumerate(plan.targets):
             n = np.asarray(extra.normal, float) / np.linalg.norm(extra.normal)
@@ -327,6 +329,8 @@ def phase_models(ctx: PhaseContext, round_: int) -> None:
             s.machine.fire("learn")
         m = s.inputs.plan.model
         outputs: dict[str, Any] = {"regions": {}}
+        noise = measured_noise_mm(ctx)
+        outputs["noise_mm"] = noise
         for region in range(ctx.n_regions):
             data = region_dataset(ctx, region)
             if len(data["force_n"]) < 3:
@@ -335,7 +339,7 @@ def phase_models(ctx: PhaseContext, round_: int) -> None:
             cfg = TrainConfig(hidden_units=m.hidden_units, ensemble=m.ensemble - 1,
                               epochs_per_stage=max(10, m.max_epochs // 5), seed=s.seed * 1000 + region)
             model = fit_region_model(data["force_n"], data["angle_deg"], data["depth_mm"], ctx.grid.x_mm,
-                                     point_ids=data["point_ids"], config=cfg)
+                                     point_ids=data["point_ids"], config=cfg, noise_mm=noise)
             path = model.save(model_dir / f"region{region}.npz")
             digest = j.record_model(region, 0, path, {"round": round_, "n_profiles": int(len(data["force_n"]))})
             outputs["regions"][str(region)] = {"path": str(Path(path).relative_to(s.dir)), "sha256": digest,
@@ -371,12 +375,15 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
         nrm = np.array([ctx.targets[i].normal for i in ids])
         labels = np.array([ctx.labels[i] for i in ids])
         edges = tg.surface_graph(pts, nrm)
-        proposal = dn.propose_for_session(pts, nrm, labels, edges, ctx.models, ctx.cloud_mm, ctx.cloud_normals,
-                                          survey_forces_n=plan.phases.survey.forces_n,
-                                          survey_angle_deg=plan.phases.survey.angles_deg[0],
-                                          budget=dp.points_per_round, min_spacing_mm=dp.min_spacing_mm,
-                                          resolution_mm=dp.resolution_mm)
-        new_pts, new_nrm = proposal.points_mm, proposal.normals
+        sv = plan.phases.survey
+        grid_forces = np.array(sv.forces_n, dtype=float)
+        rnd = dn.plan_round(round_, pts, np.asarray(edges).reshape(-1, 2), labels, ctx.models,
+                            forces_n=grid_forces, angles_deg=np.array(sv.angles_deg, dtype=float),
+                            noise_mm=measured_noise_mm(ctx), budget=dp.points_per_round,
+                            min_spacing_mm=dp.min_spacing_mm, resolution_mm=dp.resolution_mm,
+                            surface_points_mm=ctx.cloud_mm)
+        new_pts = np.asarray(rnd.proposed_mm, dtype=float).reshape(-1, 3)
+        new_nrm = _cloud_normals_at(ctx, new_pts)
         first = max(ctx.targets) + 1 if ctx.targets else 0
         t_dirs = np.array([scan_direction(n, np.array(plan.sampling.reference_direction)) for n in new_nrm]) \
             if len(new_pts) else np.zeros((0, 3))
@@ -388,16 +395,48 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
         sv = plan.phases.survey
         steps = _plan_steps(ctx, _ordered(ctx, [int(i) for i in idx]), sv.angles_deg, sv.forces_n,
                             _next_order(ctx)) if len(idx) else []
-        j.commit_phase("densify", round_, {"resolved": bool(proposal.resolved), "reason": proposal.reason,
-                                           "n_new": int(len(idx)), "record": proposal.record},
+        j.commit_phase("densify", round_, {"resolved": bool(rnd.resolved), "reason": rnd.reason,
+                                           "n_new": int(len(idx)), "record": rnd.to_dict()},
                        {"target_points_mm": new_pts.reshape(-1, 3), "target_normals": new_nrm.reshape(-1, 3),
                         "target_t": t_dirs.reshape(-1, 3), "target_index": idx.astype(np.int64)}, steps)
-        s._log("phase", name="densify", round=round_, new_targets=int(len(idx)), reason=proposal.reason)
+        s._log("phase", name="densify", round=round_, new_targets=int(len(idx)), reason=rnd.reason)
         rec = j.phase("densify", round_)
         assert rec is not None
     if len(rec.arrays["target_index"]):
         ctx.targets.update(_targets_from_arrays(rec.arrays))
     return int(rec.outputs["n_new"]) > 0
+
+
+def _cloud_normals_at(ctx: PhaseContext, points_mm: np.ndarray) -> np.ndarray:
+    """Outward normals of the cloud at (the nearest cloud point to) each point."""
+    from scipy.spatial import cKDTree
+
+    if len(points_mm) == 0:
+        return np.zeros((0, 3))
+    assert ctx.cloud_mm is not None and ctx.cloud_normals is not None
+    _, idx = cKDTree(ctx.cloud_mm).query(points_mm)
+    return ctx.cloud_normals[idx]
+
+
+def measured_noise_mm(ctx: PhaseContext, max_steps: int = 20) -> float:
+    """Standard error (mm) of averaged survey profiles, from the scans themselves."""
+    from .learning.densify import averaged_noise_mm
+
+    s = ctx.session
+    j, cell = s.journal, s.cell
+    assert j is not None and cell is not None
+    stds, counts = [], []
+    for rec in j.steps(phase=SURVEY, statuses=["done"])[:max_steps]:
+        res = j.step_result(rec.step_id)
+        tgt = ctx.targets[rec.plan.target_index]
+        scans = prof.step_scan_points(res.scans_xz_mm, res.scan_pose, cell.tcp_to_scanner, cell.base_to_object)
+        refs = prof.step_scan_points(res.reference_xz_mm, res.reference_pose, cell.tcp_to_scanner,
+                                     cell.base_to_object)
+        _, count, std = prof.average_profiles(prof.scan_depths(scans, tgt.point_mm, tgt.normal, tgt.t,
+                                                                ctx.grid, refs))
+        stds.append(std)
+        counts.append(count)
+    return averaged_noise_mm(np.array(stds), np.array(counts))
 
 
 def phase_final(ctx: PhaseContext) -> None:
