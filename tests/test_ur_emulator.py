@@ -213,9 +213,12 @@ import rtde_control, rtde_receive
 host = sys.argv[1]
 r = rtde_receive.RTDEReceiveInterface(host, frequency=125.0)
 c = rtde_control.RTDEControlInterface(host, frequency=125.0, flags=rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT)
-out = {"running": c.isProgramRunning(), "start": r.getActualTCPPose()}
+import rtde_io
+io = rtde_io.RTDEIOInterface(host)       # a third, concurrent session
+out = {"running": c.isProgramRunning(), "start": r.getActualTCPPose(), "io": io.setStandardDigitalOut(3, True)}
 target = list(out["start"]); target[2] += 0.05
 out["sync_ok"] = c.moveL(target, 0.25, 1.2)
+time.sleep(0.05)   # the receive stream may lag the control stream by one period (8 ms at 125 Hz)
 out["after_sync"] = r.getActualTCPPose()
 far = list(target); far[0] += 0.3
 out["async_ok"] = c.moveL(far, 0.25, 1.2, True)
@@ -233,7 +236,7 @@ out["status_bits"] = r.getRobotStatus()
 out["safety_bits"] = r.getSafetyStatusBits()
 c.stopScript()
 out["running_after_stop_script"] = c.isProgramRunning()
-c.disconnect(); r.disconnect()
+c.disconnect(); r.disconnect(); io.disconnect()
 print(json.dumps(out))
 """
 
@@ -244,6 +247,9 @@ def test_real_ur_rtde_moves_the_emulated_arm(emulator_at) -> None:
     emulator = emulator_at(25)
     out = _run_client(_MOVE_CLIENT, emulator.host)
     assert out["running"] is True
+    assert out["io"] is True
+    assert emulator._inputs["standard_digital_output_mask"] == 1 << 3
+    assert emulator._inputs["standard_digital_output"] == 1 << 3
     assert out["start"] == pytest.approx(START_POSE)
     assert out["sync_ok"] is True
     # moveL (synchronous) returned at the goal, read back through rtde_receive.
