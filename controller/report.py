@@ -153,8 +153,8 @@ def _load_models(data: ReportData, j: Journal) -> None:
         path = Path(rel) if Path(rel).is_absolute() else data.session_dir / rel
         try:
             data.models[region] = RegionModel.load(path)
-        except (OSError, ValueError, KeyError) as exc:
-            data.model_problems[region] = f"cannot load {rel}: {exc}"
+        except Exception as exc:   # any damage (truncated zip, bad JSON, hash mismatch) is shown, not fatal
+            data.model_problems[region] = f"cannot load {rel}: {type(exc).__name__}: {exc}"
 
 
 def _densify_views(j: Journal, phases: list[dict[str, Any]], targets_mm: dict[int, np.ndarray]) -> list[DensifyView]:
