@@ -313,3 +313,22 @@ def test_watchdog_stops_program_and_arm_without_kicks(emulator_at) -> None:
     assert out["pose_after"][0] < out["far"][0] - 0.2
     assert np.linalg.norm(out["speed_after"][:3]) == pytest.approx(0.0, abs=1e-9)
     assert not emulator.is_moving()
+
+
+def test_kinematic_backend_joint_move_and_joints_follow_the_pose() -> None:
+    kin = pytest.importorskip("elastoprobe.controller.kinematics")
+    from elastoprobe.controller.geometry import Pose
+    model = kin.ur5e()
+    arm = KinematicBackend(START_POSE, t0_s=0.0)
+    if not arm.has_kinematics:
+        pytest.skip("controller.kinematics has a different API than the backend expects")
+    q0 = arm.joints_rad().copy()
+    assert Pose.from_ur(START_POSE).distance_to(kin.forward(model, q0))[0] < 1e-6
+    q1 = q0 + np.array([0.2, -0.1, 0.1, 0.0, 0.1, 0.0])
+    arm.move_joint(q1, 1.0, 2.0)
+    t = 0.0
+    while arm.is_moving() and t < 5.0:
+        t += 0.002
+        arm.advance(t)
+    assert arm.joints_rad() == pytest.approx(q1)
+    assert Pose.from_ur(arm.tcp_pose_ur()).distance_to(kin.forward(model, q1))[0] < 1e-6
