@@ -1,0 +1,250 @@
+"""Fault injection for the simulated cell (DESIGN §8 "Faults on demand").
+
+A :class:`FaultPlan` says what and when: at a step index (first attempt only, so a
+retry can succeed), at a virtual time, or at a rate per 100 steps drawn from the
+keyed RNG (seed, step, attempt, FAULTS). Within a step the fault fires ``delay_s``
+after ``begin_step`` (drawn from the keyed RNG when not given).
+
+Every fault is visible only through what a real device would show: F/T data (a
+spike, repeated values, missing samples), status bits (protective stop, emergency
+stop, connected), missing scans, exceptions from commands (DeviceError while the
+connection is lost), and the physics (object moved: contact early, late or never;
+slip: the tip slides and the slip monitor trips). The controller-facing devices have
+no attribute that tells. Disk errors are injected by the controller's journal, not here.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from elastoprobe.controller.errors import DeviceError
+
+from .world import US_PER_S, Stream
+
+if TYPE_CHECKING:   # pragma: no cover
+    from .world import Contact, SimWorld
+
+KINDS = ("force_spike", "ft_stall", "ft_frozen", "scanner_timeout", "scanner_short_burst", "protective_stop",
+         "connection_loss", "emergency_stop", "object_moved", "slip", "disk_error")
+
+# Defaults per kind: (duration_s, magnitude). Magnitudes: spike N, object shift mm, slip mm/s,
+# short burst: fraction of the profiles delivered.
+_DEFAULTS = {
+    "force_spike": (0.005, 80.0),
+    "ft_stall": (0.25, 0.0),
+    "ft_frozen": (0.25, 0.0),
+    "scanner_timeout": (math.inf, 0.0),
+    "scanner_short_burst": (math.inf, 0.5),
+    "protective_stop": (0.0, 0.0),
+    "connection_loss": (1.0, 0.0),
+    "emergency_stop": (math.inf, 0.0),
+    "object_moved": (0.0, 12.0),
+    "slip": (math.inf, 20.0),
+    "disk_error": (0.0, 0.0),
+}
+
+
+@dataclass(frozen=True)
+class FaultPlan:
+    """One scheduled fault; exactly one of ``step``, ``at_t_s``, ``rate_per_100_steps``."""
+
+    kind: str
+    step: int | None = None
+    at_t_s: float | None = None
+    rate_per_100_steps: float | None = None
+    delay_s: float | None = None          # after begin_step (step and rate faults)
+    duration_s: float | None = None
+    magnitude: float | None = None
+    clear_after_s: float | None = None    # emergency stop: the operator clears it after this
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"unknown fault kind {self.kind!r}")
+        given = [x is not None for x in (self.step, self.at_t_s, self.rate_per_100_steps)]
+        if sum(given) != 1:
+            raise ValueError("give exactly one of step, at_t_s, rate_per_100_steps")
+
+
+@dataclass
+class _Active:
+    kind: str
+    start_us: int
+    end_us: float          # may be inf
+    magnitude: float
+    clear_us: float = math.inf
+    fired: bool = False
+    vector: np.ndarray | None = None
+
+
+class FaultInjector:
+    """Schedules faults and applies them through the world's devices."""
+
+    def __init__(self, world: "SimWorld", plans: list[FaultPlan] | None = None) -> None:
+        self._world = world
+        self._plans = list(plans or [])
+        self._active: list[_Active] = []
+        self._at_time_done: set[int] = set()
+        self._connected = True
+        self.injected: list[tuple[str, float]] = []   # (kind, virtual time s): for tests and reports
+
+    # ------------------------------------------------------------------ operator and schedule
+    def inject(self, kind: str, delay_s: float = 0.0, duration_s: float | None = None,
+               magnitude: float | None = None, clear_after_s: float | None = None) -> None:
+        """Inject a fault now (+ delay) on demand."""
+        start = self._world.now_us + int(round(delay_s * US_PER_S))
+        self._schedule(kind, start, duration_s, magnitude, clear_after_s, np.random.default_rng(0))
+
+    def operator_clear_estop(self) -> None:
+        """An operator releases the emergency stop (never done automatically)."""
+        self._active = [a for a in self._active if a.kind != "emergency_stop"]
+        self._world.arm._sim_clear_estop()
+
+    def _schedule(self, kind: str, start_us: int, duration_s: float | None, magnitude: float | None,
+                  clear_after_s: float | None, rng: np.random.Generator) -> None:
+        if kind == "disk_error":
+            return                      # the controller's journal injects those
+        d_default, m_default = _DEFAULTS[kind]
+        duration = d_default if duration_s is None else duration_s
+        end = math.inf if math.isinf(duration) else start_us + int(round(duration * US_PER_S))
+        act = _Active(kind, start_us, end, m_default if magnitude is None else magnitude)
+        if clear_after_s is not None:
+            act.clear_us = start_us + int(round(clear_after_s * US_PER_S))
+        if kind == "object_moved":
+            phi = rng.uniform(0.0, 2.0 * math.pi)
+            act.vector = act.magnitude * np.array([math.cos(phi), math.sin(phi), 0.0])
+        self._active.append(act)
+
+    # ------------------------------------------------------------------ world hooks
+    def _sim_begin_step(self) -> None:
+        w = self._world
+        seed, step, attempt = w.step_key
+        rng = w.rng(Stream.FAULTS)
+        # Faults scoped to a step (scanner, slip) end with it.
+        self._active = [a for a in self._active if a.kind not in ("scanner_timeout", "scanner_short_burst", "slip")
+                        or a.start_us > w.now_us]
+        for plan in self._plans:
+            draw = rng.random()          # always drawn, so one plan never shifts another's numbers
+            delay = rng.uniform(0.2, 2.0)
+            if plan.step is not None:
+                due = plan.step == step and attempt == 0
+            elif plan.rate_per_100_steps is not None:
+                due = draw < plan.rate_per_100_steps / 100.0
+            else:
+                continue
+            if due:
+                start = w.now_us + int(round((plan.delay_s if plan.delay_s is not None else delay) * US_PER_S))
+                self._schedule(plan.kind, start, plan.duration_s, plan.magnitude, plan.clear_after_s, rng)
+
+    def _sim_bound_end(self, now_us: int, end_us: int) -> int:
+        """Cut sub-chunks where a fault starts or ends."""
+        best = end_us
+        for a in self._active:
+            for t in (a.start_us, a.end_us, a.clear_us):
+                if now_us < t < best:
+                    best = int(t)
+        for i, plan in enumerate(self._plans):
+            if plan.at_t_s is not None and i not in self._at_time_done:
+                t = int(round(plan.at_t_s * US_PER_S))
+                if now_us < t < best:
+                    best = t
+        grid = self._world.sample_period_us
+        return best + (-best) % grid if best != end_us else end_us
+
+    def _sim_on_time(self, now_us: int) -> None:
+        """Fire faults due at ``now_us`` and end those that are over."""
+        w = self._world
+        for i, plan in enumerate(self._plans):
+            if plan.at_t_s is not None and i not in self._at_time_done and now_us >= int(round(plan.at_t_s * US_PER_S)):
+                self._at_time_done.add(i)
+                self._schedule(plan.kind, now_us, plan.duration_s, plan.magnitude, plan.clear_after_s,
+                               w.rng(Stream.FAULTS))
+        for a in list(self._active):
+            if not a.fired and now_us >= a.start_us:
+                a.fired = True
+                self.injected.append((a.kind, now_us / US_PER_S))
+                self._fire(a, now_us)
+            if a.fired and now_us >= a.end_us:
+                self._expire(a)
+            elif a.fired and now_us >= a.clear_us and a.kind == "emergency_stop":
+                self.operator_clear_estop()
+
+    def _fire(self, a: _Active, now_us: int) -> None:
+        arm = self._world.arm
+        if a.kind == "protective_stop":
+            arm._sim_protective_stop(now_us, "injected protective stop")
+        elif a.kind == "emergency_stop":
+            arm._sim_emergency_stop(now_us)
+        elif a.kind == "connection_loss":
+            self._connected = False
+            arm._sim_connection_lost(now_us)
+        elif a.kind == "object_moved":
+            self._world.move_object(a.vector)
+
+    def _expire(self, a: _Active) -> None:
+        if a in self._active:
+            self._active.remove(a)
+        if a.kind == "connection_loss" and not any(x.kind == "connection_loss" and x.fired for x in self._active):
+            self._connected = True
+            self._world.arm._sim_connection_restored()
+
+    def _window(self, kind: str, ts_us: np.ndarray) -> np.ndarray | None:
+        mask = None
+        for a in self._active:
+            if a.kind == kind:
+                m = (ts_us >= a.start_us) & (ts_us < a.end_us)
+                mask = m if mask is None else (mask | m)
+        return mask
+
+    def _sim_ft_spike(self, ts_us: np.ndarray) -> np.ndarray | None:
+        """Force added to the F/T samples (n, 3): a half-sine pulse pressing along sensor -z."""
+        out = None
+        for a in self._active:
+            if a.kind != "force_spike":
+                continue
+            m = (ts_us >= a.start_us) & (ts_us <= a.end_us)
+            if not m.any():
+                continue
+            span = max(a.end_us - a.start_us, 1)
+            phase = np.clip((ts_us - a.start_us) / span, 0.0, 1.0)
+            pulse = np.where(m, a.magnitude * np.sin(np.pi * phase), 0.0)
+            if not pulse.any():
+                pulse = np.where(m, a.magnitude, 0.0)
+            add = np.zeros((ts_us.shape[0], 3))
+            add[:, 2] = -pulse
+            out = add if out is None else out + add
+        return out
+
+    def _sim_ft_frozen(self, ts_us: np.ndarray) -> np.ndarray | None:
+        return self._window("ft_frozen", ts_us)
+
+    def _sim_ft_stalled(self, ts_us: np.ndarray) -> np.ndarray:
+        mask = self._window("ft_stall", ts_us)
+        return np.zeros(ts_us.shape[0], dtype=bool) if mask is None else mask
+
+    def _sim_slip_mm(self, ts_us: np.ndarray, contact: "Contact") -> np.ndarray:
+        """Extra tangential sliding of the tip (mm) while a slip fault is active."""
+        extra = np.zeros(ts_us.shape[0])
+        for a in self._active:
+            if a.kind == "slip" and a.fired:
+                since = max(a.start_us, contact.started_us)
+                extra += a.magnitude * np.maximum(ts_us - since, 0) / US_PER_S
+        return extra
+
+    def _sim_scanner_limit(self, requested: int) -> int:
+        """How many profiles of a burst the scanner will actually deliver now."""
+        now = self._world.now_us
+        count = requested
+        for a in self._active:
+            if a.start_us <= now < a.end_us:
+                if a.kind == "scanner_timeout":
+                    count = 0
+                elif a.kind == "scanner_short_burst":
+                    count = min(count, int(requested * a.magnitude))
+        return count
+
+    def _sim_check_connection(self, what: str) -> None:
+        if not self._connected:
+            raise DeviceError(f"{what}: connection to the robot lost")

@@ -1,0 +1,203 @@
+"""Simulated 6-axis F/T sensor on the flange (implements ForceTorqueSensor).
+
+1 kHz samples with time stamps (virtual time) and unwrapped sequence numbers. What a
+sample contains, in the sensor frame (``WrenchBlock`` convention: the load ON the
+tool, pressing gives a negative z):
+
+    contact reaction (+ its torque about the sensor origin, applied at the tip)
+  + payload gravity (mass and centre of mass from the cell; miscalibrated if asked)
+  + bias (per seed) + drift (a per-step random rate, restarting at begin_step)
+  + white noise (per-step keyed stream, paged so grouping never changes the draws)
+  -> saturation: each channel clipped at the sensor range (status word bit set)
+  -> software tare (subtracted by the "driver": :meth:`tare`)
+  -> faults (spike, frozen values, stalled stream) from the injector.
+
+``read_block`` returns every sample since the previous call (a bounded buffer: an
+unread backlog beyond ``buffer_s`` is lost, as UDP datagrams are).
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from elastoprobe.controller.devices import DeviceIdentity, WrenchBlock
+from elastoprobe.controller.geometry import Pose
+
+from .world import US_PER_S, PagedNormal, Stream
+
+if TYPE_CHECKING:   # pragma: no cover
+    from .world import SimWorld
+
+GRAVITY_MM_S2 = np.array([0.0, 0.0, -9.80665])   # m/s^2 in the base frame (N per kg)
+STATUS_SATURATED = 0x0002_0000
+
+
+@dataclass(frozen=True)
+class FTSettings:
+    """Noise and range of the simulated sensor (units in the names)."""
+
+    noise_n: float = 0.04
+    noise_nm: float = 0.002
+    drift_n_per_h: float = 0.2
+    drift_nm_per_h: float = 0.01
+    bias_n: float = 1.5                   # per-seed constant offset (removed by tare)
+    bias_nm: float = 0.05
+    range_n: float = 290.0
+    range_nm: float = 10.0
+    rate_hz: float = 1000.0
+    buffer_s: float = 10.0
+    tare_samples: int = 16
+
+
+@dataclass
+class FTSamples:
+    """A sub-chunk of samples before commit (``delivered`` False: lost in a stalled stream)."""
+
+    ts_us: np.ndarray
+    seq: np.ndarray
+    raw: np.ndarray          # (n, 6) untared, after saturation
+    out: np.ndarray          # (n, 6) what the driver delivers (tared, faults applied)
+    status: np.ndarray
+    delivered: np.ndarray
+
+    def block(self, cut: int) -> WrenchBlock:
+        keep = self.delivered[:cut]
+        out = self.out[:cut][keep]
+        return WrenchBlock(self.ts_us[:cut][keep] / US_PER_S, self.seq[:cut][keep], out[:, :3], out[:, 3:],
+                           self.status[:cut][keep])
+
+    def magnitudes_n(self) -> np.ndarray:
+        """|F| of each sample as the driver sees it (0 for samples that never arrived)."""
+        f = self.out[:, :3]
+        return np.where(self.delivered, np.sqrt(np.einsum("ij,ij->i", f, f)), 0.0)
+
+
+class SimForceTorque:
+    """The simulated sensor; the world feeds it, the controller reads it."""
+
+    def __init__(self, world: "SimWorld", tcp_to_sensor: Pose, payload_mass_kg: float,
+                 payload_com_tcp_mm: np.ndarray, settings: FTSettings = FTSettings(),
+                 serial: str = "SIM-FT-45-0001") -> None:
+        self._world = world
+        self._s = settings
+        self._serial = serial
+        self._r_ts = tcp_to_sensor.rotation
+        sensor_from_tcp = tcp_to_sensor.inverse()
+        self._tip_in_sensor_mm = sensor_from_tcp.apply(np.zeros(3))
+        self._mass_kg = float(payload_mass_kg)
+        self._com_sensor_mm = sensor_from_tcp.apply(np.asarray(payload_com_tcp_mm, float))
+        self._period_us = int(round(US_PER_S / settings.rate_hz))
+        if self._period_us != world.sample_period_us:
+            raise ValueError("the F/T rate must match the world's sample period")
+        rng = world.constants_rng()
+        self._bias = np.concatenate([rng.normal(0.0, settings.bias_n, 3), rng.normal(0.0, settings.bias_nm, 3)])
+        self._sigma = np.array([settings.noise_n] * 3 + [settings.noise_nm] * 3)
+        self._range = np.array([settings.range_n] * 3 + [settings.range_nm] * 3)
+        self._noise = PagedNormal(6)
+        self._drift_per_us = np.zeros(6)
+        self._tare = np.zeros(6)
+        self._buffer: deque[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = deque()
+        self._buffered = 0
+        self._recent_raw = np.zeros((0, 6))
+        self._recent_out = np.zeros((0, 6))
+        self._last_out: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ ForceTorqueSensor
+    def identity(self) -> DeviceIdentity:
+        return DeviceIdentity("ft", "ATI Mini45 / Net F/T (simulated)", self._serial, "1.0-sim",
+                              {"counts_per_force": 1_000_000, "counts_per_torque": 1_000_000,
+                               "range_n": self._s.range_n, "range_nm": self._s.range_nm})
+
+    @property
+    def rate_hz(self) -> float:
+        return self._s.rate_hz
+
+    def read_block(self) -> WrenchBlock:
+        if not self._buffer:
+            return WrenchBlock.empty()
+        parts = list(self._buffer)
+        self._buffer.clear()
+        self._buffered = 0
+        t = np.concatenate([p[0] for p in parts])
+        seq = np.concatenate([p[1] for p in parts])
+        out = np.concatenate([p[2] for p in parts])
+        status = np.concatenate([p[3] for p in parts])
+        return WrenchBlock(t / US_PER_S, seq, out[:, :3].copy(), out[:, 3:].copy(), status)
+
+    def tare(self) -> None:
+        """Software bias: the mean of the latest raw samples becomes zero."""
+        if self._recent_raw.shape[0]:
+            self._tare = self._recent_raw[-self._s.tare_samples:].mean(axis=0)
+            # The driver owns both the stream and the guard: a deliberate step in the
+            # readings is not a force rate (SafetyGuard.note_stream_restart).
+            self._world.guard.note_stream_restart()
+
+    # ------------------------------------------------------------------ world hooks
+    def _sim_begin_step(self) -> None:
+        w = self._world
+        self._noise.reset(w.rng(Stream.FT_NOISE))
+        rng = w.rng(Stream.FT_DRIFT)
+        per_h = np.concatenate([rng.normal(0.0, self._s.drift_n_per_h, 3), rng.normal(0.0, self._s.drift_nm_per_h, 3)])
+        self._drift_per_us = per_h / (3600.0 * US_PER_S)
+
+    def _sim_synthesize(self, ts_us: np.ndarray, force_base: np.ndarray, rot_base_tcp: np.ndarray,
+                        now_us: int) -> FTSamples:
+        w = self._world
+        n = ts_us.shape[0]
+        if rot_base_tcp.ndim == 2:
+            r_bs = rot_base_tcp @ self._r_ts
+            f_contact = force_base @ r_bs                       # R_bs^T F for each row
+            g_sensor = (self._mass_kg * GRAVITY_MM_S2) @ r_bs
+            g = np.broadcast_to(g_sensor, (n, 3))
+        else:
+            r_bs = rot_base_tcp @ self._r_ts
+            f_contact = np.einsum("nij,ni->nj", r_bs, force_base)
+            g = np.einsum("nij,i->nj", r_bs, self._mass_kg * GRAVITY_MM_S2)
+        torque = np.cross(self._tip_in_sensor_mm * 1e-3, f_contact) + np.cross(self._com_sensor_mm * 1e-3, g)
+        raw = np.empty((n, 6))
+        raw[:, :3] = f_contact + g
+        raw[:, 3:] = torque
+        first = (int(ts_us[0]) - w.step_start_us) // self._period_us - 1
+        raw += self._bias
+        raw += np.outer((ts_us - w.step_start_us).astype(float), self._drift_per_us)
+        raw += self._noise.take(first, n) * self._sigma
+        faults = w.faults
+        spike = faults._sim_ft_spike(ts_us)
+        if spike is not None:
+            raw[:, :3] += spike
+        clipped = np.abs(raw) > self._range
+        status = np.where(clipped.any(axis=1), STATUS_SATURATED, 0).astype(np.uint32)
+        raw = np.clip(raw, -self._range, self._range)
+        out = raw - self._tare
+        frozen = faults._sim_ft_frozen(ts_us)
+        if frozen is not None and frozen.any():
+            held = self._last_out if self._last_out is not None else out[0]
+            for i in np.flatnonzero(frozen):
+                out[i] = held if i == 0 or not frozen[i - 1] else out[i - 1]
+            status = status.copy()
+        delivered = ~faults._sim_ft_stalled(ts_us)
+        seq = ts_us // self._period_us
+        return FTSamples(ts_us, seq, raw, out, status, delivered)
+
+    def _sim_commit(self, samples: FTSamples, cut: int) -> None:
+        keep = samples.delivered[:cut]
+        if not keep.any():
+            return
+        t = samples.ts_us[:cut][keep]
+        out = samples.out[:cut][keep]
+        self._buffer.append((t, samples.seq[:cut][keep], out, samples.status[:cut][keep]))
+        self._buffered += t.shape[0]
+        limit = int(self._s.buffer_s * self._s.rate_hz)
+        while self._buffered > limit and len(self._buffer) > 1:
+            self._buffered -= self._buffer.popleft()[0].shape[0]
+        keep_n = 64
+        self._recent_raw = np.concatenate([self._recent_raw[-keep_n:], samples.raw[:cut][keep]])[-keep_n:]
+        self._recent_out = np.concatenate([self._recent_out[-keep_n:], out])[-keep_n:]
+        self._last_out = out[-1].copy()
+
+    def _sim_recent(self, count: int) -> np.ndarray:
+        """The latest delivered (tared) forces (count, 3), for the arm's force loop."""
+        return self._recent_out[-count:, :3]

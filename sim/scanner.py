@@ -1,0 +1,315 @@
+"""Simulated eye-in-hand laser line scanner (implements LineScanner).
+
+Geometry: mounted at ``tcp <- scanner`` (the cell file; miscalibrated if the cell asks).
+The laser fan lies in the scanner x-z plane (which contains the probe axis); its
+``samples`` rays span ``field_of_view_deg`` symmetrically about the optical axis
+(scanner z); a sample reports (x, z) of the hit in the scanner frame, NaN if missing.
+The camera sits ``camera_baseline_mm`` along scanner +y (triangulation), so a sample
+is also lost when the probe blocks the camera's view of it.
+
+Per profile (at its exposure instant, from the world's true state):
+1. the fan is ray-cast against the undeformed object mesh and the table plane z = 0
+   (:mod:`elastoprobe.sim.raycast`; the plane cut is cached and reused while the
+   scanner moves within its own plane, e.g. while the probe holds or pushes);
+2. object hits move along their ray to the deformed surface: the ContactModel's
+   ``depth_profile_mm`` at the current force and creep state, along -n (and permanent
+   dents from earlier presses, also out of contact);
+3. samples are lost: the probe cylinder or the tip sphere on the laser ray or on the
+   camera's line of sight (the probe's shadow, on the side the probe is on), steep
+   incidence beyond the material's ``steep_incidence_deg``, a per-material base
+   dropout (dark foam loses more than rubber), and extra losses around the deformed tip;
+4. noise along the range: independent per sample (``scanner_noise_mm``) plus a
+   correlated component fixed for a burst (a smooth random shape along the line with
+   RMS ``noise_corr_floor_mm``): averaging N scans lowers the RMS error as 1/sqrt(N)
+   down to that floor.
+
+Timing: ``start_burst(n)`` schedules n exposures at ``rate_hz`` from the next control
+period; a profile can be read ``latency_ms`` after its exposure.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from elastoprobe.controller.devices import DeviceIdentity, Scan
+from elastoprobe.controller.geometry import Pose
+
+from .raycast import PlaneCut, PlaneSlicer, cast_fan, plane_hits, segments_to_point_distance, segments_to_segment_distance
+from .world import US_PER_S, Stream, WorldSnapshot
+
+if TYPE_CHECKING:   # pragma: no cover
+    from .world import SimWorld
+
+
+@dataclass(frozen=True)
+class ScannerSettings:
+    """The scanner's optics and timing (units in the names)."""
+
+    samples: int = 256
+    rate_hz: float = 50.0
+    field_of_view_deg: float = 40.0
+    max_range_mm: float = 400.0
+    min_range_mm: float = 40.0
+    noise_scale: float = 1.0
+    camera_baseline_mm: float = 80.0
+    latency_ms: float = 4.0
+    table_noise_mm: float = 0.01
+    table_corr_floor_mm: float = 0.002
+    table_dropout_prob: float = 0.002
+    tip_dropout_prob: float = 0.3          # extra loss where the surface is pressed in near the tip
+    probe_shadow: bool = True              # tests of the contact physics can switch the probe off
+    cache_cuts: bool = True                # the benchmark's baseline switches the cut cache off
+
+
+@dataclass(frozen=True)
+class ProbeGeometry:
+    """The probe body and tip, in the TCP frame (mm): a cylinder from ``axis_a`` to ``axis_b``."""
+
+    axis_a_mm: np.ndarray
+    axis_b_mm: np.ndarray
+    radius_mm: float
+    tip_centre_mm: np.ndarray
+    tip_radius_mm: float
+
+
+@dataclass
+class _Burst:
+    exposures_us: list[int]
+    correlated_shape: np.ndarray     # unit-RMS shape along the line, fixed for the burst
+
+
+class SimLineScanner:
+    """The simulated scanner; the world calls ``_sim_capture`` at each exposure."""
+
+    def __init__(self, world: "SimWorld", tcp_to_scanner: Pose, probe: ProbeGeometry,
+                 settings: ScannerSettings = ScannerSettings(), serial: str = "SIM-LLS-0001") -> None:
+        self._world = world
+        self._tcp_to_scanner = tcp_to_scanner
+        self._probe = probe
+        self._s = settings
+        self._serial = serial
+        half = math.radians(settings.field_of_view_deg) / 2.0
+        self._angles = np.linspace(-half, half, settings.samples)
+        self._dirs_local = np.column_stack([np.sin(self._angles), np.zeros(settings.samples), np.cos(self._angles)])
+        obj = world.obj
+        self._slicer = PlaneSlicer(obj.mesh.vertices, obj.mesh.faces)
+        self._face_normals = np.asarray(obj.mesh.face_normals, float)
+        labels = np.asarray(getattr(obj, "face_labels", np.zeros(len(obj.mesh.faces), dtype=int)))
+        self._face_labels = labels
+        mats = obj.materials
+        self._mat_noise = np.array([m.scanner_noise_mm for m in mats])
+        self._mat_floor = np.array([m.noise_corr_floor_mm for m in mats])
+        self._mat_dropout = np.array([m.dropout_prob for m in mats])
+        self._mat_steep_cos = np.cos(np.radians([m.steep_incidence_deg for m in mats]))
+        self._cut_key: tuple | None = None
+        self._cut: PlaneCut | None = None
+        self._pending: list[_Burst] = []
+        self._ready: list[tuple[int, Scan]] = []
+        self._frame = 0
+        self._noise_rng = np.random.default_rng(0)
+        self._dropout_rng = np.random.default_rng(0)
+        self._burst_index = 0
+        self.stats = {"captures": 0, "cuts": 0}
+
+    # ------------------------------------------------------------------ LineScanner
+    def identity(self) -> DeviceIdentity:
+        return DeviceIdentity("scanner", "laser line scanner (simulated)", self._serial, "2.3-sim",
+                              {"samples": self._s.samples, "fov_deg": self._s.field_of_view_deg})
+
+    @property
+    def samples_per_profile(self) -> int:
+        return self._s.samples
+
+    @property
+    def rate_hz(self) -> float:
+        return self._s.rate_hz
+
+    def start_burst(self, count: int) -> None:
+        if count <= 0:
+            return
+        w = self._world
+        deliver = w.faults._sim_scanner_limit(int(count))
+        period = int(round(US_PER_S / self._s.rate_hz))
+        first = w.now_us + w.control_period_us
+        exposures = [first + k * period for k in range(deliver)]
+        # Each burst of a step gets its own correlated shape, keyed by its index in the step.
+        self._burst_index += 1
+        seed, step, attempt = w.step_key
+        rng = np.random.default_rng([seed & 0xFFFFFFFF, step & 0xFFFFFFFF, attempt & 0xFFFFFFFF,
+                                     int(Stream.SCAN_CORRELATED), self._burst_index])
+        self._pending.append(_Burst(exposures, self._correlated_shape(rng)))
+
+    def read_scans(self) -> list[Scan]:
+        now = self._world.now_us
+        out = [scan for ready, scan in self._ready if ready <= now]
+        self._ready = [(ready, scan) for ready, scan in self._ready if ready > now]
+        return out
+
+    # ------------------------------------------------------------------ world hooks
+    def _sim_begin_step(self) -> None:
+        w = self._world
+        self._noise_rng = w.rng(Stream.SCAN_NOISE)
+        self._dropout_rng = w.rng(Stream.SCAN_DROPOUT)
+        self._burst_index = 0
+
+    def _sim_due(self, start_us: int, end_us: int) -> list[int]:
+        """Exposure instants in (start, end]."""
+        due = []
+        for burst in self._pending:
+            due.extend(t for t in burst.exposures_us if start_us < t <= end_us)
+        return sorted(due)
+
+    def _sim_capture(self, snap: WorldSnapshot) -> None:
+        burst = next((b for b in self._pending if snap.t_us in b.exposures_us), None)
+        if burst is None:
+            return
+        burst.exposures_us.remove(snap.t_us)
+        if not burst.exposures_us:
+            self._pending.remove(burst)
+        x, z = self.profile(snap, noise=True, correlated_shape=burst.correlated_shape)
+        self._frame += 1
+        ready = snap.t_us + int(round(self._s.latency_ms * 1000.0))
+        self._ready.append((ready, Scan(self._frame, snap.t_us / US_PER_S, x, z)))
+        self.stats["captures"] += 1
+
+    # ------------------------------------------------------------------ the optics
+    def _correlated_shape(self, rng: np.random.Generator) -> np.ndarray:
+        """A smooth unit-RMS random shape along the line (a few low Fourier modes)."""
+        k = np.arange(1, 6)
+        amp = rng.normal(0.0, 1.0, k.size) / k
+        phase = rng.uniform(0.0, 2.0 * np.pi, k.size)
+        s = np.linspace(0.0, 1.0, self._s.samples)
+        shape = (amp[None, :] * np.cos(2.0 * np.pi * k[None, :] * s[:, None] / 2.0 + phase[None, :])).sum(axis=1)
+        shape += rng.normal()     # an offset is part of the correlated error too
+        rms = float(np.sqrt(np.mean(shape * shape)))
+        return shape / rms if rms > 0 else shape
+
+    def profile(self, snap: WorldSnapshot, noise: bool = True,
+                correlated_shape: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(x, z) (mm, scanner frame; NaN = missing) of one profile in the state ``snap``.
+
+        ``noise=False`` gives the noise-free, dropout-free profile (geometric losses stay)."""
+        s = self._s
+        w = self._world
+        b2o = snap.base_to_object
+        base_scanner = snap.tcp_pose.compose(self._tcp_to_scanner)
+        obj_scanner = b2o.inverse().compose(base_scanner)
+        o = obj_scanner.position_mm
+        rot = obj_scanner.rotation
+        x_ax, y_ax, z_ax = rot[:, 0], rot[:, 1], rot[:, 2]
+        cut = self._plane_cut(o, y_ax, b2o)
+        rng_mesh, face = cast_fan(cut, o, x_ax, z_ax, self._angles, s.max_range_mm)
+        dirs = self._dirs_local @ rot.T                       # object frame
+        rng_table = plane_hits(o, dirs, np.zeros(3), np.array([0.0, 0.0, 1.0]), s.max_range_mm)
+        on_table = rng_table < rng_mesh
+        r = np.where(on_table, rng_table, rng_mesh)
+        hit = np.isfinite(r) & (r >= s.min_range_mm)
+        face = np.where(on_table | ~hit, -1, face)
+        n_s = s.samples
+        normals = np.zeros((n_s, 3))
+        normals[:, 2] = 1.0
+        on_mesh = face >= 0
+        normals[on_mesh] = self._face_normals[face[on_mesh]]
+        cos_inc = -np.einsum("ij,ij->i", dirs, normals)
+        label = np.where(on_mesh, self._face_labels[np.maximum(face, 0)], -1)
+        # Deformation: move object hits along their ray onto the dented surface.
+        r = r.copy()
+        near_tip = np.zeros(n_s, dtype=bool)
+        depth = self._dent_depth_mm(snap, o, dirs, r, on_mesh & hit)
+        if depth is not None:
+            c = snap.contact
+            denom = -(dirs @ c.normal_obj) if c is not None else cos_inc
+            denom = np.maximum(np.abs(denom), 0.2)
+            r = np.where(on_mesh & hit, r + depth / denom, r)
+            peak = float(np.max(depth[on_mesh & hit])) if np.any(on_mesh & hit) else 0.0
+            if c is not None and peak > 0.05:
+                near_tip = on_mesh & hit & (depth > 0.3 * peak)
+        # Losses.
+        lost = ~hit
+        lost |= self._shadowed(o, dirs, r, snap, obj_scanner, hit)
+        steep_cos = np.where(on_mesh, self._mat_steep_cos[np.maximum(label, 0)], math.cos(math.radians(85.0)))
+        lost |= cos_inc < steep_cos
+        if noise:
+            p_drop = np.where(on_mesh, self._mat_dropout[np.maximum(label, 0)], s.table_dropout_prob)
+            p_drop = np.where(near_tip, np.maximum(p_drop, s.tip_dropout_prob), p_drop)
+            lost |= self._dropout_rng.random(n_s) < p_drop
+            sigma = np.where(on_mesh, self._mat_noise[np.maximum(label, 0)], s.table_noise_mm) * s.noise_scale
+            floor = np.where(on_mesh, self._mat_floor[np.maximum(label, 0)], s.table_corr_floor_mm) * s.noise_scale
+            shape = correlated_shape if correlated_shape is not None else np.zeros(n_s)
+            r = r + self._noise_rng.standard_normal(n_s) * sigma + shape * floor
+        r = np.where(lost, np.nan, r)
+        return r * np.sin(self._angles), r * np.cos(self._angles)
+
+    def _plane_cut(self, o: np.ndarray, y_ax: np.ndarray, b2o: Pose) -> PlaneCut:
+        key = (tuple(np.round(y_ax, 12)), round(float(o @ y_ax), 9), tuple(np.round(b2o.position_mm, 9)))
+        if not self._s.cache_cuts or key != self._cut_key or self._cut is None:
+            self._cut = self._slicer.cut(o, y_ax)
+            self._cut_key = key
+            self.stats["cuts"] += 1
+        return self._cut
+
+    def _dent_depth_mm(self, snap: WorldSnapshot, o: np.ndarray, dirs: np.ndarray, r: np.ndarray,
+                       on_obj: np.ndarray) -> np.ndarray | None:
+        """Depth (mm along -n) of the deformed or permanently dented surface at each object hit."""
+        w = self._world
+        if not np.any(on_obj):
+            return None
+        pts = o + np.where(on_obj, r, 0.0)[:, None] * dirs
+        c = snap.contact
+        if c is not None and c.model is not None:
+            rel = pts - c.point_obj
+            x = rel @ c.t_obj
+            lateral = rel @ np.cross(c.normal_obj, c.t_obj)
+            # The laser line runs through the tip; off the line (miscalibration) use the
+            # distance from the tip with the sign of x (the dent is nearly axisymmetric).
+            x_eff = np.sign(x) * np.sqrt(x * x + lateral * lateral)
+            depth = c.model.depth_profile_mm(x_eff, snap.force_n, snap.hold_s)
+            return np.where(on_obj, depth, 0.0)
+        if not w.presses:
+            return None
+        centre = pts[on_obj].mean(axis=0)
+        press = min(w.presses, key=lambda p: float(np.linalg.norm(p.point_obj - centre)))
+        if float(np.min(np.linalg.norm(pts[on_obj] - press.point_obj, axis=1))) > 30.0:
+            return None
+        line = pts[on_obj][-1] - pts[on_obj][0]
+        n = press.normal_obj
+        t = line - float(line @ n) * n
+        if np.linalg.norm(t) < 1e-9:
+            return None
+        t = t / np.linalg.norm(t)
+        model = w.obj.contact_model(press.point_obj, n, t, 90.0, w.tip_radius_mm)
+        rel = pts - press.point_obj
+        x = rel @ t
+        lateral = rel @ np.cross(n, t)
+        depth = model.depth_profile_mm(np.sign(x) * np.sqrt(x * x + lateral * lateral), 0.0)
+        return np.where(on_obj, depth, 0.0)
+
+    def _shadowed(self, o: np.ndarray, dirs: np.ndarray, r: np.ndarray, snap: WorldSnapshot,
+                  obj_scanner: Pose, hit: np.ndarray) -> np.ndarray:
+        """Samples whose laser ray or camera view is blocked by the probe or its tip."""
+        if not self._s.probe_shadow or not np.any(hit):
+            return np.zeros(r.shape[0], dtype=bool)
+        p = self._probe
+        obj_tcp = snap.base_to_object.inverse().compose(snap.tcp_pose)
+        a = obj_tcp.apply(p.axis_a_mm)
+        b = obj_tcp.apply(p.axis_b_mm)
+        tip = obj_tcp.apply(p.tip_centre_mm)
+        rr = np.where(hit, r, 0.0)
+        pts = o + rr[:, None] * dirs
+        # Stop the segments just short of the surface so the tip touching it does not count.
+        back = 0.5
+        laser_end = o + np.maximum(rr - back, 0.0)[:, None] * dirs
+        origin = np.broadcast_to(o, pts.shape)
+        blocked = segments_to_segment_distance(origin, laser_end, a, b) < p.radius_mm
+        blocked |= segments_to_point_distance(origin, laser_end, tip) < p.tip_radius_mm
+        camera = obj_scanner.apply(np.array([0.0, self._s.camera_baseline_mm, 0.0]))
+        view_dir = camera - pts
+        view_len = np.linalg.norm(view_dir, axis=1, keepdims=True)
+        start = pts + view_dir / np.maximum(view_len, 1e-9) * back
+        cam = np.broadcast_to(camera, pts.shape)
+        blocked |= segments_to_segment_distance(start, cam, a, b) < p.radius_mm
+        blocked |= segments_to_point_distance(start, cam, tip) < p.tip_radius_mm
+        return blocked & hit

@@ -1,0 +1,655 @@
+"""The simulated cell's world: single-threaded, event-driven, in virtual time (DESIGN §8).
+
+:class:`SimWorld` is a listener of :class:`~elastoprobe.controller.clock.VirtualClock`.
+When the controller sleeps, ``advance_to(t)`` integrates the arm, the contact, the
+F/T stream, the scanner and the safety path up to ``t`` — nothing sleeps, no threads.
+
+Time: an integer grid of microseconds. The arm's control period is 2 ms (UR's
+500 Hz); the F/T sensor samples every 1 ms; world time only takes values on the
+1 ms sample grid and ``advance_to`` stops on the 2 ms control grid, so float
+accumulation in the clock never shifts the grid between runs.
+
+Each ``advance_to`` is cut into sub-chunks (at most ``max_chunk_us``; the force loop
+and scheduled faults cut them too). A sub-chunk is first computed "dry" as pure
+functions of the state at its start (trajectory, contact force, F/T samples); then
+the first event in it (contact begins or ends, the seek threshold, the UR's own
+force limit, slip) shortens it; then the F/T block is checked by the controller's
+:class:`~elastoprobe.controller.safety.SafetyGuard` — the same vectorised function a
+real driver runs where the data arrives — and on a crossing the arm is stopped at
+the crossing sample's virtual time; then the state is committed.
+
+Randomness: every draw comes from a generator keyed by (seed, step, attempt,
+stream) (:func:`keyed_rng`); ``begin_step`` re-seeds all of them, and slowly varying
+random processes (F/T drift) restart at the begin_step instant, so the same commands
+after the same ``begin_step`` from the same state give the same bytes, whatever the
+absolute virtual time.
+
+Contact (DESIGN §3, §8): the tip is a sphere of radius R at the TCP. It touches
+when the tip centre comes within R of the object (``closest_surface``) or of the
+table plane z = 0 (object frame). At first touch the world records the contact point
+p and normal n and derives the physical approach from the push direction
+d = tool +z alone: t = the tangential part of d, normalised (a = 90: the tool x axis
+projected on the tangent plane), a = asin(-d . n) in (0, 90] — a push at a with t is
+the same physics as 180 - a with -t. One ContactModel per contact; push = (tip -
+tip at touch) . d; |F| = force at push with creep; the reaction on the tool is
+-|F| d. Creep is a state c in (1 - beta, 1] (the fraction of equilibrium indentation
+reached): it relaxes toward 1 with the material's time constant while loaded, and new
+loading enters un-crept (weighted by the push it adds), so "hold time" counts from
+when the load last rose, without a hard reset at every jitter of the force loop.
+"""
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+
+from elastoprobe.controller.clock import VirtualClock
+from elastoprobe.controller.devices import Trip, WrenchBlock
+from elastoprobe.controller.geometry import Pose
+from elastoprobe.controller.safety import SafetyGuard, SafetyLimits
+
+if TYPE_CHECKING:   # pragma: no cover
+    from .arm import SimArm
+    from .faults import FaultInjector
+    from .ft import SimForceTorque
+    from .scanner import SimLineScanner
+
+US_PER_S = 1_000_000
+
+# Before the first begin_step (and for per-seed constants) the step key is "outside any step".
+PRE_STEP = 2**32 - 1
+
+
+class Stream(enum.IntEnum):
+    """Ids of the independent random streams (the fourth element of every key)."""
+
+    FT_NOISE = 1
+    FT_DRIFT = 2
+    SCAN_NOISE = 3
+    SCAN_DROPOUT = 4
+    SCAN_CORRELATED = 5
+    FAULTS = 6
+    CONSTANTS = 7        # per-seed constants (F/T bias, miscalibration): key (seed, PRE_STEP, 0)
+
+
+def keyed_rng(seed: int, step: int, attempt: int, stream: int) -> np.random.Generator:
+    """A generator determined by (seed, step, attempt, stream) alone."""
+    key = [int(seed) & 0xFFFFFFFF, int(step) & 0xFFFFFFFF, int(attempt) & 0xFFFFFFFF, int(stream)]
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(key)))
+
+
+class PagedNormal:
+    """Standard-normal rows addressed by index (0 = the first draw since ``reset``).
+
+    Rows are drawn in fixed pages, in order, so ``take(i, n)`` returns the same numbers
+    however indices are grouped into calls. Old pages are dropped; re-reading the
+    current or the two previous pages is allowed (a sub-chunk cut short is re-synthesised).
+    """
+
+    def __init__(self, width: int, page_rows: int = 1024) -> None:
+        self.width = int(width)
+        self.page_rows = int(page_rows)
+        self._rng: np.random.Generator | None = None
+        self._pages: dict[int, np.ndarray] = {}
+        self._next_page = 0
+
+    def reset(self, rng: np.random.Generator) -> None:
+        self._rng = rng
+        self._pages.clear()
+        self._next_page = 0
+
+    def _page(self, k: int) -> np.ndarray:
+        page = self._pages.get(k)
+        if page is not None:
+            return page
+        if self._rng is None:
+            raise RuntimeError("PagedNormal used before reset()")
+        if k < self._next_page:
+            raise RuntimeError(f"page {k} was dropped; indices must move forward")
+        while self._next_page <= k:
+            self._pages[self._next_page] = self._rng.standard_normal((self.page_rows, self.width))
+            self._next_page += 1
+        for old in [p for p in self._pages if p < k - 2]:
+            del self._pages[old]
+        return self._pages[k]
+
+    def take(self, first: int, count: int) -> np.ndarray:
+        """Rows ``first .. first + count - 1`` as a (count, width) array."""
+        if count <= 0:
+            return np.zeros((0, self.width))
+        p0, o0 = divmod(int(first), self.page_rows)
+        p1, o1 = divmod(int(first) + int(count) - 1, self.page_rows)
+        if p0 == p1:
+            return self._page(p0)[o0:o1 + 1]
+        parts = [self._page(p0)[o0:]]
+        parts.extend(self._page(k) for k in range(p0 + 1, p1))
+        parts.append(self._page(p1)[:o1 + 1])
+        return np.concatenate(parts)
+
+
+# ------------------------------------------------------------------------------ contact
+
+# Force/push table of one contact: equilibrium |F| (N) against equilibrium push (mm).
+_FORCE_GRID_N = np.concatenate([[0.0], np.geomspace(1e-3, 600.0, 320)])
+TABLE_STIFFNESS_N_MM = 400.0     # the table is rigid next to any probed material
+MIN_APPROACH_DEG = 2.0           # a grazing touch is treated as this shallow a push
+
+
+@dataclass
+class Contact:
+    """One contact, from first touch until the push returns to zero (all of it is world state).
+
+    ``model`` is None for the table. Object-frame geometry: ``point_obj`` p, ``normal_obj``
+    n, ``t_obj`` the physical scan direction, ``angle_deg`` the physical approach angle.
+    Base frame: ``d_base`` the push direction, ``tip_touch_base`` the tip centre at first touch.
+    """
+
+    model: object | None
+    point_obj: np.ndarray
+    normal_obj: np.ndarray
+    t_obj: np.ndarray
+    angle_deg: float
+    d_base: np.ndarray
+    tip_touch_base: np.ndarray
+    started_us: int
+    push_grid_mm: np.ndarray | None = None      # equilibrium push at _FORCE_GRID_N
+    creep_beta: float = 0.0
+    creep_tau_s: float = 1.0
+    creep_c: float = 1.0
+    push_max_mm: float = 0.0
+    push_mm: float = 0.0
+    force_n: float = 0.0
+    max_force_n: float = 0.0
+    slip_extra_mm: float = 0.0                 # injected slip (fault), mm along t
+
+    def hold_s(self) -> float:
+        """The hold time equivalent to the creep state (for the model's creep law)."""
+        if self.creep_beta <= 0.0 or self.creep_c >= 1.0:
+            return math.inf
+        return -self.creep_tau_s * math.log(max((1.0 - self.creep_c) / self.creep_beta, 1e-300))
+
+    def forces_n(self, push_mm: np.ndarray, creep_c: np.ndarray) -> np.ndarray:
+        """|F| at pushes (mm) with creep states c (vectorised)."""
+        if self.model is None:
+            return TABLE_STIFFNESS_N_MM * np.maximum(push_mm, 0.0)
+        eq = np.maximum(push_mm, 0.0) / creep_c
+        grid = self.push_grid_mm
+        f = np.interp(eq, grid, _FORCE_GRID_N)
+        beyond = eq > grid[-1]
+        if beyond.any():
+            slope = (_FORCE_GRID_N[-1] - _FORCE_GRID_N[-2]) / (grid[-1] - grid[-2])
+            f = np.where(beyond, _FORCE_GRID_N[-1] + (eq - grid[-1]) * slope, f)
+        return np.where(push_mm > 0.0, f, 0.0)
+
+    def creep_after(self, c0: float, push0_mm: float, push1_mm: float, dt_s: float) -> float:
+        """Creep state after ``dt_s`` in which the push went from push0 to push1."""
+        if self.creep_beta <= 0.0:
+            return 1.0
+        c = 1.0 - (1.0 - c0) * math.exp(-dt_s / self.creep_tau_s) if push0_mm > 0.0 else c0
+        if push1_mm > self.push_max_mm and push1_mm > 0.0:
+            # New loading enters un-crept: blend by the equilibrium push it adds.
+            old = max(self.push_max_mm, 0.0)
+            fresh = 1.0 - self.creep_beta
+            c = (c * old + fresh * (push1_mm - old)) / push1_mm
+        return min(max(c, 1.0 - self.creep_beta), 1.0)
+
+
+def make_contact(obj, point_obj: np.ndarray, normal_obj: np.ndarray, d_obj: np.ndarray, tool_x_obj: np.ndarray,
+                 d_base: np.ndarray, tip_touch_base: np.ndarray, tip_radius_mm: float, started_us: int,
+                 table: bool) -> Contact:
+    """The contact at first touch: physical t and angle from the push direction alone."""
+    n = normal_obj / np.linalg.norm(normal_obj)
+    d = d_obj / np.linalg.norm(d_obj)
+    tangential = d - float(d @ n) * n
+    if np.linalg.norm(tangential) < 1e-6:
+        tangential = tool_x_obj - float(tool_x_obj @ n) * n
+        if np.linalg.norm(tangential) < 1e-9:
+            tangential = np.cross(n, [0.0, 1.0, 0.0]) if abs(n[1]) < 0.9 else np.cross(n, [1.0, 0.0, 0.0])
+    t = tangential / np.linalg.norm(tangential)
+    angle_deg = math.degrees(math.asin(min(1.0, max(-1.0, -float(d @ n)))))
+    angle_deg = min(90.0, max(MIN_APPROACH_DEG, angle_deg))
+    contact = Contact(model=None, point_obj=np.asarray(point_obj, float), normal_obj=n, t_obj=t,
+                      angle_deg=angle_deg, d_base=np.asarray(d_base, float), tip_touch_base=np.asarray(tip_touch_base, float),
+                      started_us=started_us)
+    if table:
+        return contact
+    model = obj.contact_model(contact.point_obj, n, t, angle_deg, tip_radius_mm)
+    contact.model = model
+    contact.push_grid_mm = _push_table(model)
+    # Creep law c(h) = 1 - beta exp(-h / tau), read back through the public API.
+    f_ref = 5.0
+    eq = model.push_mm_at_force(f_ref, math.inf)
+    if eq > 0:
+        beta = 1.0 - model.push_mm_at_force(f_ref, 0.0) / eq
+        if beta > 1e-9:
+            tau_probe_s = 1.0
+            c1 = model.push_mm_at_force(f_ref, tau_probe_s) / eq
+            ratio = (1.0 - c1) / beta
+            contact.creep_beta = beta
+            contact.creep_tau_s = -tau_probe_s / math.log(ratio) if 0.0 < ratio < 1.0 else 1.0
+            contact.creep_c = 1.0 - beta
+    return contact
+
+
+def _push_table(model) -> np.ndarray:
+    """Equilibrium push (mm) at each force of _FORCE_GRID_N, strictly increasing for np.interp."""
+    push = np.array([model.push_mm_at_force(float(f), math.inf) for f in _FORCE_GRID_N])
+    push = np.maximum.accumulate(push) + np.arange(push.size) * 1e-12
+    return push
+
+
+# ------------------------------------------------------------------------------ the world
+
+@dataclass
+class ArmPlan:
+    """The arm's dry trajectory over a sub-chunk: TCP positions (n,3) mm, rotations (3,3) or (n,3,3)."""
+
+    position_mm: np.ndarray
+    rotation: np.ndarray
+    speed_mm_s: np.ndarray
+
+
+@dataclass
+class WorldSnapshot:
+    """What the scanner needs at an exposure instant (true state, never shown to the controller)."""
+
+    t_us: int
+    tcp_pose: Pose
+    base_to_object: Pose
+    contact: Contact | None
+    force_n: float
+    hold_s: float
+
+
+@dataclass
+class _Dry:
+    """One sub-chunk computed before commit."""
+
+    ts_us: np.ndarray
+    plan: ArmPlan
+    tips_base: np.ndarray
+    force_base: np.ndarray           # (n,3) force ON the tool from the contact (base frame)
+    force_mag_n: np.ndarray
+    push_mm: np.ndarray
+    creep_c: np.ndarray
+    slip_mm: np.ndarray
+    contact_ends_at: int | None = None
+
+
+@dataclass
+class Press:
+    """A finished contact, for permanent dents (object frame)."""
+
+    point_obj: np.ndarray
+    normal_obj: np.ndarray
+    max_force_n: float
+
+
+class SimWorld:
+    """Virtual-time world: owns time, the object placement, the contact and the safety guard.
+
+    Devices (:class:`~elastoprobe.sim.arm.SimArm`, :class:`~elastoprobe.sim.ft.SimForceTorque`,
+    :class:`~elastoprobe.sim.scanner.SimLineScanner`) and the
+    :class:`~elastoprobe.sim.faults.FaultInjector` are attached by the cell.
+    """
+
+    def __init__(self, clock: VirtualClock, obj, base_to_object: Pose, tip_radius_mm: float, seed: int,
+                 limits: SafetyLimits, probe_axis_sensor: np.ndarray = np.array([0.0, 0.0, 1.0]),
+                 control_period_us: int = 2000, sample_period_us: int = 1000, max_chunk_us: int = 10_000,
+                 tip_offset_tcp_mm: np.ndarray | None = None, ur_force_limit_n: float = 150.0) -> None:
+        if control_period_us % sample_period_us:
+            raise ValueError("the control period must be a whole number of F/T sample periods")
+        self.clock = clock
+        self.obj = obj
+        self.base_to_object_nominal = base_to_object
+        self.base_to_object = base_to_object
+        self.tip_radius_mm = float(tip_radius_mm)
+        self.seed = int(seed)
+        self.control_period_us = int(control_period_us)
+        self.sample_period_us = int(sample_period_us)
+        self.max_chunk_us = int(max_chunk_us)
+        # The true tip centre in the TCP frame (0 unless the cell is miscalibrated).
+        self.tip_offset_tcp_mm = np.zeros(3) if tip_offset_tcp_mm is None else np.asarray(tip_offset_tcp_mm, float)
+        self.ur_force_limit_n = float(ur_force_limit_n)
+        self.limits = limits
+        self.guard = SafetyGuard(limits, probe_axis_sensor, rate_hz=US_PER_S / sample_period_us)
+        self.now_us = self._grid_floor(self._to_us(clock.now_s()), self.control_period_us)
+        self.step_key: tuple[int, int, int] = (self.seed, PRE_STEP, 0)
+        self.step_start_us = self.now_us
+        self.contact: Contact | None = None
+        self.presses: list[Press] = []
+        self.trip: Trip | None = None
+        self._obj_bounds = np.asarray(obj.mesh.bounds, dtype=float) if obj is not None else None
+        # Clearance bookkeeping: the tip is free anywhere within _free_radius of _free_centre.
+        self._free_centre: np.ndarray | None = None
+        self._free_radius = 0.0
+        self._listeners_step: list[Callable[[tuple[int, int, int]], None]] = []
+        self.arm: SimArm | None = None
+        self.ft: SimForceTorque | None = None
+        self.scanner: SimLineScanner | None = None
+        self.faults: FaultInjector | None = None
+        self._advancing = False
+        self.stats = {"subchunks": 0, "distance_queries": 0, "guard_blocks": 0}
+        clock.add_listener(self.advance_to)
+
+    # ------------------------------------------------------------------ wiring, keys
+    def attach(self, arm: SimArm, ft: SimForceTorque, scanner: SimLineScanner, faults: FaultInjector) -> None:
+        self.arm, self.ft, self.scanner, self.faults = arm, ft, scanner, faults
+        self.begin_step(self.step_key)
+
+    def rng(self, stream: Stream) -> np.random.Generator:
+        """A fresh generator for ``stream`` under the current step key."""
+        seed, step, attempt = self.step_key
+        return keyed_rng(seed, step, attempt, int(stream))
+
+    def constants_rng(self) -> np.random.Generator:
+        """Per-seed constants (bias, miscalibration): independent of steps."""
+        return keyed_rng(self.seed, PRE_STEP, 0, int(Stream.CONSTANTS))
+
+    def begin_step(self, step_key: tuple[int, int, int]) -> None:
+        """Re-seed every random stream from (seed, step, attempt); drift restarts now."""
+        self.step_key = (int(step_key[0]), int(step_key[1]), int(step_key[2]))
+        self.step_start_us = self.now_us
+        for device in (self.ft, self.scanner, self.faults):
+            if device is not None:
+                device._sim_begin_step()
+
+    # ------------------------------------------------------------------ time
+    @staticmethod
+    def _to_us(t_s: float) -> int:
+        return int(round(t_s * US_PER_S))
+
+    @staticmethod
+    def _grid_floor(t_us: int, period_us: int) -> int:
+        return t_us - t_us % period_us
+
+    def now_s(self) -> float:
+        return self.now_us / US_PER_S
+
+    def advance_to(self, t_s: float) -> None:
+        """Integrate everything up to ``t_s`` (floored onto the control grid)."""
+        target = self._grid_floor(self._to_us(t_s), self.control_period_us)
+        if self._advancing:
+            raise RuntimeError("SimWorld.advance_to re-entered")
+        self._advancing = True
+        try:
+            guard_loops = 0
+            while self.now_us < target:
+                end = min(target, self.now_us + self.max_chunk_us)
+                end = self.arm._sim_bound_end(self.now_us, end)
+                end = self.faults._sim_bound_end(self.now_us, end)
+                if end <= self.now_us:
+                    end = self.now_us + self.sample_period_us
+                self._run(end)
+                guard_loops += 1
+                if guard_loops > 10_000_000:   # bounded: ~ 3 h of virtual time per call
+                    raise RuntimeError("SimWorld.advance_to did not converge")
+        finally:
+            self._advancing = False
+
+    # ------------------------------------------------------------------ one sub-chunk
+    def _run(self, end_us: int) -> None:
+        self.stats["subchunks"] += 1
+        self.faults._sim_on_time(self.now_us)
+        sp = self.sample_period_us
+        ts = np.arange(self.now_us + sp, end_us + 1, sp, dtype=np.int64)
+        if ts.size == 0:
+            return
+        plan = self.arm._sim_plan(ts)
+        rot = plan.rotation
+        offset = self.tip_offset_tcp_mm
+        if rot.ndim == 2:
+            tips = plan.position_mm + (rot @ offset)
+        else:
+            tips = plan.position_mm + np.einsum("nij,j->ni", rot, offset)
+        n = ts.size
+        if self.contact is None:
+            k = self._first_touch(tips, plan)
+            if k is not None:
+                if k > 0:
+                    n = k          # commit the free samples; contact begins in the next sub-chunk
+                else:
+                    self._begin_contact(tips, plan, ts)
+        dry = self._dry(ts[:n], plan, tips[:n], n)
+        cut = dry.ts_us.size
+        if dry.contact_ends_at is not None:
+            cut = min(cut, dry.contact_ends_at + 1)
+        # The F/T stream as the sensor delivers it (tared, with faults), then the arm's own events.
+        samples = self.ft._sim_synthesize(dry.ts_us[:cut], dry.force_base[:cut], self._rotations(dry.plan, cut),
+                                          self.now_us)
+        event = None
+        arm_event = self.arm._sim_event(dry.ts_us[:cut], samples)
+        if arm_event is not None and arm_event < cut:
+            cut, event = arm_event + 1, "arm"
+        over = np.flatnonzero(dry.force_mag_n[:cut] > self.ur_force_limit_n)
+        if over.size:
+            cut, event = int(over[0]) + 1, "ur_force"
+        slip_trip_at = None
+        if self.contact is not None:
+            slipping = np.flatnonzero(np.abs(dry.slip_mm[:cut]) > self.limits.slip_mm)
+            if slipping.size:
+                slip_trip_at = int(slipping[0])
+                cut, event = slip_trip_at + 1, "slip"
+        # The check-and-stop path on the block as it arrives.
+        trip = None
+        delivered = samples.block(cut)
+        if len(delivered):
+            self.stats["guard_blocks"] += 1
+            trip = self.guard.check_block(delivered)
+            if trip is not None:
+                i = int(np.searchsorted(dry.ts_us[:cut], self._to_us(trip.t_s)))
+                cut, event = min(cut, i + 1), "trip"
+        else:
+            trip = self.guard.check_stale(dry.ts_us[cut - 1] / US_PER_S)
+            if trip is not None:
+                event = "trip"
+        if event == "slip" and trip is None:
+            trip = self.guard.check_slip(float(dry.slip_mm[slip_trip_at]), float(dry.ts_us[slip_trip_at]) / US_PER_S)
+        self.ft._sim_commit(samples, cut)
+        self._commit(dry, cut)
+        if trip is not None and self.trip is None:
+            self.trip = _trip_truncated(trip, self.guard)
+        if trip is not None:
+            self.arm._sim_halt(self.now_us, "tripped")
+        elif event == "ur_force":
+            self.arm._sim_protective_stop(self.now_us, f"UR force limit: |F| {dry.force_mag_n[cut - 1]:.0f} N")
+        elif event == "arm":
+            self.arm._sim_on_event(self.now_us)
+
+    def _rotations(self, plan: ArmPlan, n: int) -> np.ndarray:
+        return plan.rotation if plan.rotation.ndim == 2 else plan.rotation[:n]
+
+    # ------------------------------------------------------------------ contact physics (dry)
+    def _dry(self, ts: np.ndarray, plan: ArmPlan, tips: np.ndarray, n: int) -> _Dry:
+        plan_n = ArmPlan(plan.position_mm[:n], plan.rotation if plan.rotation.ndim == 2 else plan.rotation[:n],
+                         plan.speed_mm_s[:n])
+        c = self.contact
+        if c is None:
+            zeros = np.zeros(n)
+            return _Dry(ts, plan_n, tips, np.zeros((n, 3)), zeros, zeros, np.ones(n), zeros)
+        if c.model is None:
+            # Table: penetration of the tip sphere below z = R, along the table normal.
+            z_obj = self._to_object(tips)[:, 2]
+            pen = self.tip_radius_mm - z_obj
+            force = TABLE_STIFFNESS_N_MM * np.maximum(pen, 0.0)
+            up_base = self.base_to_object.rotation[:, 2]
+            ends = np.flatnonzero(pen < -1e-9)
+            return _Dry(ts, plan_n, tips, force[:, None] * up_base[None, :], force, pen, np.ones(n), np.zeros(n),
+                        int(ends[0]) if ends.size else None)
+        push = (tips - c.tip_touch_base) @ c.d_base
+        dt_s = (ts[-1] - self.now_us) / US_PER_S
+        c_end = c.creep_after(c.creep_c, c.push_mm, float(push[-1]), dt_s)
+        frac = (ts - self.now_us) / max(ts[-1] - self.now_us, 1)
+        creep = c.creep_c + (c_end - c.creep_c) * frac
+        force = c.forces_n(push, creep)
+        slip = np.zeros(n)
+        if c.model is not None:
+            shift = c.model.tip_shift_mm(float(force[-1])) if force[-1] > 0 else 0.0
+            slip = np.full(n, abs(shift)) + c.slip_extra_mm + self.faults._sim_slip_mm(ts, c)
+        ends = np.flatnonzero(push < -1e-9)
+        return _Dry(ts, plan_n, tips, -force[:, None] * c.d_base[None, :], force, push, creep, slip,
+                    int(ends[0]) if ends.size else None)
+
+    def _commit(self, dry: _Dry, cut: int) -> None:
+        last = cut - 1
+        t_end = int(dry.ts_us[last])
+        exposures = self.scanner._sim_due(self.now_us, t_end)
+        for t_exp in exposures:
+            i = int(np.searchsorted(dry.ts_us, t_exp))
+            i = min(i, last)
+            self.scanner._sim_capture(self._snapshot(dry, i))
+        c = self.contact
+        if c is not None:
+            c.push_mm = float(dry.push_mm[last])
+            c.push_max_mm = max(c.push_max_mm, c.push_mm)
+            c.creep_c = float(dry.creep_c[last])
+            c.force_n = float(dry.force_mag_n[last])
+            c.max_force_n = max(c.max_force_n, float(np.max(dry.force_mag_n[:cut])))
+        self.arm._sim_commit(dry.ts_us[:cut], last)
+        self.now_us = t_end
+        if c is not None and dry.contact_ends_at is not None and dry.contact_ends_at <= last:
+            self._end_contact()
+
+    def _snapshot(self, dry: _Dry, i: int) -> WorldSnapshot:
+        rot = dry.plan.rotation if dry.plan.rotation.ndim == 2 else dry.plan.rotation[i]
+        c = self.contact
+        return WorldSnapshot(int(dry.ts_us[i]), Pose(dry.plan.position_mm[i], rot), self.base_to_object, c,
+                             float(dry.force_mag_n[i]) if c is not None else 0.0,
+                             c.hold_s() if c is not None else math.inf)
+
+    def snapshot_now(self) -> WorldSnapshot:
+        c = self.contact
+        return WorldSnapshot(self.now_us, self.arm._sim_tcp_pose(), self.base_to_object, c,
+                             c.force_n if c is not None else 0.0, c.hold_s() if c is not None else math.inf)
+
+    # ------------------------------------------------------------------ contact onset and end
+    def _to_object(self, points_base: np.ndarray) -> np.ndarray:
+        b2o = self.base_to_object
+        return (points_base - b2o.position_mm) @ b2o.rotation
+
+    def _distances(self, tips_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Signed distance of tip centres to the object and to the table (object frame)."""
+        self.stats["distance_queries"] += 1
+        closest, normals, _ = self.obj.closest_surface(tips_obj)
+        signed = np.einsum("ij,ij->i", tips_obj - closest, normals)
+        gap = np.linalg.norm(tips_obj - closest, axis=1)
+        dist_obj = np.where(signed < 0.0, -gap, gap)
+        return dist_obj, tips_obj[:, 2], closest, normals
+
+    def _lower_bound_distance(self, tip_obj: np.ndarray) -> float:
+        """A cheap lower bound of the tip's distance to the object: its distance to the bounding box."""
+        lo, hi = self._obj_bounds
+        outside = np.maximum(np.maximum(lo - tip_obj, tip_obj - hi), 0.0)
+        return float(np.linalg.norm(outside))
+
+    def _first_touch(self, tips_base: np.ndarray, plan: ArmPlan) -> int | None:
+        """Index of the first sample whose tip sphere touches the object or the table, or None.
+
+        A ball around the last queried point is known free; exact queries happen only when
+        the tip leaves it, so a long approach costs a handful of closest-point queries.
+        """
+        tips = self._to_object(tips_base)
+        r = self.tip_radius_mm
+        i = 0
+        n = tips.shape[0]
+        while i < n:
+            if self._free_centre is not None:
+                out = np.flatnonzero(np.linalg.norm(tips[i:] - self._free_centre, axis=1) >= self._free_radius)
+                if out.size == 0:
+                    return None
+                i += int(out[0])
+            bound = min(self._lower_bound_distance(tips[i]), tips[i, 2]) - r
+            if bound > 1.0:
+                self._free_centre, self._free_radius = tips[i].copy(), bound
+                continue
+            dist_obj, z, _, _ = self._distances(tips[i:i + 1])
+            gap = min(float(dist_obj[0]), float(z[0])) - r
+            if gap <= 0.0:
+                return i
+            if gap < 0.25:
+                # Close: check every remaining sample of this sub-chunk at once.
+                d_all, z_all, _, _ = self._distances(tips[i:])
+                touching = np.flatnonzero(np.minimum(d_all, z_all) - r <= 0.0)
+                if touching.size:
+                    return i + int(touching[0])
+                j = n - 1
+                self._free_centre = tips[j].copy()
+                self._free_radius = max(float(min(d_all[-1], z_all[-1])) - r, 0.0)
+                return None
+            self._free_centre, self._free_radius = tips[i].copy(), gap
+        return None
+
+    def _begin_contact(self, tips_base: np.ndarray, plan: ArmPlan, ts: np.ndarray) -> None:
+        """First touch between the current tip and the first sample: interpolate the touch point."""
+        prev_tip = self.arm._sim_tip_base(self.tip_offset_tcp_mm)
+        tips_obj = self._to_object(np.vstack([prev_tip, tips_base[0]]))
+        d_obj_all, z_all, closest, normals = self._distances(tips_obj)
+        r = self.tip_radius_mm
+        g0 = min(d_obj_all[0], z_all[0]) - r
+        g1 = min(d_obj_all[1], z_all[1]) - r
+        # Already touching at the current position (a sub-chunk was cut at the touch): touch here.
+        f = 0.0 if g0 <= 0.0 else float(np.clip(g0 / max(g0 - g1, 1e-12), 0.0, 1.0))
+        touch_base = prev_tip + f * (tips_base[0] - prev_tip)
+        touch_obj = self._to_object(touch_base[None])[0]
+        rot = plan.rotation if plan.rotation.ndim == 2 else plan.rotation[0]
+        d_base = rot[:, 2]
+        d_obj = self.base_to_object.rotation.T @ d_base
+        x_obj = self.base_to_object.rotation.T @ rot[:, 0]
+        table = z_all[1] <= d_obj_all[1]
+        if table:
+            point = np.array([touch_obj[0], touch_obj[1], 0.0])
+            normal = np.array([0.0, 0.0, 1.0])
+        else:
+            cl, nl, _ = self.obj.closest_surface(touch_obj[None])
+            point, normal = cl[0], nl[0]
+        self.contact = make_contact(self.obj, point, normal, d_obj, x_obj, d_base, touch_base, self.tip_radius_mm,
+                                    self.now_us, bool(table))
+        if table:
+            # The table pushes along its normal; the push is the penetration below z = R.
+            self.contact.d_base = -self.base_to_object.rotation[:, 2]
+        self._free_centre = None
+        self.arm._sim_contact_began()
+
+    def _end_contact(self) -> None:
+        c = self.contact
+        self.contact = None
+        self._free_centre = None
+        if c is not None and c.model is not None and c.max_force_n > 0.0:
+            press = Press(c.point_obj.copy(), c.normal_obj.copy(), c.max_force_n)
+            self._record_press(press)
+
+    def _record_press(self, press: Press) -> None:
+        """Permanent dents depend on the MAX force ever applied near a point: record only a new maximum."""
+        for old in self.presses:
+            if np.linalg.norm(old.point_obj - press.point_obj) < 0.5 and old.max_force_n >= press.max_force_n:
+                return
+        self.presses.append(press)
+        self.obj.add_permanent_dent(press.point_obj, press.normal_obj, press.max_force_n)
+
+    def restore_history(self, presses: list[tuple[np.ndarray, np.ndarray, float]]) -> None:
+        """Rebuild persistent object state (permanent dents) on resume."""
+        self.obj.reset_history()
+        self.presses.clear()
+        for point, normal, force in presses:
+            self._record_press(Press(np.asarray(point, float), np.asarray(normal, float), float(force)))
+
+    def move_object(self, offset_obj_mm: np.ndarray) -> None:
+        """Shift the true object placement (the controller keeps believing the nominal one)."""
+        shift = Pose(np.asarray(offset_obj_mm, float), np.eye(3))
+        self.base_to_object = self.base_to_object.compose(shift)
+        self._free_centre = None
+
+    def clear_trip(self) -> None:
+        self.trip = None
+
+
+def _trip_truncated(trip: Trip, guard: SafetyGuard) -> Trip:
+    """The trip with its raw data cut at the crossing (nothing after the instant it happened)."""
+    raw = trip.raw if trip.raw is not None else guard.raw_history()
+    if raw is not None and len(raw):
+        keep = raw.t_s <= trip.t_s + 1e-9
+        raw = WrenchBlock(raw.t_s[keep], raw.seq[keep], raw.force_n[keep], raw.torque_nm[keep], raw.status[keep])
+    return Trip(trip.kind, trip.t_s, trip.value, trip.limit, trip.message, raw)
