@@ -302,8 +302,7 @@ def register_mesh_to_cloud(mesh: object, cloud_points: np.ndarray, init: Pose | 
     mesh_pts, mesh_nrm = sample_mesh(mesh, n_mesh_samples, seed)
     cloud = np.asarray(cloud_points, dtype=float)
     rng = np.random.default_rng(seed)
-    if cloud.shape[0] > n_cloud_samples:
-        cloud = cloud[rng.choice(cloud.shape[0], n_cloud_samples, replace=False)]
+    cloud = cloud[rng.permutation(cloud.shape[0])[:n_cloud_samples]]
     tree = cKDTree(mesh_pts)
     c_mesh, e_mesh = _pca_frame(mesh_pts)
     c_cloud, e_cloud = _pca_frame(cloud)
@@ -312,7 +311,9 @@ def register_mesh_to_cloud(mesh: object, cloud_points: np.ndarray, init: Pose | 
     for signs in ((1, 1, 1), (-1, -1, 1), (-1, 1, -1), (1, -1, -1)):
         r = e_mesh @ np.diag(signs) @ e_cloud.T
         starts.append(Pose(c_mesh - r @ c_cloud, r))
-    trials = [icp(cloud, mesh_pts, s, 15, 1e-3, mesh_nrm, trim_fraction, tree=tree) for s in starts]
+    # Coarse trials on a few thousand points: far-off starts make k-d tree queries slow.
+    coarse = cloud[: min(cloud.shape[0], 3_000)]  # already in random order
+    trials = [icp(coarse, mesh_pts, s, 15, 1e-3, mesh_nrm, trim_fraction, tree=tree) for s in starts]
     best_start = min(trials, key=lambda tr: tr[1])[0]
     pose, rms, _ = icp(cloud, mesh_pts, best_start, max_iter, 1e-5, mesh_nrm, trim_fraction, tree=tree)
     return pose.inverse(), rms
@@ -322,19 +323,21 @@ def register_mesh_to_cloud(mesh: object, cloud_points: np.ndarray, init: Pose | 
 
 def box_on_pillow_mesh(pillow_mm: tuple[float, float, float] = (400.0, 300.0, 80.0),
                        box_mm: tuple[float, float, float] = (150.0, 100.0, 60.0),
-                       grid_mm: float = 5.0) -> object:
+                       grid_mm: float = 5.0, box_centre_mm: tuple[float, float] = (0.0, 0.0)) -> object:
     """A composite-like test surface (trimesh): a cardboard box resting on a foam pillow.
 
     Object frame: table at z = 0, +z up, pillow centred on the origin with a flat-ish
     top of height ``pillow_mm[2]`` falling steeply to the table at its rim
     (z = H * sqrt(1 - u^4) * sqrt(1 - v^4)); a box of ``box_mm`` (x, y, height) on
-    top, its walls sunk a little into the pillow. Open surface as a top-down scanner
+    top centred at ``box_centre_mm`` (x, y; off-centre breaks the symmetry that would make
+    a registration ambiguous), its walls sunk a little into the pillow. Open surface as a top-down scanner
     sees it (no underside); face normals point outward. For tests and benches.
     """
     import trimesh
 
     a, b, h = (0.5 * pillow_mm[0], 0.5 * pillow_mm[1], pillow_mm[2])
     bx, by, bh = 0.5 * box_mm[0], 0.5 * box_mm[1], box_mm[2]
+    cx, cy = box_centre_mm
 
     def pillow_z(x: np.ndarray, y: np.ndarray) -> np.ndarray:
         fx = np.sqrt(np.clip(1.0 - (x / a) ** 4, 0.0, None))
@@ -351,12 +354,13 @@ def box_on_pillow_mesh(pillow_mm: tuple[float, float, float] = (400.0, 300.0, 80
     v10, v01, v11 = v00 + 1, v00 + nx, v00 + nx + 1
     faces = np.vstack([np.column_stack([v00, v10, v11]), np.column_stack([v00, v11, v01])])  # CCW from above
     centres = verts[faces].mean(axis=1)
-    under_box = (np.abs(centres[:, 0]) < bx) & (np.abs(centres[:, 1]) < by)
+    under_box = (np.abs(centres[:, 0] - cx) < bx) & (np.abs(centres[:, 1] - cy) < by)
     pillow = trimesh.Trimesh(verts, faces[~under_box], process=False)
 
-    seat = float(pillow_z(np.array([bx]), np.array([by]))[0])  # lowest pillow point under the box
+    corners_x, corners_y = np.array([cx - bx, cx + bx]), np.array([cy - by, cy + by])
+    seat = float(pillow_z(*np.meshgrid(corners_x, corners_y)).min())  # lowest pillow point under the box
     top = float(h + bh)
-    box = trimesh.creation.box(bounds=[[-bx, -by, seat - 1.0], [bx, by, top]])
+    box = trimesh.creation.box(bounds=[[cx - bx, cy - by, seat - 1.0], [cx + bx, cy + by, top]])
     keep = box.face_normals[:, 2] > -0.5  # drop the bottom: it lies inside the pillow
     box = trimesh.Trimesh(box.vertices, box.faces[keep], process=False)
     return trimesh.util.concatenate([pillow, box])
