@@ -229,3 +229,33 @@ def test_stream_frames_before_a_burst_are_not_counted_in_it(make_scanner):
     assert [f.position for f in srv.log.frames[-5:]] == [0, 1, 2, 3, 4]
     assert len(before) >= 1
     assert client.counters().frames >= len(before) + client.counters().discarded_frames + 5
+
+
+def test_burst_arriving_with_its_ok_in_one_read(make_scanner, monkeypatch):
+    # A slow reader: the OK, the whole burst and its DONE arrive in the read that finds the OK.
+    srv, client = make_scanner(ScannerFaults(short_burst_by=2), rate_hz=1000.0)
+    write = client._write
+
+    def write_then_stall(text: str) -> None:
+        write(text)
+        if text.startswith("BURST"):
+            time.sleep(0.1)
+
+    monkeypatch.setattr(client, "_write", write_then_stall)
+    exc, scans = expect_exception(client, 6, ShortBurst)
+    assert (exc.requested, exc.received, exc.device_sent) == (6, 4, 4)
+    assert [s.frame_counter for s in scans] == [f.frame_counter for f in srv.log.frames]
+    srv.faults.short_burst_by = 0
+    assert len(collect(client, 6)) == 6
+    assert client.counters().timeouts == 0
+
+
+def test_printable_debris_before_frames_does_not_stick_to_the_next_reply():
+    from elastoprobe.controller.drivers.line_scanner import FrameParser
+    from elastoprobe.sim.servers.scanner_serial import encode_frame
+
+    frame = encode_frame(1, 2, np.array([1.0, 2.0]), x_scale=1.0, x_offset=0.0, z_scale=0.01, z_offset=0.0)
+    parser = FrameParser()
+    events = parser.feed_events(b"\xff?x" + frame + b"DONE 3\n")
+    assert [e if isinstance(e, str) else e.frame_counter for e in events] == [1, "DONE 3"]
+    assert parser.counters.garbage_bytes == 3

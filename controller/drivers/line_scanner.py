@@ -128,6 +128,10 @@ class FrameParser:
     def pending_bytes(self) -> int:
         return len(self._buf)
 
+    def pending_ends_a_line(self) -> bool:
+        """The bytes held for an incomplete frame end in "\\n": output went on after it."""
+        return self._buf.endswith(b"\n")
+
     def feed(self, data: bytes) -> list[Frame]:
         frames = []
         for ev in self.feed_events(data):
@@ -192,6 +196,11 @@ class FrameParser:
                 self._skip_sync_byte()
                 continue
             del buf[:total]
+            if self._line:
+                # A device never puts a frame inside a reply line: text before a frame is
+                # debris (e.g. the tail of a corrupted frame), not the start of the next reply.
+                self.counters.garbage_bytes += len(self._line)
+                self._line.clear()
             self.counters.frames += 1
             events.append(frame)
         return events
@@ -255,7 +264,7 @@ class ScannerCounters:
 @dataclass
 class _Burst:
     requested: int
-    ok_event: int              # frames after this event number belong to the burst
+    ok_event: int | None       # frames after this event number belong to the burst (None: no OK yet)
     deadline_s: float
     bad_frames_at_start: int
     received: int = 0
@@ -336,17 +345,22 @@ class SerialLineScanner:
         if count < 1:
             raise ValueError("a burst needs at least one profile")
         self.sync_clock()
-        self._burst = None
-        match_event = self._command(f"BURST {int(count)}", re.compile("OK"), want_event=True)
-        self._burst = _Burst(requested=int(count), ok_event=match_event,
+        self._pump()
+        # The burst exists before the command is sent: the OK, the frames and even the
+        # DONE may all arrive in the one read that finds the OK, and dispatch (in stream
+        # order) must already know what they belong to.
+        self._burst = _Burst(requested=int(count), ok_event=None,
                              deadline_s=self.clock.now_s() + count / self._rate_hz + self.timeout_s,
                              bad_frames_at_start=self._parser.counters.bad_frames)
-        # Frames from before the OK (a stream, an abandoned burst) belong to no burst: drop
-        # them; those that followed the OK in the same read are the burst's first.
+        try:
+            match_event = self._command(f"BURST {int(count)}", re.compile("OK"), want_event=True)
+        except BaseException:
+            self._burst = None
+            raise
+        # Frames from before the OK (a stream, an abandoned burst) belong to no burst.
         stale = sum(1 for event_no, _ in self._ready if event_no <= match_event)
         self._counters.discarded_frames += stale
         self._ready = [(event_no, scan) for event_no, scan in self._ready if event_no > match_event]
-        self._burst.received = len(self._ready)
 
     def read_scans(self) -> list[Scan]:
         """Profiles completed since the previous call, oldest first.
@@ -356,8 +370,14 @@ class SerialLineScanner:
         both carry the scans that did arrive.
         """
         self._pump()
-        if (self._parser.pending_bytes and self.clock.now_s() - self._last_bytes_s >= self.idle_flush_s):
-            # Bytes stopped mid-frame: the device writes whole frames, so this one is truncated.
+        idle_s = self.clock.now_s() - self._last_bytes_s
+        if self._parser.pending_bytes and (
+                (idle_s >= self.idle_flush_s and self._parser.pending_ends_a_line())
+                or idle_s >= 10 * self.idle_flush_s):
+            # A frame waits for bytes that do not come while the device has moved on (a
+            # reply line ended after it), or the line has been quiet for long: the device
+            # writes whole frames, so this one was truncated. (Without the first
+            # condition a frame caught mid-write by a slow writer would be thrown away.)
             self._dispatch(self._parser.flush_partial(), self.clock.now_s())
         out = [scan for _, scan in self._ready]
         self._ready = []
@@ -477,16 +497,20 @@ class SerialLineScanner:
     def _dispatch(self, events: list[Frame | str], arrival_s: float) -> None:
         for ev in events:
             self._event_no += 1
+            burst = self._burst
+            in_burst = burst is not None and burst.ok_event is not None
             if isinstance(ev, Frame):
                 self._counters.frames += 1
                 self._ready.append((self._event_no, self._to_scan(ev, arrival_s)))
-                if self._burst is not None and self._event_no > self._burst.ok_event:
-                    self._burst.received += 1
+                if in_burst:
+                    burst.received += 1  # type: ignore[union-attr]
             elif ev.startswith("DONE"):
                 m = re.fullmatch(r"DONE (\d+)", ev)
-                if m and self._burst is not None and self._event_no > self._burst.ok_event:
-                    self._burst.done_count = int(m.group(1))
+                if m and in_burst:
+                    burst.done_count = int(m.group(1))  # type: ignore[union-attr]
             else:
+                if burst is not None and burst.ok_event is None and ev == "OK":
+                    burst.ok_event = self._event_no
                 self._lines.append((self._event_no, ev))
 
     def _to_scan(self, frame: Frame, arrival_s: float) -> Scan:

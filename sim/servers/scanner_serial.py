@@ -368,8 +368,9 @@ class ScannerPtyServer:
         if pos in f.truncate:
             data = data[:len(data) // 2]
             fault = "truncated"
-        self._write(data)
+        # Logged before the write: a test may read the frame before this thread runs again.
         self.log.frames.append(SentFrame(counter, pos, exposure_s, fault))
+        self._write(data)
         self._counter += 1
         self._position += 1
         self._burst_sent += 1
