@@ -1,0 +1,216 @@
+"""From neural gas units to probe targets on the surface (DESIGN §2, §3, §7).
+
+A unit is a point in space near the cloud. Its target is a point ON the surface with
+an outward normal and a scan direction t. Units on a sharp edge mark where to look,
+but the normal is undefined there and the tip would slip, so the target moves along
+the surface onto the face beside the edge, ``edge_clearance_radii`` tip radii from it.
+Targets on steep (tilted beyond ``max_tilt_deg`` from ``up``), sparse or open-border
+parts of the cloud are dropped.
+
+Frames and units: everything in the cloud's frame (object frame), mm; normals and t
+are unit vectors; ``up`` is the direction the probe comes from (+z of the object
+frame by default).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..geometry import scan_direction
+
+
+@dataclass(frozen=True)
+class Targets:
+    """Probe targets (T of them): points (T,3) mm on the surface, outward unit normals
+    (T,3), scan directions t (T,3) in the tangent planes, ``edge_flag`` (T,) True where
+    the target was moved off a sharp edge, ``source_unit`` (T,) index of its unit."""
+
+    points_mm: np.ndarray
+    normals: np.ndarray
+    t: np.ndarray
+    edge_flag: np.ndarray
+    source_unit: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.points_mm.shape[0])
+
+
+@dataclass(frozen=True)
+class TargetRules:
+    """Where a probe may touch.
+
+    tip_radius_mm: probe tip radius; edge_clearance_radii: keep targets this many tip
+    radii from any sharp edge; edge_curvature: PCA surface variation above which a cloud
+    point is on a sharp edge (flat ~0, a 90-degree edge ~0.05-0.15); max_tilt_deg: largest
+    angle between a target normal and ``up``; density_radius_mm / min_neighbours: a target
+    needs this many cloud points within this radius; border_offset: a target whose
+    neighbourhood centroid lies more than this fraction of the radius away sits on an open
+    border of the cloud; plane_k: neighbours of the local plane fit; max_shift_mm: how far
+    an edge unit's target may move (default 2 x clearance); min_spacing_mm: targets closer
+    than this are merged (default 2 tip radii).
+    """
+
+    tip_radius_mm: float = 2.5
+    edge_clearance_radii: float = 3.0
+    edge_curvature: float = 0.02
+    max_tilt_deg: float = 60.0
+    density_radius_mm: float = 5.0
+    min_neighbours: int = 10
+    border_offset: float = 0.35
+    plane_k: int = 16
+    max_shift_mm: float | None = None
+    min_spacing_mm: float | None = None
+
+    @property
+    def clearance_mm(self) -> float:
+        return self.edge_clearance_radii * self.tip_radius_mm
+
+    @property
+    def shift_mm(self) -> float:
+        return 2.0 * self.clearance_mm if self.max_shift_mm is None else self.max_shift_mm
+
+    @property
+    def spacing_mm(self) -> float:
+        return 2.0 * self.tip_radius_mm if self.min_spacing_mm is None else self.min_spacing_mm
+
+
+class _Surface:
+    """The cloud with its normals and edges, and the per-point tests a target must pass."""
+
+    def __init__(self, cloud_mm: np.ndarray, normals: np.ndarray, curvature: np.ndarray, rules: TargetRules,
+                 up: np.ndarray) -> None:
+        self.points = np.asarray(cloud_mm, dtype=float)
+        self.normals = np.asarray(normals, dtype=float)
+        self.rules = rules
+        self.up = up / np.linalg.norm(up)
+        self.tree = cKDTree(self.points)
+        edge = np.asarray(curvature) > rules.edge_curvature
+        self.edge_tree = cKDTree(self.points[edge]) if edge.any() else None
+
+    def near_edge(self, idx: np.ndarray) -> np.ndarray:
+        if self.edge_tree is None:
+            return np.zeros(len(idx), dtype=bool)
+        dist, _ = self.edge_tree.query(self.points[idx], distance_upper_bound=self.rules.clearance_mm)
+        return np.isfinite(dist)
+
+    def tilt_ok(self, idx: np.ndarray) -> np.ndarray:
+        return self.normals[idx] @ self.up >= np.cos(np.radians(self.rules.max_tilt_deg))
+
+    def supported(self, i: int) -> bool:
+        """Dense enough around point i, and not on an open border of the cloud."""
+        r = self.rules.density_radius_mm
+        nb = self.tree.query_ball_point(self.points[i], r)
+        if len(nb) < self.rules.min_neighbours:
+            return False
+        offset = self.points[nb].mean(axis=0) - self.points[i]
+        offset -= (offset @ self.normals[i]) * self.normals[i]
+        return float(np.linalg.norm(offset)) <= self.rules.border_offset * r
+
+    def plane_at(self, i: int, near_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Project ``near_mm`` on the local plane fit around cloud point i -> (point, normal)."""
+        _, nb = self.tree.query(self.points[i], k=min(self.rules.plane_k, self.points.shape[0]))
+        pts = self.points[np.atleast_1d(nb)]
+        centroid = pts.mean(axis=0)
+        _, vecs = np.linalg.eigh(np.cov((pts - centroid).T))
+        n = vecs[:, 0]
+        if n @ self.normals[i] < 0:  # keep the cloud's outward orientation
+            n = -n
+        return near_mm - ((near_mm - centroid) @ n) * n, n
+
+
+def make_targets(units_mm: np.ndarray, cloud_mm: np.ndarray, normals: np.ndarray, curvature: np.ndarray,
+                 rules: TargetRules = TargetRules(), reference_dir: np.ndarray = np.array([1.0, 0.0, 0.0]),
+                 up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> Targets:
+    """Units (M,3) mm -> Targets on the cloud (with its outward normals and curvature).
+
+    Each unit goes to its nearest cloud point. If that point is within the edge
+    clearance of a sharp edge, the target moves to the nearest cloud point (at most
+    ``rules.shift_mm`` away) that is clear of every edge, tilted less than
+    ``max_tilt_deg`` and supported — along the surface, onto the face beside the edge.
+    A unit whose point fails for any other reason is dropped. The target is the unit
+    projected on the local plane fit there; t = ``reference_dir`` projected on its
+    tangent plane. Targets closer than ``rules.spacing_mm`` are merged (units that were
+    not moved are kept first).
+    """
+    surf = _Surface(cloud_mm, normals, curvature, rules, np.asarray(up, dtype=float))
+    units = np.asarray(units_mm, dtype=float)[:, :3]
+    _, nearest = surf.tree.query(units, workers=-1)
+    on_edge = surf.near_edge(nearest)
+    chosen: list[tuple[int, int, bool]] = []  # (unit, cloud point, moved)
+    for u, (i, edge) in enumerate(zip(nearest, on_edge)):
+        j = _clear_point_nearby(surf, units[u]) if edge else (i if surf.tilt_ok(np.array([i]))[0]
+                                                             and surf.supported(i) else None)
+        if j is not None:
+            chosen.append((u, j, bool(edge)))
+    chosen.sort(key=lambda c: c[2])  # unmoved targets win the merge
+    pts, nrms, flags, src = [], [], [], []
+    for u, j, moved in chosen:
+        p, n = surf.plane_at(j, units[u] if not moved else surf.points[j])
+        if pts and np.min(np.linalg.norm(np.asarray(pts) - p, axis=1)) < rules.spacing_mm:
+            continue
+        pts.append(p), nrms.append(n), flags.append(moved), src.append(u)
+    order = np.argsort(src, kind="stable")  # back in unit order
+    points = np.asarray(pts, dtype=float).reshape(-1, 3)[order]
+    nrm = np.asarray(nrms, dtype=float).reshape(-1, 3)[order]
+    return Targets(points, nrm, scan_frames(nrm, reference_dir), np.asarray(flags, dtype=bool)[order],
+                   np.asarray(src, dtype=np.int64)[order])
+
+
+def _clear_point_nearby(surf: _Surface, unit_mm: np.ndarray) -> int | None:
+    """Nearest cloud point to the unit that is clear of edges, not too steep and supported."""
+    cand = np.asarray(surf.tree.query_ball_point(unit_mm, surf.rules.shift_mm), dtype=np.int64)
+    if cand.size == 0:
+        return None
+    cand = cand[surf.tilt_ok(cand) & ~surf.near_edge(cand)]
+    # Nearest first; the density test is the expensive one, run it only until one passes.
+    for j in cand[np.argsort(np.linalg.norm(surf.points[cand] - unit_mm, axis=1))]:
+        if surf.supported(int(j)):
+            return int(j)
+    return None
+
+
+def scan_frames(normals: np.ndarray, reference_dir: np.ndarray) -> np.ndarray:
+    """Scan directions t (N,3): the reference direction (3,) or per target (N,3) projected
+    on each tangent plane (geometry.scan_direction, the fixed rule of DESIGN §3)."""
+    nrm = np.asarray(normals, dtype=float).reshape(-1, 3)
+    ref = np.broadcast_to(np.asarray(reference_dir, dtype=float), nrm.shape)
+    return np.array([scan_direction(n, r) for n, r in zip(nrm, ref)]).reshape(-1, 3)
+
+
+def surface_graph(targets_mm: np.ndarray, normals: np.ndarray, k: int = 6, radius_mm: float | None = None,
+                  max_angle_deg: float = 30.0, cloud_mm: np.ndarray | None = None,
+                  gap_mm: float = 3.0) -> list[tuple[int, int]]:
+    """Neighbour pairs (i, j), i < j, of a k-NN graph that stays on the surface.
+
+    A pair is kept when the normals agree within ``max_angle_deg``, the chord between
+    the points runs along both tangent planes (its angle to each plane at most
+    ``max_angle_deg``: no step from the box top down to the pillow), it is no longer
+    than ``radius_mm`` (if given) and, with ``cloud_mm``, the points a quarter, half
+    and three quarters along it lie within ``gap_mm`` of the cloud (no jump over a gap).
+    """
+    pts = np.asarray(targets_mm, dtype=float)
+    nrm = np.asarray(normals, dtype=float)
+    if pts.shape[0] < 2:
+        return []
+    kk = min(k + 1, pts.shape[0])
+    dist, idx = cKDTree(pts).query(pts, k=kk)
+    i = np.repeat(np.arange(pts.shape[0]), kk - 1)
+    j = idx[:, 1:].ravel()
+    d = dist[:, 1:].ravel()
+    ok = np.isfinite(d) & (d > 0)
+    if radius_mm is not None:
+        ok &= d <= radius_mm
+    cos_max, sin_max = np.cos(np.radians(max_angle_deg)), np.sin(np.radians(max_angle_deg))
+    chord = pts[j] - pts[i]
+    ok &= np.einsum("ij,ij->i", nrm[i], nrm[j]) >= cos_max
+    ok &= np.abs(np.einsum("ij,ij->i", chord, nrm[i])) <= sin_max * d
+    ok &= np.abs(np.einsum("ij,ij->i", chord, nrm[j])) <= sin_max * d
+    if cloud_mm is not None:
+        cloud_tree = cKDTree(np.asarray(cloud_mm, dtype=float))
+        for f in (0.25, 0.5, 0.75):
+            gap, _ = cloud_tree.query(pts[i] + f * chord, distance_upper_bound=gap_mm)
+            ok &= np.isfinite(gap)
+    pairs = {(int(min(a, b)), int(max(a, b))) for a, b in zip(i[ok], j[ok])}
+    return sorted(pairs)

@@ -1,0 +1,102 @@
+"""Probe targets from units, judged against the true box-on-pillow surface and its edges."""
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from elastoprobe.controller.learning.cloud import box_on_pillow_mesh, local_geometry, sample_mesh
+from elastoprobe.controller.learning.targets import TargetRules, make_targets, scan_frames, surface_graph
+
+from test_neural_gas import BOX_TOP, BOX_X, BOX_Y, PILLOW_A, PILLOW_B, PILLOW_H, box_edge_tree
+
+RULES = TargetRules(tip_radius_mm=2.5, edge_clearance_radii=3.0, max_tilt_deg=60.0)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    mesh = box_on_pillow_mesh((2 * PILLOW_A, 2 * PILLOW_B, PILLOW_H), (2 * BOX_X, 2 * BOX_Y, BOX_TOP - PILLOW_H))
+    truth_pts, truth_nrm = sample_mesh(mesh, 1_000_000, seed=9)  # dense ground truth
+    pts, _ = sample_mesh(mesh, 80_000, seed=1)
+    rng = np.random.default_rng(0)
+    pts += rng.normal(0, 0.05, pts.shape)
+    normals, curv = local_geometry(pts, k=16)
+    edges = box_edge_tree()
+    # Units: some anywhere just off the surface, some right on the box's sharp edges.
+    anywhere = pts[rng.choice(len(pts), 250, replace=False)] + rng.normal(0, 1.0, (250, 3))
+    edge_pts = edges.data[rng.choice(len(edges.data), 40, replace=False)]
+    units = np.vstack([anywhere, edge_pts])
+    targets = make_targets(units, pts, normals, curv, RULES, reference_dir=np.array([1.0, 0.0, 0.0]))
+    return dict(truth=cKDTree(truth_pts), truth_nrm=truth_nrm, pts=pts, normals=normals, curv=curv,
+                edges=edges, units=units, n_edge_units=len(edge_pts), targets=targets)
+
+
+def test_targets_lie_on_the_surface_with_outward_unit_normals(scene):
+    tg = scene["targets"]
+    assert len(tg) > 100
+    dist, idx = scene["truth"].query(tg.points_mm)
+    true_n = scene["truth_nrm"][idx]
+    off_plane_mm = np.abs(np.einsum("ij,ij->i", tg.points_mm - scene["truth"].data[idx], true_n))
+    # The rim of the faceted pillow (5 mm facets, steep) is the worst place for a local plane.
+    assert dist.max() < 2.0 and np.median(off_plane_mm) < 0.05 and off_plane_mm.max() < 0.5
+    np.testing.assert_allclose(np.linalg.norm(tg.normals, axis=1), 1.0, atol=1e-9)
+    assert np.einsum("ij,ij->i", tg.normals, true_n).min() > 0.97
+
+
+def test_no_target_within_the_edge_clearance_and_none_too_steep(scene):
+    tg = scene["targets"]
+    edge_dist_mm, _ = scene["edges"].query(tg.points_mm)
+    assert edge_dist_mm.min() >= RULES.clearance_mm
+    assert np.all(tg.normals[:, 2] >= np.cos(np.radians(RULES.max_tilt_deg)) - 1e-9)
+    spacing, _ = cKDTree(tg.points_mm).query(tg.points_mm, k=2)
+    assert spacing[:, 1].min() >= RULES.spacing_mm
+
+
+def test_edge_units_move_beside_the_edge(scene):
+    tg = scene["targets"]
+    first_edge_unit = len(scene["units"]) - scene["n_edge_units"]
+    from_edge = tg.source_unit >= first_edge_unit
+    assert np.all(tg.edge_flag[from_edge])
+    assert from_edge.sum() >= 0.4 * scene["n_edge_units"]  # the rest merged or too steep (vertical corners)
+    moved_mm = np.linalg.norm(tg.points_mm[from_edge] - scene["units"][tg.source_unit[from_edge]], axis=1)
+    assert np.all(moved_mm >= RULES.clearance_mm - 0.5) and np.all(moved_mm <= RULES.shift_mm + 0.5)
+    # Units far from the box edges on the gentle part of the pillow (its steep, faceted rim
+    # has creases of its own) are not flagged.
+    src = scene["units"][tg.source_unit]
+    gentle = (np.abs(src[:, 0]) < 0.8 * PILLOW_A) & (np.abs(src[:, 1]) < 0.8 * PILLOW_B)
+    far = gentle & (scene["edges"].query(src)[0] > 2 * RULES.shift_mm)
+    assert far.sum() > 50
+    assert not tg.edge_flag[far].any()
+
+
+def test_scan_frames_lie_in_the_tangent_plane(scene):
+    tg = scene["targets"]
+    np.testing.assert_allclose(np.linalg.norm(tg.t, axis=1), 1.0, atol=1e-9)
+    assert np.abs(np.einsum("ij,ij->i", tg.t, tg.normals)).max() < 1e-9
+    assert np.all(tg.t[:, 0] > 0)  # the +x reference projected, never flipped
+    per_target = scan_frames(tg.normals, np.tile([0.0, 1.0, 0.0], (len(tg), 1)))
+    assert np.all(per_target[:, 1] > 0)
+
+
+def test_surface_graph_does_not_step_off_the_box(scene):
+    tg = scene["targets"]
+    pairs = surface_graph(tg.points_mm, tg.normals, k=20, cloud_mm=scene["pts"])
+    assert len(pairs) > len(tg)
+    on_top = tg.points_mm[:, 2] > BOX_TOP - 1.0
+    assert on_top.sum() >= 3
+    assert not any(on_top[i] != on_top[j] for i, j in pairs)
+    assert sum(on_top[i] and on_top[j] for i, j in pairs) >= on_top.sum() - 1
+    # Without the tangency and gap tests a plain k-NN graph would cross (the check can fail).
+    plain = surface_graph(tg.points_mm, tg.normals, k=20, max_angle_deg=90.0)
+    assert any(on_top[i] != on_top[j] for i, j in plain)
+
+
+def test_sparse_and_border_units_are_dropped():
+    rng = np.random.default_rng(2)
+    dense = np.c_[rng.uniform(0, 100, (20_000, 2)), rng.normal(0, 0.02, 20_000)]
+    sparse = np.c_[rng.uniform(150, 250, (40, 2)), np.zeros(40)]
+    cloud = np.vstack([dense, sparse])
+    normals, curv = local_geometry(cloud, k=16, viewpoint_mm=np.array([0.0, 0.0, 1000.0]))
+    units = np.array([[50.0, 50.0, 1.0], [0.5, 50.0, 0.0], [200.0, 200.0, 0.0]])
+    tg = make_targets(units, cloud, normals, curv, RULES)
+    assert tg.source_unit.tolist() == [0]
+    np.testing.assert_allclose(tg.points_mm[0, :2], [50.0, 50.0], atol=0.5)
+    assert abs(tg.points_mm[0, 2]) < 0.1  # projected onto the surface, not left 1 mm above
