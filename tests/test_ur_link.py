@@ -149,6 +149,21 @@ def test_async_move_progress_then_stop_mid_move(cell) -> None:
     assert end.tcp_speed_m_s == pytest.approx(0.0, abs=1e-9)
     # What ur_rtde reports is the emulator's ground truth.
     assert end.tcp_pose_ur[:3] == pytest.approx(emu.tcp_pose_ur()[:3], abs=1e-6)
+    # speedL, then speedStop; force mode on and off; zeroing the F/T sensor.
+    backend = emu.backend
+    z0 = end.tcp_pose_ur[2]
+    link.speed_linear([0.0, 0.0, -0.05, 0.0, 0.0, 0.0], 0.5)
+    assert wait_for(lambda: link.state().tcp_pose_ur[2] < z0 - 0.005, 3.0)
+    link.speed_stop(2.0)
+    assert wait_for(lambda: not emu.is_moving(), 2.0)
+    link.force_mode([0.0] * 6, [0, 0, 1, 0, 0, 0], [0, 0, -5.0, 0, 0, 0], 2, [0.1] * 6)
+    assert wait_for(lambda: backend.force_mode_active, 2.0)
+    link.force_mode_stop()
+    assert not backend.force_mode_active
+    link.zero_ft_sensor()
+    assert backend.ft_zeroed_count == 1
+    kinds = [k for k, _ in backend.commands]
+    assert kinds[-4:] == ["speed_linear", "stop", "force_mode", "force_mode_stop"]
     assert link.faults == [] and link.restarts == 0
 
 

@@ -54,6 +54,10 @@ ROBOT_STATUS_BIT_PROGRAM_RUNNING = 1
 # How long a program stop may stay unexplained by the safety bits before it is a fault.
 UNEXPLAINED_STOP_GRACE_S = 0.2
 
+# Child operations that write input_int_register_0 (and so also feed the watchdog).
+_REGISTER_WRITING_OPS = frozenset({"move_linear", "stop_linear", "speed_linear", "speed_stop", "force_mode",
+                                   "force_mode_stop", "zero_ft_sensor", "recover"})
+
 # What the receive interface streams (few variables keep the 500 Hz stream cheap).
 RECEIVE_VARIABLES = ["timestamp", "actual_q", "actual_TCP_pose", "actual_TCP_speed", "actual_TCP_force",
                      "robot_status_bits", "safety_status_bits", "runtime_state", "robot_mode", "safety_mode"]
@@ -185,6 +189,7 @@ class _ChildLink:
         self.program_expected = False
         self.unexplained_since_s: float | None = None
         self.kicking = False
+        self.last_write_s = 0.0
 
     # -- setup
     def connect(self) -> None:
@@ -269,8 +274,12 @@ class _ChildLink:
             else:
                 self.unexplained_since_s = None
             self.kicking = running and self.heartbeat_fresh()
-            if self.kicking:
+            # input_int_register_0 is a single mailbox read once per controller cycle: a kick
+            # (NO_CMD) right after a real-time command (speedL, forceMode) would overwrite it
+            # unread. Commands update the watched register too, so they count as kicks.
+            if self.kicking and time.monotonic() - self.last_write_s >= self.cfg.kick_period_s:
                 self.ctl.kickWatchdog()
+                self.last_write_s = time.monotonic()
             if self.conn.poll(self.cfg.kick_period_s):
                 try:
                     msg = self.conn.recv()
@@ -289,6 +298,9 @@ class _ChildLink:
             self.conn.send(("ok", rid, result))
         except Exception as exc:  # noqa: BLE001 — every failure goes back to the parent
             self.conn.send(("err", rid, f"{type(exc).__name__}: {exc}"))
+        finally:
+            if name in _REGISTER_WRITING_OPS:
+                self.last_write_s = time.monotonic()
 
     def close(self) -> None:
         for obj, method in ((self.ctl, "stopScript"), (self.ctl, "disconnect"), (self.rcv, "disconnect"),

@@ -235,9 +235,11 @@ class KinematicBackend:
     def set_force_mode(self, active: bool, task_frame_ur: np.ndarray | None = None,
                        selection: np.ndarray | None = None, wrench: np.ndarray | None = None,
                        limits: np.ndarray | None = None) -> None:
-        # Nothing to push against in free space: force mode is only recorded.
+        # Nothing to push against in free space: force mode is only recorded. The control
+        # script re-issues real-time commands every cycle, so record changes only.
+        if bool(active) != self.force_mode_active:
+            self.commands.append(("force_mode" if active else "force_mode_stop", self._t_s))
         self.force_mode_active = bool(active)
-        self.commands.append(("force_mode" if active else "force_mode_stop", self._t_s))
 
     def zero_ft_sensor(self) -> None:
         self.ft_zeroed_count += 1
