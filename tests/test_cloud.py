@@ -131,12 +131,30 @@ def test_load_cloud_formats(tmp_path, mesh):
     pts, nrm = load_cloud(cloud_ply)
     np.testing.assert_allclose(pts, data[:, :3])
     assert nrm is None
+    for encoding in ("ascii", "binary_little_endian"):
+        with_normals = tmp_path / f"normals_{encoding}.ply"
+        write_ply_with_normals(with_normals, data[:, :3], data[:, 3:], encoding)
+        pts, nrm = load_cloud(with_normals)
+        np.testing.assert_allclose(pts, data[:, :3])
+        np.testing.assert_allclose(nrm, np.tile([0.0, 0.0, 1.0], (4, 1)))
     bad = tmp_path / "bad.xyz"
     bad.write_text("1 2\n3 4\n")
     with pytest.raises(InputError, match="bad.xyz"):
         load_cloud(bad)
     with pytest.raises(InputError):
         load_cloud(tmp_path / "missing.ply")
+
+
+def write_ply_with_normals(path, pts, nrm, encoding):
+    header = (f"ply\nformat {encoding} 1.0\nelement vertex {len(pts)}\n"
+              + "".join(f"property float {k}\n" for k in ("x", "y", "z", "nx", "ny", "nz")) + "end_header\n")
+    rows = np.hstack([pts, nrm]).astype("<f4")
+    with open(path, "wb") as f:
+        f.write(header.encode())
+        if encoding == "ascii":
+            f.write("".join(" ".join(map(str, r)) + "\n" for r in rows).encode())
+        else:
+            f.write(rows.tobytes())
 
 
 def test_cloud_hash_is_stable_and_sensitive():

@@ -69,7 +69,9 @@ def _ply_normals(loaded: object, n_points: int) -> np.ndarray | None:
     """Vertex normals stored in a PLY point cloud (nx, ny, nz properties), if any."""
     raw = getattr(loaded, "metadata", {}).get("_ply_raw", {}) if hasattr(loaded, "metadata") else {}
     vertex = raw.get("vertex", {}).get("data") if isinstance(raw, dict) else None
-    if vertex is None or not all(k in vertex.dtype.names for k in ("nx", "ny", "nz")):
+    # ASCII PLY gives a dict of columns, binary PLY a structured array.
+    names = vertex.keys() if isinstance(vertex, dict) else getattr(getattr(vertex, "dtype", None), "names", None)
+    if not names or not all(k in names for k in ("nx", "ny", "nz")):
         return None
     normals = np.column_stack([vertex["nx"], vertex["ny"], vertex["nz"]]).astype(float)
     return _unit_rows(normals) if normals.shape[0] == n_points else None
