@@ -121,8 +121,8 @@ class _Surface:
 
 
 def make_targets(units_mm: np.ndarray, cloud_mm: np.ndarray, normals: np.ndarray, curvature: np.ndarray,
-                 rules: TargetRules = TargetRules(), reference_dir: np.ndarray = np.array([1.0, 0.0, 0.0]),
-                 up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> Targets:
+                 rules: TargetRules = TargetRules(), reference_dir: "np.ndarray | tuple" = (1.0, 0.0, 0.0),
+                 up: "np.ndarray | tuple" = (0.0, 0.0, 1.0)) -> Targets:
     """Units (M,3) mm -> Targets on the cloud (with its outward normals and curvature).
 
     Each unit goes to its nearest cloud point. If that point is within the edge
@@ -140,8 +140,10 @@ def make_targets(units_mm: np.ndarray, cloud_mm: np.ndarray, normals: np.ndarray
     on_edge = surf.near_edge(nearest)
     chosen: list[tuple[int, int, bool]] = []  # (unit, cloud point, moved)
     for u, (i, edge) in enumerate(zip(nearest, on_edge)):
-        j = _clear_point_nearby(surf, units[u]) if edge else (i if surf.tilt_ok(np.array([i]))[0]
-                                                             and surf.supported(i) else None)
+        if edge:
+            j = _clear_point_nearby(surf, units[u])
+        else:
+            j = int(i) if surf.tilt_ok(np.array([i]))[0] and surf.supported(int(i)) else None
         if j is not None:
             chosen.append((u, j, bool(edge)))
     chosen.sort(key=lambda c: c[2])  # unmoved targets win the merge
@@ -150,7 +152,10 @@ def make_targets(units_mm: np.ndarray, cloud_mm: np.ndarray, normals: np.ndarray
         p, n = surf.plane_at(j, units[u] if not moved else surf.points[j])
         if pts and np.min(np.linalg.norm(np.asarray(pts) - p, axis=1)) < rules.spacing_mm:
             continue
-        pts.append(p), nrms.append(n), flags.append(moved), src.append(u)
+        pts.append(p)
+        nrms.append(n)
+        flags.append(moved)
+        src.append(u)
     order = np.argsort(src, kind="stable")  # back in unit order
     points = np.asarray(pts, dtype=float).reshape(-1, 3)[order]
     nrm = np.asarray(nrms, dtype=float).reshape(-1, 3)[order]
