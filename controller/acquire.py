@@ -36,8 +36,11 @@ def sweep_lines(bbox_min_mm: np.ndarray, bbox_max_mm: np.ndarray, tcp_height_mm:
     lo, hi = np.asarray(bbox_min_mm, float), np.asarray(bbox_max_mm, float)
     xs = np.arange(lo[0] - margin_mm, hi[0] + margin_mm + 1e-9, strip_mm)
     lines = []
-    for heading_t in (np.array([1.0, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0])):
-        for i, x in enumerate(xs):
+    for heading_t in (np.array([-1.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0])):
+        # Scanner toward the robot first, near to far; then the wrist turns over the
+        # far side and the other heading comes back, ending with the scanner on the
+        # side away from the robot's column.
+        for i, x in enumerate(xs if heading_t[0] < 0 else xs[::-1]):
             y0, y1 = lo[1] - margin_mm, hi[1] + margin_mm
             if i % 2:
                 y0, y1 = y1, y0
@@ -48,19 +51,29 @@ def sweep_lines(bbox_min_mm: np.ndarray, bbox_max_mm: np.ndarray, tcp_height_mm:
 
 
 def acquire_cloud(executor: ProbeExecutor, bbox_min_mm: np.ndarray, bbox_max_mm: np.ndarray,
-                  spacing_mm: float, height_above_mm: float, strip_mm: float = 80.0,
-                  max_points: int = 200_000, seed: int = 0) -> tuple[np.ndarray, float]:
-    """Sweep the scanner over the box and return (object-frame points (N,3) mm, robot seconds).
+                  spacing_mm: float, height_above_mm: float, strip_mm: float = 120.0,
+                  max_points: int = 200_000, seed: int = 0) -> tuple[np.ndarray, float, list[str]]:
+    """Sweep the scanner over the box and return (object-frame points (N,3) mm, robot seconds,
+    the lines refused by motion validation and why).
 
     ``spacing_mm`` is the distance between profiles along a line (speed = spacing x rate).
+    A line whose path or approach would collide (e.g. the scanner near the robot's
+    column) is skipped: the other heading covers that strip.
     """
+    from .errors import MotionRefused
+
     cell = executor.cell
     t0 = cell.clock.now_s()
     tcp_z = float(bbox_max_mm[2]) + height_above_mm
     speed = spacing_mm * cell.scanner.rate_hz
     pts = []
+    skipped: list[str] = []
     for start, end in sweep_lines(bbox_min_mm, bbox_max_mm, tcp_z, strip_mm):
-        scans, poses = executor.scan_while_moving(start, end, speed)
+        try:
+            scans, poses = executor.scan_while_moving(start, end, speed)
+        except MotionRefused as exc:
+            skipped.append(f"line at x={start.position_mm[0]:.0f} mm heading {start.rotation[0, 0]:+.0f}: {exc}")
+            continue
         xz = np.stack([np.stack([s.x_mm, s.z_mm], axis=1) for s in scans]) if scans else np.zeros((0, 0, 2))
         pts.append(scan_points_base(xz, poses, cell.tcp_to_scanner))
     base_pts = np.vstack(pts) if pts else np.zeros((0, 3))
@@ -68,4 +81,6 @@ def acquire_cloud(executor: ProbeExecutor, bbox_min_mm: np.ndarray, bbox_max_mm:
     if len(obj_pts) > max_points:
         rng = np.random.default_rng(seed)
         obj_pts = obj_pts[np.sort(rng.choice(len(obj_pts), max_points, replace=False))]
-    return obj_pts, cell.clock.now_s() - t0
+    if len(obj_pts) == 0:
+        raise MotionRefused("no sweep line could be scanned: " + "; ".join(skipped))
+    return obj_pts, cell.clock.now_s() - t0, skipped

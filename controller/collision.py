@@ -342,6 +342,24 @@ class SceneChecker:
                     + prep.shape.radius_mm * np.sqrt(np.clip(1.0 - axis * axis, 0.0, None)))
         return np.abs(rot) @ prep.half
 
+    def _nearest_side(self, points: np.ndarray, k: int = 8) -> tuple[np.ndarray, np.ndarray]:
+        """Distance to the sampled surface and which side of it each point is on.
+
+        Near an edge the nearest samples belong to both faces and a single sample's
+        normal can say "inside" for a point above the other face by a hair; among the
+        samples as near as the nearest (within one spacing), the face the point is most
+        clearly off decides.
+        """
+        assert self._tree is not None
+        dist, idx = self._tree.query(points, k=k)
+        diff = points[:, None, :] - self._mesh_points[idx]
+        side = np.einsum("pkc,pkc->pk", diff, self._mesh_normals[idx])
+        candidate = dist <= dist[:, :1] + self._mesh_spacing_mm
+        score = np.where(candidate, np.abs(side), -1.0)
+        pick = np.argmax(score, axis=1)
+        rows = np.arange(len(points))
+        return dist[:, 0], side[rows, pick]
+
     def _check_tcp(self, positions, rotations, ignore_tip_mm, report) -> None:
         ws = self.workspace.signed_distance(positions)
         out = np.nonzero(ws > 0)[0]
@@ -357,8 +375,7 @@ class SceneChecker:
                 report("tcp", box.name, k, d[k], f"TCP is {d[k]:.1f} mm from keep-out box {box.name!r} "
                        f"(clearance {self.clearance_mm} mm)")
         if self._tree is not None and ignore_tip_mm <= 0.0:
-            dist, idx = self._tree.query(positions)
-            side = np.einsum("pc,pc->p", positions - self._mesh_points[idx], self._mesh_normals[idx])
+            dist, side = self._nearest_side(positions)
             signed = np.where(side < 0, -dist, dist - self._mesh_cover_mm)
             bad = np.nonzero(signed < self.clearance_mm)[0]
             if bad.size:
@@ -411,8 +428,7 @@ class SceneChecker:
         dist, _ = self._tree.query(spheres.reshape(-1, 3), distance_upper_bound=reach)
         hit = np.isfinite(dist).reshape(len(near), -1)
         # The shape's centre, for the "wholly inside" case.
-        c_dist, c_idx = self._tree.query(centre[near])
-        c_side = np.einsum("pc,pc->p", centre[near] - self._mesh_points[c_idx], self._mesh_normals[c_idx])
+        c_dist, c_side = self._nearest_side(centre[near])
         for row, k in enumerate(near):
             k = int(k)
             use_tip = ignore_tip_mm > 0.0

@@ -237,7 +237,7 @@ class CloudSpec(Spec):
     source: Literal["scan", "file"] = "scan"
     file: str | None = None
     sweep_spacing_mm: float = Field(3.0, gt=0, le=50)
-    sweep_height_mm: float = Field(250.0, gt=0, le=1000)
+    sweep_height_mm: float = Field(40.0, gt=0, le=1000)   # tip above the object's top
     max_points: int = Field(200_000, ge=1000, le=5_000_000)
 
     @model_validator(mode="after")

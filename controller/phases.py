@@ -23,7 +23,15 @@ if TYPE_CHECKING:
     from .learning.models import RegionModel
     from .session import Session
 
-SURVEY, CHARACTERIZE = "survey", "characterize"
+# Steps belong to the phase that planned them: the survey of the neural-gas targets is
+# planned by "sampling", the survey of densified points by "densify", characterization
+# by "regions".
+SURVEY_PHASES = ("sampling", "densify")
+CHARACTERIZE = "regions"
+
+
+def _done_steps(j: Any, phases: tuple[str, ...]) -> list[Any]:
+    return [r for r in j.steps(statuses=["done"]) if r.phase in phases]
 
 
 @dataclass
@@ -123,20 +131,40 @@ def phase_cloud(ctx: PhaseContext) -> None:
         s.machine.fire("sweep")
         mesh = s.world.object_mesh
         verts = cell.base_to_object.apply(np.asarray(mesh.vertices))
-        pts, robot_s = acquire_cloud(s.executor, verts.min(axis=0), verts.max(axis=0),
-                                     plan.cloud.sweep_spacing_mm, plan.cloud.sweep_height_mm,
-                                     max_points=plan.cloud.max_points, seed=s.seed)
+        pts, robot_s, skipped = acquire_cloud(s.executor, verts.min(axis=0), verts.max(axis=0),
+                                              plan.cloud.sweep_spacing_mm, plan.cloud.sweep_height_mm,
+                                              max_points=plan.cloud.max_points, seed=s.seed)
+        for why in skipped:
+            s._log("sweep_line_skipped", reason=why)
         normals = None
         j.add_robot_time("sweep", robot_s)
     obj_pts, plane = cl.remove_table(pts, seed=s.seed)
     if normals is None or len(normals) != len(obj_pts):
-        normals = cl.estimate_normals(obj_pts, k=16)
+        normals = orient_outward_from_above(obj_pts, cl.estimate_normals(obj_pts, k=16))
     ctx.cloud_mm, ctx.cloud_normals = obj_pts, normals
     j.commit_phase("cloud", 0, {"n_points": int(len(obj_pts)), "cloud_sha256": cl.cloud_hash(obj_pts),
                                 "table_plane": {"normal": np.asarray(plane[0]).tolist(), "offset_mm": float(plane[1])},
                                 "robot_s": robot_s},
                    {"points_mm": obj_pts.astype(np.float32), "normals": normals.astype(np.float32)})
     s._log("phase", name="cloud", n_points=int(len(obj_pts)))
+
+
+def orient_outward_from_above(points_mm: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Flip PCA normals of a cloud scanned from above so they point out of the object.
+
+    Orienting away from the centroid fails on flat, wide objects (a point on the
+    pillow's top far from the centre would get a sideways reference and half the
+    normals point down). The reference here is the horizontal offset from the
+    centroid plus an upward component of the object's size: tops face up, sides face
+    out.
+    """
+    c = points_mm.mean(axis=0)
+    ref = points_mm - c
+    ref[:, 2] = float(np.ptp(points_mm[:, :2], axis=0).max())
+    flip = np.einsum("ij,ij->i", normals, ref) < 0
+    out = normals.copy()
+    out[flip] *= -1.0
+    return out
 
 
 def phase_sampling(ctx: PhaseContext) -> None:
@@ -217,7 +245,7 @@ def _survey_profiles(ctx: PhaseContext, target_ids: list[int]) -> tuple[list[int
     angle = sv.angles_deg[0]
     forces = sorted(sv.forces_n)
     by_target: dict[int, dict[float, np.ndarray]] = {}
-    for rec in j.steps(phase=SURVEY, statuses=["done"]):
+    for rec in _done_steps(j, SURVEY_PHASES):
         if abs(rec.plan.angle_deg - angle) > 1e-9 or rec.plan.target_index not in target_ids:
             continue
         res = j.step_result(rec.step_id)
@@ -426,7 +454,7 @@ def measured_noise_mm(ctx: PhaseContext, max_steps: int = 20) -> float:
     j, cell = s.journal, s.cell
     assert j is not None and cell is not None
     stds, counts = [], []
-    for rec in j.steps(phase=SURVEY, statuses=["done"])[:max_steps]:
+    for rec in _done_steps(j, SURVEY_PHASES)[:max_steps]:
         res = j.step_result(rec.step_id)
         tgt = ctx.targets[rec.plan.target_index]
         scans = prof.step_scan_points(res.scans_xz_mm, res.scan_pose, cell.tcp_to_scanner, cell.base_to_object)
@@ -469,7 +497,7 @@ def run_all(ctx: PhaseContext) -> None:
     phase_sampling(ctx)
     s.progress.steps_total = len(s.journal.steps())   # type: ignore[union-attr]
     try:
-        s.run_steps(SURVEY, 0, ctx.targets)
+        s.run_steps("sampling", 0, ctx.targets)
         phase_regions(ctx, 0)
         s.progress.steps_total = len(s.journal.steps())   # type: ignore[union-attr]
         s.run_steps(CHARACTERIZE, 0, ctx.targets)
@@ -478,7 +506,7 @@ def run_all(ctx: PhaseContext) -> None:
             if not phase_densify(ctx, r):
                 break
             s.progress.steps_total = len(s.journal.steps())   # type: ignore[union-attr]
-            s.run_steps(SURVEY, r, ctx.targets)
+            s.run_steps("densify", r, ctx.targets)
             phase_regions(ctx, r)
             s.progress.steps_total = len(s.journal.steps())   # type: ignore[union-attr]
             s.run_steps(CHARACTERIZE, r, ctx.targets)

@@ -137,6 +137,11 @@ class ProbeExecutor:
         self.should_stop = should_stop
         self._rec = _Recorder()
         self.robot_time_s = 0.0
+        # A trip the session has acknowledged while it unloads and retracts: moving away
+        # from the surface is what brings the force back under the hysteresis level.
+        self.acknowledged_trip: Trip | None = None
+        # Where the arm was when the session began: a known-good place to route through.
+        self.park_pose: Pose | None = cell.arm.status().tcp_pose
 
     # ------------------------------------------------------------------ public
     def probe(self, target: ProbeTarget, angle_deg: float, levels: list[ForceLevel],
@@ -241,8 +246,20 @@ class ProbeExecutor:
 
     # ------------------------------------------------------------------ motions
     def _travel_to(self, standoff: Pose) -> None:
-        """Up to travel height, across, then down to the standoff; every leg validated."""
-        here = self.cell.arm.status().tcp_pose
+        """Up to travel height, across, then down to the standoff; every leg validated.
+
+        If the direct route is refused (e.g. the wrist would swing the scanner into a
+        keep-out), go by the park pose, where the arm started the session.
+        """
+        try:
+            self._travel_legs(self._route(self.cell.arm.status().tcp_pose, standoff))
+        except MotionRefused:
+            if self.park_pose is None:
+                raise
+            here = self.cell.arm.status().tcp_pose
+            self._travel_legs(self._route(here, self.park_pose) + self._route(self.park_pose, standoff))
+
+    def _route(self, here: Pose, standoff: Pose) -> list[tuple[Pose, Pose]]:
         travel_z = self.object_top_z_mm + self.s.clearance_mm
         legs: list[Pose] = []
         if here.position_mm[2] < travel_z - 1.0:
@@ -250,13 +267,26 @@ class ProbeExecutor:
         above = Pose(np.array([*standoff.position_mm[:2], max(travel_z, standoff.position_mm[2])]),
                      standoff.rotation)
         legs += [above, standoff]
+        route = []
         start = here
         for leg in legs:
             if start.distance_to(leg)[0] < 0.05 and start.distance_to(leg)[1] < 0.05:
                 continue
-            self.validator.validate_path(start, leg)
-            self._move(leg, self.s.free_speed_mm_s)
+            route.append((start, leg))
             start = leg
+        return route
+
+    def _travel_legs(self, route: list[tuple[Pose, Pose]]) -> None:
+        saved = getattr(self.validator, "seed_joints", None)
+        try:
+            for start, leg in route:
+                self.validator.validate_path(start, leg)
+        except MotionRefused:
+            if saved is not None:
+                self.validator.seed_joints = saved   # type: ignore[attr-defined]
+            raise
+        for _, leg in route:
+            self._move(leg, self.s.free_speed_mm_s)
 
     def _move(self, target: Pose, speed_mm_s: float, check: bool = True) -> None:
         motion = self.cell.arm.move_linear(target, speed_mm_s, self.s.free_accel_mm_s2)
@@ -328,7 +358,7 @@ class ProbeExecutor:
         self._rec.poses.append(status.tcp_pose.position_mm)
         self._rec.rotations.append(status.tcp_pose.rotation)
         trip = self.cell.arm.trip()
-        if trip is not None:
+        if trip is not None and trip is not self.acknowledged_trip:
             raise ProbeFault(trip.kind, trip.message, trip)
         if status.emergency_stop:
             raise ProbeFault("emergency_stop", "emergency stop is pressed")
@@ -354,7 +384,7 @@ class ProbeExecutor:
         if state == wanted:
             return
         trip = self.cell.arm.trip()
-        if trip is not None:
+        if trip is not None and trip is not self.acknowledged_trip:
             raise ProbeFault(trip.kind, trip.message, trip)
         status = self.cell.arm.status()
         if status.emergency_stop:

@@ -615,11 +615,13 @@ def fig_timeline(data: ReportData) -> Any:
     if not tr:
         return None
     offsets = _run_offsets(tr)
-    t_abs = [offsets[t["run_id"]] + float(t["t_robot_s"]) for t in tr]
+    end_s = max(offsets[t["run_id"]] + float(t["t_robot_s"]) for t in tr)
+    unit, scale = ("h", 3600.0) if end_s > 3 * 3600 else ("min", 60.0) if end_s > 600 else ("s", 1.0)
+    t_abs = [(offsets[t["run_id"]] + float(t["t_robot_s"])) / scale for t in tr]
+    end = end_s / scale
     from .machine import STATES
     states = [s for s in STATES if any(s in (t["from_state"], t["to_state"]) for t in tr)]
     row = {s: k for k, s in enumerate(states)}
-    end = max(t_abs) if t_abs else 0.0
     fig = _figure(11, 0.3 * len(states) + 1.6)
     ax = fig.add_subplot(1, 1, 1)
     segs: dict[str, list[tuple[float, float]]] = defaultdict(list)
@@ -629,28 +631,21 @@ def fig_timeline(data: ReportData) -> Any:
     for s, spans in segs.items():
         colour = "tab:red" if s in ("fault", "aborted") else "tab:orange" if s in ("paused", "recovering") else "tab:blue"
         ax.broken_barh(spans, (row[s] - 0.35, 0.7), facecolors=colour)
-    for f in data.faults:
-        if f.t_robot_s is None:
-            continue
-        x = offsets.get(_fault_run(f, data.runs), 0.0) + float(f.t_robot_s)
+    timed = [f for f in data.faults if f.t_robot_s is not None]
+    for f in timed:
+        x = (offsets.get(_fault_run(f, data.runs), 0.0) + float(f.t_robot_s)) / scale   # type: ignore[arg-type]
         ax.axvline(x, color="red", lw=0.8, alpha=0.7)
-        ax.text(x, len(states) - 0.4, f"#{f.fault_id} {f.kind}", rotation=90, fontsize=6, va="top", color="red")
-    for run, off in offsets.items():
+        if len(timed) <= 12:    # beyond that the labels overlap; the fault table lists them
+            ax.text(x, len(states) - 0.4, f"#{f.fault_id} {f.kind}", rotation=90, fontsize=6, va="top", color="red")
+    for off in offsets.values():
         if off > 0:
-            ax.axvline(off, color="k", ls="--", lw=0.8)
+            ax.axvline(off / scale, color="k", ls="--", lw=0.8)
     ax.set_yticks(range(len(states)))
     ax.set_yticklabels(states, fontsize=7)
-    unit, scale = ("h", 3600.0) if end > 3 * 3600 else ("min", 60.0) if end > 600 else ("s", 1.0)
-    ax.set_xlabel(f"robot time ({unit}); dashed: a resumed run starts")
-    ax.xaxis.set_major_formatter(_scaled_formatter(scale))
+    ax.set_xlabel(f"robot time ({unit}); red: faults; dashed: a resumed run starts")
     ax.set_xlim(0, end if end > 0 else 1.0)
     ax.grid(axis="x", alpha=0.3)
     return fig
-
-
-def _scaled_formatter(scale: float) -> Any:
-    from matplotlib.ticker import FuncFormatter
-    return FuncFormatter(lambda v, _pos: f"{v / scale:g}")
 
 
 def fig_fault_trace(fault: FaultRecord) -> Any:
@@ -684,6 +679,7 @@ _CSS = ("body{font-family:sans-serif;max-width:1100px;margin:1.5em auto;padding:
         "table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding:2px 8px;text-align:left;"
         "vertical-align:top;font-size:90%}img{max-width:100%;display:block;margin:.5em 0}"
         ".not-yet{color:#888;font-style:italic}.figure-error{color:#b00}nav a{margin-right:1em}"
+        ".fault{display:inline-block;width:49%;vertical-align:top}"
         "code{font-size:85%;word-break:break-all}section{border-top:1px solid #ddd;margin-top:1.5em}")
 
 
@@ -805,11 +801,12 @@ def _section_faults(figs: _Figures, data: ReportData) -> str:
                  [[f.fault_id, f.kind, _round(f.t_robot_s, 2) if f.t_robot_s is not None else None, f.t_wall_utc,
                    f.step_id, f.policy_action, f.message, 0 if f.raw is None else len(f.raw)] for f in data.faults])]
     for f in data.faults[:MAX_FAULT_TRACES]:
-        out.append(f"<h3 id='fault-{f.fault_id}'>Fault #{f.fault_id}: {_esc(f.kind)}</h3>")
+        out.append(f"<div class='fault'><h3 id='fault-{f.fault_id}'>Fault #{f.fault_id}: {_esc(f.kind)}</h3>")
         if f.raw is None:
             out.append("<p>No raw F/T data was journaled with this fault.</p>")
         else:
             out.append(figs.img(f"fault {f.fault_id} raw F/T", lambda f=f: fig_fault_trace(f), "empty raw data"))
+        out.append("</div>")
     if len(data.faults) > MAX_FAULT_TRACES:
         out.append(f"<p>{len(data.faults) - MAX_FAULT_TRACES} more fault traces are in the journal "
                    f"(elastoprobe export DIR --format hdf5).</p>")

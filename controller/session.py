@@ -64,9 +64,9 @@ class JsonlLog:
     def __init__(self, path: Path) -> None:
         self._f = open(path, "a", encoding="utf-8")
 
-    def write(self, kind: str, **record: Any) -> None:
+    def write(self, event: str, **record: Any) -> None:
         rec = {"t_wall_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds"),
-               "kind": kind, **record}
+               "event": event, **record}
         self._f.write(json.dumps(rec, default=_json_default) + "\n")
         self._f.flush()
 
@@ -114,6 +114,8 @@ class Session:
             self.cell = built.cell
             self.world = built
             self._record_identities()
+            if resume:
+                self._restore_object_history()
             code = self._run_phases(resume)
             return code
         finally:
@@ -146,6 +148,16 @@ class Session:
     def _calibration_path(self) -> Path | None:
         c = self.inputs.cell.calibration_file
         return self.inputs.resolve(self.inputs.cell_path, c) if c else None
+
+    def _restore_object_history(self) -> None:
+        """A simulated object remembers permanent dents: rebuild them from the done steps."""
+        assert self.journal is not None
+        peak: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
+        for rec in self.journal.steps(statuses=["done"]):
+            p = rec.plan
+            f = max(peak.get(p.target_index, (None, None, 0.0))[2], float(p.force_n))
+            peak[p.target_index] = (np.asarray(p.point_mm), np.asarray(p.normal), f)
+        self.world.restore_history(list(peak.values()))
 
     def _record_identities(self) -> None:
         assert self.journal is not None and self.cell is not None
@@ -217,6 +229,7 @@ class Session:
         self.executor.safe_retract()
 
     def _park(self) -> None:
+        self.executor.acknowledged_trip = self.cell.arm.trip() if self.cell is not None else None
         try:
             self.executor.safe_retract()
         except (ProbeFault, ElastoprobeError) as exc:   # parking is best effort; the arm is stopped
@@ -319,7 +332,8 @@ class Session:
         policy = self.inputs.plan.fault_policy.for_kind(fault.kind)
         retries_so_far = self._retry_index(step_id) if step_id is not None else 0
         action = policy.action
-        if action == "retry" and retries_so_far >= policy.retries:
+        if action == "retry" and (retries_so_far >= policy.retries or fault.kind == "motion_refused"):
+            # A refused motion is refused again: retrying it would only spend the budget.
             action = "skip_target"
         raw = fault.trip.raw if fault.trip is not None else None
         fault_id = j.record_fault(fault.kind, fault.message, t_robot_s=self.cell.clock.now_s(),
@@ -351,12 +365,15 @@ class Session:
             return False
         if status.protective_stop and not arm.recover_protective_stop():
             return False
+        self.executor.acknowledged_trip = arm.trip()
         try:
             self.executor.safe_retract()
         except (ProbeFault, ElastoprobeError) as exc:
             self._log("recovery_failed", message=str(exc))
             return False
-        # Re-arm only after the state change, below the hysteresis level.
+        finally:
+            self.executor.acknowledged_trip = None
+        # Re-arm only after the state change (retracted), below the hysteresis level.
         for _ in range(50):
             if arm.rearm():
                 return True
@@ -386,12 +403,12 @@ class Session:
             self.progress.state = self.machine.state
         self.on_progress(self.progress)
 
-    def _log(self, kind: str, **record: Any) -> None:
+    def _log(self, event: str, **record: Any) -> None:
         if self.log is not None:
-            self.log.write(kind, **record)
+            self.log.write(event, **record)
         if self.journal is not None:
             t = self.cell.clock.now_s() if self.cell is not None else None
-            self.journal.log_event(kind, record, t_robot_s=t)
+            self.journal.log_event(event, record, t_robot_s=t)
 
 
 class BudgetSpent(Exception):

@@ -1,0 +1,78 @@
+"""The one place the controller builds a cell from its YAML (DESIGN §1).
+
+``controller`` reaches ``sim`` (and later the real drivers' hardware process) only
+through here, imported lazily, so the CLI starts fast and the dependency points
+one way. A dry run of a real cell keeps that cell's limits, workspace, tool
+geometry and object placement, with simulated devices behind them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from .config import SessionInputs
+from .devices import Cell
+from .errors import InputError
+
+
+@dataclass
+class BuiltCell:
+    """A cell and what the controller knows of the object's shape (object frame, mm)."""
+
+    cell: Cell
+    object_mesh: Any                 # trimesh.Trimesh: the nominal surface for planning and collision checks
+
+    def restore_history(self, presses: list[tuple[Any, Any, float]]) -> None:
+        """Simulated cells rebuild object state (permanent dents) on resume; real cells have it."""
+        restore = getattr(self.cell, "restore_history", None)
+        if restore is not None:
+            restore(presses)
+
+
+def build_cell(inputs: SessionInputs, seed: int, dry_run: bool = False) -> BuiltCell:
+    """Build the cell a session runs on."""
+    kind = inputs.cell.kind
+    if kind == "simulated" or dry_run:
+        return _simulated(inputs, seed)
+    raise InputError(f"cell kind {kind!r}: the real-device path (ur_rtde arm, Net F/T, serial scanner in the "
+                     f"hardware process) is not wired into sessions yet; use --dry-run to rehearse this cell",
+                     path=str(inputs.cell_path))
+
+
+def _simulated(inputs: SessionInputs, seed: int) -> BuiltCell:
+    from elastoprobe.sim.cell import SimCell, params_from_cell
+
+    obj = inputs.object_file()
+    if obj.suffix.lower() not in (".yaml", ".yml"):
+        raise InputError("a dry run needs a simulated object (an objects/*.yaml with materials): set the plan's "
+                         "simulated_object", path=str(inputs.plan_path))
+    cell = SimCell(params_from_cell(inputs.cell, obj, seed=seed))
+    problems = cell.validity_report(max(max(inputs.plan.phases.survey.forces_n),
+                                        max(inputs.plan.phases.characterize.forces_n)))
+    if problems:
+        raise InputError("the simulated object's physics is not valid at this plan's largest force: "
+                         + "; ".join(problems), path=str(inputs.plan_path))
+    return BuiltCell(cell=cell, object_mesh=cell.world.obj.mesh)
+
+
+def check_real_cell_ready(inputs: SessionInputs, allow_stale_calibration: bool = False) -> None:
+    """A real cell refuses to run without a current calibration, unless overridden."""
+    import datetime as dt
+
+    cal = inputs.cell.calibration_file
+    if cal is None:
+        if not allow_stale_calibration:
+            raise InputError("this real cell names no calibration_file; calibrate it (elastoprobe calibrate ...) "
+                             "or pass --allow-stale-calibration", path=str(inputs.cell_path))
+        return
+    path = inputs.resolve(inputs.cell_path, cal)
+    if not path.exists():
+        if not allow_stale_calibration:
+            raise InputError(f"calibration file {str(path)!r} is missing; calibrate the cell or pass "
+                             f"--allow-stale-calibration", path=str(inputs.cell_path))
+        return
+    age_days = (dt.datetime.now().timestamp() - path.stat().st_mtime) / 86400.0
+    if age_days > inputs.cell.calibration_max_age_days and not allow_stale_calibration:
+        raise InputError(f"calibration is {age_days:.0f} days old (the cell allows "
+                         f"{inputs.cell.calibration_max_age_days:g}); recalibrate or pass --allow-stale-calibration",
+                         path=str(path))
