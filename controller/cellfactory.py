@@ -55,6 +55,16 @@ def _simulated(inputs: SessionInputs, seed: int) -> BuiltCell:
     return BuiltCell(cell=cell, object_mesh=cell.world.obj.mesh)
 
 
+def ground_truth_for(inputs: SessionInputs, seed: int) -> Any:
+    """The simulator's ground truth of a simulated session's object (object frame)."""
+    if inputs.cell.kind == "ur" and inputs.object_file().suffix.lower() not in (".yaml", ".yml"):
+        raise InputError("ground truth exists only for simulated objects", path=str(inputs.cell_path))
+    from elastoprobe.sim.cell import SimGroundTruth
+    from elastoprobe.sim.objects import load_object
+
+    return SimGroundTruth(load_object(inputs.object_file()), inputs.cell.tool.tip_radius_mm)
+
+
 def check_real_cell_ready(inputs: SessionInputs, allow_stale_calibration: bool = False) -> None:
     """A real cell refuses to run without a current calibration, unless overridden."""
     import datetime as dt

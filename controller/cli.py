@@ -205,7 +205,66 @@ def cmd_stop(args: argparse.Namespace) -> int:
     return EXIT_DONE
 
 
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from .evaluation import evaluate_session
+
+    result = evaluate_session(Path(args.dir))
+    if args.json:
+        print(json.dumps(result, allow_nan=False))
+    else:
+        for k, v in result.items():
+            print(f"{k:>18}: {v}")
+    return EXIT_DONE
+
+
+def cmd_predict(args: argparse.Namespace) -> int:
+    from .predict import predict_profile
+
+    x_mm, depth_mm, std_mm = predict_profile(Path(args.dir), args.region, args.force, args.angle)
+    if args.json:
+        print(json.dumps({"region": args.region, "force_n": args.force, "angle_deg": args.angle,
+                          "x_mm": [round(v, 4) for v in x_mm.tolist()],
+                          "depth_mm": [None if v != v else round(v, 5) for v in depth_mm.tolist()],
+                          "ensemble_std_mm": [None if v != v else round(v, 5) for v in std_mm.tolist()]},
+                         allow_nan=False))
+    else:
+        i = int(depth_mm.argmax())
+        print(f"region {args.region}, F = {args.force} N, angle = {args.angle} deg: peak depth "
+              f"{depth_mm[i]:.3f} mm (ensemble spread {std_mm[i]:.3f} mm) at x = {x_mm[i]:.1f} mm")
+        for xv, dv in zip(x_mm[::16], depth_mm[::16]):
+            print(f"  x {xv:7.2f} mm  depth {dv:7.3f} mm")
+    return EXIT_DONE
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from .report import write_report
+
+    print(f"wrote {write_report(Path(args.dir))}")
+    return EXIT_DONE
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from .export import export_hdf5
+
+    out = Path(args.out) if args.out else Path(args.dir) / "export.h5"
+    print(f"wrote {export_hdf5(Path(args.dir), out)}")
+    return EXIT_DONE
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from .predict import retrain_session
+
+    for line in retrain_session(Path(args.dir)):
+        print(line)
+    return EXIT_DONE
+
+
 COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
+    "evaluate": cmd_evaluate,
+    "predict": cmd_predict,
+    "report": cmd_report,
+    "export": cmd_export,
+    "train": cmd_train,
     "check": cmd_check,
     "diagram": cmd_diagram,
     "run": cmd_run,
@@ -250,6 +309,28 @@ def build_parser() -> argparse.ArgumentParser:
     pa.add_argument("dir", type=_existing_dir)
     so = sub.add_parser("stop", help="ask a running session to stop safely now (exit 3)")
     so.add_argument("dir", type=_existing_dir)
+
+    ev = sub.add_parser("evaluate", help="simulated sessions: score regions and models against ground truth")
+    ev.add_argument("dir", type=_existing_dir)
+    ev.add_argument("--json", action="store_true", help="print one JSON object")
+
+    pr = sub.add_parser("predict", help="the deformation profile a region's model predicts")
+    pr.add_argument("dir", type=_existing_dir)
+    pr.add_argument("--region", type=int, required=True)
+    pr.add_argument("--force", type=_finite_float, required=True, help="force magnitude (N)")
+    pr.add_argument("--angle", type=_finite_float, required=True, help="approach angle (deg, 0..180)")
+    pr.add_argument("--json", action="store_true")
+
+    rp = sub.add_parser("report", help="(re)write DIR/report/index.html")
+    rp.add_argument("dir", type=_existing_dir)
+
+    ex = sub.add_parser("export", help="export the whole session")
+    ex.add_argument("dir", type=_existing_dir)
+    ex.add_argument("--format", choices=["hdf5"], required=True)
+    ex.add_argument("--out", help="output file (default DIR/export.h5)")
+
+    tr = sub.add_parser("train", help="refit the region models from the journal's measurements")
+    tr.add_argument("dir", type=_existing_dir)
 
     d = sub.add_parser("diagram", help="write the state machine's Mermaid diagram")
     d.add_argument("--out", default=str(Path(__file__).resolve().parent.parent / "docs" / "state_machine.md"))

@@ -1,0 +1,169 @@
+"""``elastoprobe evaluate DIR``: a simulated session judged against the simulator's ground truth.
+
+Nothing here tunes anything: the session's committed outputs (cloud, region map,
+models) are compared with what the simulated object really is (true material of
+every scanned point; noise-free profiles for any point, force and angle).
+Held-out sets: interior angles the plan did not train (between 25 and 155
+degrees), forces between the trained ones, and surface points never probed.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError
+from .geometry import scan_direction
+from .journal import Journal
+from .learning import evaluate as ev
+from .learning.models import RegionModel
+
+
+def _inputs_of(j: Journal) -> Any:
+    from .config import load_session_inputs
+
+    prov = j.provenance()
+    return load_session_inputs(prov["plan"]["path"], prov["cell"]["path"])
+
+
+def _held_out_angles(trained: list[float]) -> list[float]:
+    """Interior angles between trained ones (within 25..155), e.g. 35, 60, 120, 145."""
+    a = sorted(trained)
+    mids = [(x + y) / 2.0 for x, y in zip(a, a[1:])]
+    return [m for m in mids if 25.0 <= m <= 155.0 and all(abs(m - t) > 1.0 for t in a)]
+
+
+def _held_out_forces(trained: list[float]) -> list[float]:
+    f = sorted(trained)
+    return [(x + y) / 2.0 for x, y in zip(f, f[1:])]
+
+
+def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int = 12345) -> dict[str, Any]:
+    from .cellfactory import ground_truth_for
+
+    j = Journal.open_readonly(session_dir)
+    try:
+        inputs = _inputs_of(j)
+        sess = j.session()
+        final = j.phase("final", 0)
+        cloud = j.phase("cloud", 0)
+        if final is None or cloud is None:
+            raise InputError("the session has no final region map yet (run or resume it to the end)",
+                             path=str(session_dir))
+        truth = ground_truth_for(inputs, int(sess["seed"]))
+        model_round = int(final.outputs["model_round"])
+        models_rec = j.phase("models", model_round)
+        models: dict[int, RegionModel] = {}
+        if models_rec is not None:
+            for region, info in models_rec.outputs["regions"].items():
+                if "path" in info:
+                    models[int(region)] = RegionModel.load(Path(session_dir) / info["path"])
+        regions_rec = None
+        r = 0
+        while j.phase("regions", r) is not None:
+            regions_rec = j.phase("regions", r)
+            r += 1
+        done = j.steps(statuses=["done"])
+        robot_hours = j.robot_time_s()["total"] / 3600.0
+        char = [rec for rec in done if rec.phase == "regions"]
+        measured = [(rec, j.step_result(rec.step_id)) for rec in char]
+    finally:
+        j.close()
+
+    pts = cloud.arrays["points_mm"].astype(float)
+    normals = cloud.arrays["normals"].astype(float)
+    pred = final.arrays["cloud_labels"]
+    true = truth.region_of(pts)
+    scores = ev.region_map_scores(pred, true, None, pts)
+    target_labels = dict(zip(regions_rec.arrays["labelled_targets"].tolist(),
+                             regions_rec.arrays["labels"].tolist())) if regions_rec is not None else {}
+
+    plan = inputs.plan
+    ch = plan.phases.characterize
+    x = np.linspace(-plan.model.profile_span_mm / 2, plan.model.profile_span_mm / 2, plan.model.profile_samples)
+    radius = inputs.cell.tool.tip_radius_mm
+    ref = np.array(plan.sampling.reference_direction)
+
+    def true_profile(point: np.ndarray, normal: np.ndarray, force: float, angle: float) -> np.ndarray:
+        return truth.true_profile_mm(point, normal, scan_direction(normal, ref), force, angle, x)
+
+    # Noise floor and held-out angles/forces at the characterized points.
+    noise_pred, noise_true = [], []
+    ha_pred, ha_true, hf_pred, hf_true = [], [], [], []
+    points_done: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for rec, res in measured:
+        f = float(np.linalg.norm(np.nanmean(res.scan_force_n, axis=0)))
+        p, n = np.asarray(rec.plan.point_mm), np.asarray(rec.plan.normal)
+        noise_pred.append(res.profile_depth_mm)
+        noise_true.append(truth.true_profile_mm(p, n, np.asarray(rec.plan.t), f, rec.plan.angle_deg, x))
+        points_done[rec.plan.target_index] = (p, n)
+    for ti, (p, n) in points_done.items():
+        label = target_labels.get(ti)
+        if label not in models:
+            continue
+        m = models[label]
+        for a in _held_out_angles(list(ch.angles_deg)):
+            for f in ch.forces_n[1:-1]:
+                ha_pred.append(m.predict_mm(f, a).copy())
+                ha_true.append(true_profile(p, n, f, a))
+        for f in _held_out_forces(list(ch.forces_n)):
+            for a in ch.angles_deg:
+                hf_pred.append(m.predict_mm(f, a).copy())
+                hf_true.append(true_profile(p, n, f, a))
+
+    # Held-out points: unprobed cloud points, interior of their predicted region, facing up.
+    rng = np.random.default_rng(seed)
+    hp_pred, hp_true = [], []
+    up = normals[:, 2] > np.cos(np.radians(plan.sampling.max_tilt_deg))
+    from scipy.spatial import cKDTree
+
+    for label, m in models.items():
+        cand = np.flatnonzero(up & (pred == label))
+        others = np.flatnonzero(pred != label)
+        if cand.size == 0:
+            continue
+        if others.size:
+            # Interior of the predicted region (chosen without looking at the truth).
+            dist, _ = cKDTree(pts[others]).query(pts[cand])
+            interior = cand[dist > 20.0]
+            cand = interior if interior.size else cand
+        pick = rng.choice(cand, size=min(n_points_per_region, cand.size), replace=False)
+        for k in pick:
+            for f in ch.forces_n:
+                for a in (45.0, 90.0, 135.0):
+                    hp_pred.append(m.predict_mm(f, a).copy())
+                    hp_true.append(true_profile(pts[k], normals[k], f, a))
+
+    def rmse(pred_list: list[np.ndarray], true_list: list[np.ndarray]) -> float | None:
+        if not pred_list:
+            return None
+        return ev.profile_rmse_mm(np.array(pred_list), np.array(true_list))
+
+    peak = float(np.nanmax(np.array(noise_true))) if noise_true else None
+    mirror = [ev.mirror_residual(m, np.array(ch.forces_n), np.array([a for a in ch.angles_deg if a < 90.0]))
+              for m in models.values()]
+    return {
+        "regions_found": int(len(np.unique(pred))),
+        "regions_true": int(len(truth.region_names())),
+        "region_map_error": _num(scores["mislabelled_fraction"]),
+        "worst_region_iou": _num(scores["worst_region_iou"]),
+        "boundary_mm_mean": _num(scores["boundary_mm_mean"]),
+        "boundary_mm_p90": _num(scores["boundary_mm_p90"]),
+        "profile_rmse_mm": {"held_out_angles": _num(rmse(ha_pred, ha_true)),
+                            "held_out_forces": _num(rmse(hf_pred, hf_true)),
+                            "held_out_points": _num(rmse(hp_pred, hp_true))},
+        "noise_floor_mm": _num(rmse(noise_pred, noise_true)),
+        "peak_depth_mm": _num(peak),
+        "mirror_residual": _num(float(np.nanmean(mirror)) if mirror else None),
+        "probes": int(len(done)),
+        "robot_hours": round(robot_hours, 4),
+    }
+
+
+def _num(v: Any) -> Any:
+    """JSON-safe numbers: None for NaN/inf (never NaN or Infinity in the output)."""
+    if v is None:
+        return None
+    v = float(v)
+    return round(v, 6) if np.isfinite(v) else None
