@@ -86,9 +86,15 @@ class _Path:
         return Pose(self.p0 + u * self.v, rot)
 
     def joints(self, u: float) -> np.ndarray:
-        if self.u_table.size == 1:
-            return self.joints_table[0].copy()
-        return np.array([np.interp(u, self.u_table, self.joints_table[:, j]) for j in range(6)])
+        """Joints (rad) at u, linear between IK waypoints (clamped to the table's ends)."""
+        table, q = self.u_table, self.joints_table
+        if table.size == 1 or u <= table[0]:
+            return q[0].copy()
+        if u >= table[-1]:
+            return q[-1].copy()
+        j = int(np.searchsorted(table, u))
+        f = (u - table[j - 1]) / (table[j] - table[j - 1])
+        return q[j - 1] + f * (q[j] - q[j - 1])
 
 
 def trapezoid_u(t_s: np.ndarray, u0: float, u1: float, rate: float, accel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -292,8 +298,7 @@ class SimArm:
         seed = self._path.joints(self._u)
         if inverse(m, target, seed) is None:
             raise MotionRefused(f"target {np.round(target.position_mm, 1).tolist()} mm is out of reach or joint limits")
-        table = linear_path_joints(m, start, target, seed, step_mm=self._settings.ik_step_mm,
-                                   step_deg=self._settings.ik_step_deg)
+        table = self._path_joints(start, target, seed)
         if table is None:
             raise MotionRefused("no straight-line path: IK fails along it (reach, joint limits or a singularity)")
         rel = matrix_to_rotvec(start.rotation.T @ target.rotation)
@@ -354,7 +359,9 @@ class SimArm:
         return self._world.trip
 
     def rearm(self) -> bool:
+        self._world.guard_flush()
         if self._world.trip is None:
+            self._world.guard.rearm()
             return True
         if not self._world.guard.rearm():
             return False
@@ -397,13 +404,21 @@ class SimArm:
         seed = self._path.joints(self._u)
         a = Pose(start.position_mm + lo_mm * e, start.rotation)
         b = Pose(start.position_mm + hi_mm * e, start.rotation)
-        table = linear_path_joints(self._model, a, b, seed, step_mm=self._settings.ik_step_mm,
-                                   step_deg=self._settings.ik_step_deg)
+        table = self._path_joints(a, b, seed)
         if table is None:
             raise MotionRefused(f"no straight-line path along {np.round(e, 3).tolist()} over "
                                 f"[{lo_mm:.0f}, {hi_mm:.0f}] mm (reach, joint limits or a singularity)")
         u_table = np.linspace(lo_mm, hi_mm, table.shape[0])
         return _Path(start.position_mm, e, start.rotation, np.zeros(3), u_table, table)
+
+    def _path_joints(self, start: Pose, end: Pose, seed: np.ndarray) -> np.ndarray | None:
+        """IK along the straight path: coarse waypoints first (fast); before refusing, the
+        kinematics module's own fine waypoints, so a refusal means what it means there."""
+        s = self._settings
+        table = linear_path_joints(self._model, start, end, seed, step_mm=s.ik_step_mm, step_deg=s.ik_step_deg)
+        if table is None:
+            table = linear_path_joints(self._model, start, end, seed)
+        return table
 
     def _move_rates(self, path: _Path, table: np.ndarray, speed: float, accel: float) -> tuple[float, float]:
         """Peak du/dt and d2u/dt2 (u in [0, 1]): TCP, rotation and joint limits, like move_duration_s."""

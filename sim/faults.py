@@ -190,6 +190,12 @@ class FaultInjector:
             self._connected = True
             self._world.arm._sim_connection_restored()
 
+    def _sim_any_active(self) -> bool:
+        return bool(self._active)
+
+    def _sim_frozen_possible(self) -> bool:
+        return any(a.kind == "ft_frozen" for a in self._active)
+
     def _window(self, kind: str, ts_us: np.ndarray) -> np.ndarray | None:
         mask = None
         for a in self._active:

@@ -62,8 +62,15 @@ class FTSamples:
     out: np.ndarray          # (n, 6) what the driver delivers (tared, faults applied)
     status: np.ndarray
     delivered: np.ndarray
+    all_delivered: bool = True
+    fmag: np.ndarray | None = None      # |F| of ``out`` (N)
+    tmag2: np.ndarray | None = None     # |T|^2 of ``out`` (N·m)^2
 
     def block(self, cut: int) -> WrenchBlock:
+        if self.all_delivered:
+            out = self.out[:cut]
+            return WrenchBlock(self.ts_us[:cut] / US_PER_S, self.seq[:cut], out[:, :3], out[:, 3:],
+                               self.status[:cut])
         keep = self.delivered[:cut]
         out = self.out[:cut][keep]
         return WrenchBlock(self.ts_us[:cut][keep] / US_PER_S, self.seq[:cut][keep], out[:, :3], out[:, 3:],
@@ -71,8 +78,9 @@ class FTSamples:
 
     def magnitudes_n(self) -> np.ndarray:
         """|F| of each sample as the driver sees it (0 for samples that never arrived)."""
-        f = self.out[:, :3]
-        return np.where(self.delivered, np.sqrt(np.einsum("ij,ij->i", f, f)), 0.0)
+        if self.all_delivered:
+            return self.fmag
+        return np.where(self.delivered, self.fmag, 0.0)
 
 
 class SimForceTorque:
@@ -101,9 +109,12 @@ class SimForceTorque:
         self._tare = np.zeros(6)
         self._buffer: deque[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = deque()
         self._buffered = 0
-        self._recent_raw = np.zeros((0, 6))
-        self._recent_out = np.zeros((0, 6))
+        self._recent = _Recent(64)
         self._last_out: np.ndarray | None = None
+        # Torque of a force applied at the tip / at the payload's centre of mass: r x F = F @ K(r)^T.
+        self._k_tip_t = _skew(self._tip_in_sensor_mm * 1e-3).T
+        self._k_com_t = _skew(self._com_sensor_mm * 1e-3).T
+        self._gravity_cache: tuple[bytes, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ ForceTorqueSensor
     def identity(self) -> DeviceIdentity:
@@ -118,6 +129,10 @@ class SimForceTorque:
     def read_block(self) -> WrenchBlock:
         if not self._buffer:
             return WrenchBlock.empty()
+        if len(self._buffer) == 1:
+            t, seq, out, status = self._buffer.popleft()
+            self._buffered = 0
+            return WrenchBlock(t / US_PER_S, seq, out[:, :3].copy(), out[:, 3:].copy(), status)
         parts = list(self._buffer)
         self._buffer.clear()
         self._buffered = 0
@@ -129,11 +144,12 @@ class SimForceTorque:
 
     def tare(self) -> None:
         """Software bias: the mean of the latest raw samples becomes zero."""
-        if self._recent_raw.shape[0]:
-            self._tare = self._recent_raw[-self._s.tare_samples:].mean(axis=0)
+        raw = self._recent.latest_raw(self._s.tare_samples)
+        if raw.shape[0]:
+            self._tare = raw.mean(axis=0)
             # The driver owns both the stream and the guard: a deliberate step in the
             # readings is not a force rate (SafetyGuard.note_stream_restart).
-            self._world.guard.note_stream_restart()
+            self._world.guard_restart()
 
     # ------------------------------------------------------------------ world hooks
     def _sim_begin_step(self) -> None:
@@ -143,61 +159,130 @@ class SimForceTorque:
         per_h = np.concatenate([rng.normal(0.0, self._s.drift_n_per_h, 3), rng.normal(0.0, self._s.drift_nm_per_h, 3)])
         self._drift_per_us = per_h / (3600.0 * US_PER_S)
 
+    def _gravity_wrench(self, r_bs: np.ndarray) -> np.ndarray:
+        """Payload gravity (6,) in the sensor frame for one sensor orientation (cached)."""
+        key = r_bs.tobytes()
+        if self._gravity_cache is not None and self._gravity_cache[0] == key:
+            return self._gravity_cache[1]
+        g = (self._mass_kg * GRAVITY_MM_S2) @ r_bs
+        wrench = np.concatenate([g, g @ self._k_com_t])
+        self._gravity_cache = (key, wrench)
+        return wrench
+
     def _sim_synthesize(self, ts_us: np.ndarray, force_base: np.ndarray, rot_base_tcp: np.ndarray,
                         now_us: int) -> FTSamples:
         w = self._world
         n = ts_us.shape[0]
+        raw = np.empty((n, 6))
+        r_bs = rot_base_tcp @ self._r_ts
         if rot_base_tcp.ndim == 2:
-            r_bs = rot_base_tcp @ self._r_ts
             f_contact = force_base @ r_bs                       # R_bs^T F for each row
-            g_sensor = (self._mass_kg * GRAVITY_MM_S2) @ r_bs
-            g = np.broadcast_to(g_sensor, (n, 3))
+            raw[:, :3] = f_contact
+            raw[:, 3:] = f_contact @ self._k_tip_t
+            raw += self._gravity_wrench(r_bs) + self._bias
         else:
-            r_bs = rot_base_tcp @ self._r_ts
             f_contact = np.einsum("nij,ni->nj", r_bs, force_base)
             g = np.einsum("nij,i->nj", r_bs, self._mass_kg * GRAVITY_MM_S2)
-        torque = np.cross(self._tip_in_sensor_mm * 1e-3, f_contact) + np.cross(self._com_sensor_mm * 1e-3, g)
-        raw = np.empty((n, 6))
-        raw[:, :3] = f_contact + g
-        raw[:, 3:] = torque
+            raw[:, :3] = f_contact + g
+            raw[:, 3:] = f_contact @ self._k_tip_t + g @ self._k_com_t
+            raw += self._bias
         first = (int(ts_us[0]) - w.step_start_us) // self._period_us - 1
-        raw += self._bias
         raw += np.outer((ts_us - w.step_start_us).astype(float), self._drift_per_us)
         raw += self._noise.take(first, n) * self._sigma
         faults = w.faults
-        spike = faults._sim_ft_spike(ts_us)
-        if spike is not None:
-            raw[:, :3] += spike
+        active = faults._sim_any_active()
+        if active:
+            spike = faults._sim_ft_spike(ts_us)
+            if spike is not None:
+                raw[:, :3] += spike
         clipped = np.abs(raw) > self._range
-        status = np.where(clipped.any(axis=1), STATUS_SATURATED, 0).astype(np.uint32)
-        raw = np.clip(raw, -self._range, self._range)
+        if clipped.any():
+            status = np.where(clipped.any(axis=1), STATUS_SATURATED, 0).astype(np.uint32)
+            raw = np.clip(raw, -self._range, self._range)
+        else:
+            status = np.zeros(n, dtype=np.uint32)
         out = raw - self._tare
-        frozen = faults._sim_ft_frozen(ts_us)
-        if frozen is not None and frozen.any():
-            held = self._last_out if self._last_out is not None else out[0]
-            for i in np.flatnonzero(frozen):
-                out[i] = held if i == 0 or not frozen[i - 1] else out[i - 1]
-            status = status.copy()
-        delivered = ~faults._sim_ft_stalled(ts_us)
+        delivered = _ALL_TRUE[:n] if n <= _ALL_TRUE.shape[0] else np.ones(n, dtype=bool)
+        all_delivered = True
+        if active:
+            frozen = faults._sim_ft_frozen(ts_us)
+            if frozen is not None and frozen.any():
+                held = self._last_out if self._last_out is not None else out[0]
+                for i in np.flatnonzero(frozen):
+                    out[i] = held if i == 0 or not frozen[i - 1] else out[i - 1]
+            delivered = ~faults._sim_ft_stalled(ts_us)
+            all_delivered = bool(delivered.all())
         seq = ts_us // self._period_us
-        return FTSamples(ts_us, seq, raw, out, status, delivered)
+        f, t = out[:, :3], out[:, 3:]
+        fmag = np.sqrt(np.einsum("ij,ij->i", f, f))
+        tmag2 = np.einsum("ij,ij->i", t, t)
+        return FTSamples(ts_us, seq, raw, out, status, delivered, all_delivered, fmag, tmag2)
 
     def _sim_commit(self, samples: FTSamples, cut: int) -> None:
-        keep = samples.delivered[:cut]
-        if not keep.any():
-            return
-        t = samples.ts_us[:cut][keep]
-        out = samples.out[:cut][keep]
-        self._buffer.append((t, samples.seq[:cut][keep], out, samples.status[:cut][keep]))
+        if samples.all_delivered:
+            t = samples.ts_us[:cut]
+            seq = samples.seq[:cut]
+            out = samples.out[:cut]
+            raw = samples.raw[:cut]
+            status = samples.status[:cut]
+        else:
+            keep = samples.delivered[:cut]
+            if not keep.any():
+                return
+            t, seq = samples.ts_us[:cut][keep], samples.seq[:cut][keep]
+            out, raw, status = samples.out[:cut][keep], samples.raw[:cut][keep], samples.status[:cut][keep]
+        self._buffer.append((t, seq, out, status))
         self._buffered += t.shape[0]
         limit = int(self._s.buffer_s * self._s.rate_hz)
         while self._buffered > limit and len(self._buffer) > 1:
             self._buffered -= self._buffer.popleft()[0].shape[0]
-        keep_n = 64
-        self._recent_raw = np.concatenate([self._recent_raw[-keep_n:], samples.raw[:cut][keep]])[-keep_n:]
-        self._recent_out = np.concatenate([self._recent_out[-keep_n:], out])[-keep_n:]
-        self._last_out = out[-1].copy()
+        self._recent.push(raw, out)
+        self._last_out = out[-1]
+
+    def _sim_noiseless(self) -> bool:
+        return not bool(np.all(self._sigma > 0.0))
 
     def _sim_recent(self, count: int) -> np.ndarray:
         """The latest delivered (tared) forces (count, 3), for the arm's force loop."""
-        return self._recent_out[-count:, :3]
+        return self._recent.latest_out(count)[:, :3]
+
+
+_ALL_TRUE = np.ones(4096, dtype=bool)
+_ALL_TRUE.setflags(write=False)
+
+
+class _Recent:
+    """The latest raw and delivered samples (ring buffer of ``size`` rows)."""
+
+    def __init__(self, size: int) -> None:
+        self._raw = np.zeros((2 * size, 6))
+        self._out = np.zeros((2 * size, 6))
+        self._size = size
+        self._n = 0          # rows filled in the double-length buffer
+
+    def push(self, raw: np.ndarray, out: np.ndarray) -> None:
+        k = raw.shape[0]
+        if k >= self._size:
+            self._raw[:self._size] = raw[-self._size:]
+            self._out[:self._size] = out[-self._size:]
+            self._n = self._size
+            return
+        if self._n + k > 2 * self._size:
+            keep = self._size - k
+            self._raw[:keep] = self._raw[self._n - keep:self._n]
+            self._out[:keep] = self._out[self._n - keep:self._n]
+            self._n = keep
+        self._raw[self._n:self._n + k] = raw
+        self._out[self._n:self._n + k] = out
+        self._n += k
+
+    def latest_raw(self, count: int) -> np.ndarray:
+        return self._raw[max(self._n - count, 0):self._n]
+
+    def latest_out(self, count: int) -> np.ndarray:
+        return self._out[max(self._n - count, 0):self._n]
+
+
+def _skew(r: np.ndarray) -> np.ndarray:
+    """K(r) with K(r) F = r x F."""
+    return np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])

@@ -134,6 +134,7 @@ class PagedNormal:
 
 # Force/push table of one contact: equilibrium |F| (N) against equilibrium push (mm).
 _FORCE_GRID_N = np.concatenate([[0.0], np.geomspace(1e-3, 600.0, 320)])
+_SHIFT_FORCE_N = np.concatenate([[0.0], np.geomspace(1e-3, 600.0, 48)])
 TABLE_STIFFNESS_N_MM = 400.0     # the table is rigid next to any probed material
 MIN_APPROACH_DEG = 2.0           # a grazing touch is treated as this shallow a push
 
@@ -164,6 +165,14 @@ class Contact:
     force_n: float = 0.0
     max_force_n: float = 0.0
     slip_extra_mm: float = 0.0                 # injected slip (fault), mm along t
+    shift_grid_mm: np.ndarray | None = None    # tip shift along t at _SHIFT_FORCE_N
+    sliding: bool = False                      # Q > mu P at this angle: the tip slides (gross slip)
+
+    def slip_mm(self, force_n: float) -> float:
+        """How far the tip has slid along the surface (mm): the tip shift once in gross slip."""
+        if not self.sliding or self.shift_grid_mm is None:
+            return 0.0
+        return abs(float(np.interp(force_n, _SHIFT_FORCE_N, self.shift_grid_mm)))
 
     def hold_s(self) -> float:
         """The hold time equivalent to the creep state (for the model's creep law)."""
@@ -219,6 +228,8 @@ def make_contact(obj, point_obj: np.ndarray, normal_obj: np.ndarray, d_obj: np.n
     model = obj.contact_model(contact.point_obj, n, t, angle_deg, tip_radius_mm)
     contact.model = model
     contact.push_grid_mm = _push_table(model)
+    contact.shift_grid_mm = np.array([model.tip_shift_mm(float(f)) for f in _SHIFT_FORCE_N])
+    contact.sliding = model.slip_margin(5.0) > 1.0
     # Creep law c(h) = 1 - beta exp(-h / tau), read back through the public API.
     f_ref = 5.0
     eq = model.push_mm_at_force(f_ref, math.inf)
@@ -299,7 +310,8 @@ class SimWorld:
     def __init__(self, clock: VirtualClock, obj, base_to_object: Pose, tip_radius_mm: float, seed: int,
                  limits: SafetyLimits, probe_axis_sensor: np.ndarray = np.array([0.0, 0.0, 1.0]),
                  control_period_us: int = 2000, sample_period_us: int = 1000, max_chunk_us: int = 10_000,
-                 tip_offset_tcp_mm: np.ndarray | None = None, ur_force_limit_n: float = 150.0) -> None:
+                 tip_offset_tcp_mm: np.ndarray | None = None, ur_force_limit_n: float = 150.0,
+                 guard_batch_us: int = 50_000) -> None:
         if control_period_us % sample_period_us:
             raise ValueError("the control period must be a whole number of F/T sample periods")
         self.clock = clock
@@ -316,6 +328,19 @@ class SimWorld:
         self.ur_force_limit_n = float(ur_force_limit_n)
         self.limits = limits
         self.guard = SafetyGuard(limits, probe_axis_sensor, rate_hz=US_PER_S / sample_period_us)
+        # The guard sees every sample. Blocks that a conservative screen proves cannot cross
+        # any limit are handed to it in batches of up to guard_batch_us (0: every sub-chunk);
+        # any block the screen cannot clear is checked at once, so a crossing still stops
+        # the arm at its sample's instant.
+        self.guard_batch_us = int(guard_batch_us)
+        self._guard_pending: list[WrenchBlock] = []
+        self._guard_pending_n = 0
+        self._rate_window = max(1, int(round(limits.rate_window_ms * 1e-3 * US_PER_S / sample_period_us)))
+        self._screen_prev = (0.0, 0.0)
+        self._screen_count = 0
+        self._screen_force_limit = min(limits.max_force_n, limits.max_lateral_force_n)
+        self._screen_torque2 = (0.98 * limits.max_torque_nm) ** 2
+        self._screen_noiseless = False
         self.now_us = self._grid_floor(self._to_us(clock.now_s()), self.control_period_us)
         self.step_key: tuple[int, int, int] = (self.seed, PRE_STEP, 0)
         self.step_start_us = self.now_us
@@ -338,6 +363,7 @@ class SimWorld:
     # ------------------------------------------------------------------ wiring, keys
     def attach(self, arm: SimArm, ft: SimForceTorque, scanner: SimLineScanner, faults: FaultInjector) -> None:
         self.arm, self.ft, self.scanner, self.faults = arm, ft, scanner, faults
+        self._screen_noiseless = ft._sim_noiseless()
         self.begin_step(self.step_key)
 
     def rng(self, stream: Stream) -> np.random.Generator:
@@ -435,14 +461,13 @@ class SimWorld:
                 cut, event = slip_trip_at + 1, "slip"
         # The check-and-stop path on the block as it arrives.
         trip = None
-        delivered = samples.block(cut)
-        if len(delivered):
-            self.stats["guard_blocks"] += 1
-            trip = self.guard.check_block(delivered)
+        if samples.all_delivered or samples.delivered[:cut].any():
+            trip = self._guard_check(samples, cut)
             if trip is not None:
                 i = int(np.searchsorted(dry.ts_us[:cut], self._to_us(trip.t_s)))
-                cut, event = min(cut, i + 1), "trip"
+                cut, event = max(1, min(cut, i + 1)), "trip"
         else:
+            self.guard_flush()
             trip = self.guard.check_stale(dry.ts_us[cut - 1] / US_PER_S)
             if trip is not None:
                 event = "trip"
@@ -458,6 +483,73 @@ class SimWorld:
             self.arm._sim_protective_stop(self.now_us, f"UR force limit: |F| {dry.force_mag_n[cut - 1]:.0f} N")
         elif event == "arm":
             self.arm._sim_on_event(self.now_us)
+
+    # ------------------------------------------------------------------ the safety guard
+    def _guard_check(self, samples, cut: int) -> Trip | None:
+        block = samples.block(cut)
+        clear = self._screen(samples, cut)
+        if clear and self.guard_batch_us > 0:
+            self._guard_pending.append(block)
+            self._guard_pending_n += len(block)
+            if self._guard_pending_n * self.sample_period_us >= self.guard_batch_us:
+                return self.guard_flush()
+            return None
+        late = self.guard_flush()
+        self.stats["guard_blocks"] += 1
+        trip = self.guard.check_block(block)
+        return trip if trip is not None else late
+
+    def guard_flush(self) -> Trip | None:
+        """Hand the screened, batched samples to the guard (before anything reads its state)."""
+        if not self._guard_pending:
+            return None
+        block = WrenchBlock.concat(self._guard_pending)
+        self._guard_pending.clear()
+        self._guard_pending_n = 0
+        self.stats["guard_blocks"] += 1
+        return self.guard.check_block(block)
+
+    def guard_restart(self) -> None:
+        """A deliberate step in the stream (tare): flush, then let the guard forget its carry-over."""
+        self.guard_flush()
+        self.guard.note_stream_restart()
+        self._screen_prev = (0.0, 0.0)
+        self._screen_count = 0
+
+    def _screen(self, samples, cut: int) -> bool:
+        """True when no sample of the block can make SafetyGuard.check_block trip (conservative).
+
+        Force, torque and the lateral force (never above |F|) below 98 % of their limits;
+        no status bit; the force rate bounded by the range of |F| over this block and the
+        previous one divided by the guard's rate window (only once the guard has a full
+        window behind it); and identical consecutive readings impossible (noise on, no
+        frozen-stream fault).
+        """
+        lim = self.limits
+        fmag = samples.fmag[:cut] if samples.all_delivered else samples.fmag[:cut][samples.delivered[:cut]]
+        if fmag.shape[0] == 0:
+            return True
+        fmax, fmin = float(fmag.max()), float(fmag.min())
+        prev_max, prev_min = self._screen_prev
+        self._screen_prev = (fmax, fmin)
+        enough_history = self._screen_count >= self._rate_window
+        self._screen_count += fmag.shape[0]
+        margin = 0.98
+        if fmax > margin * self._screen_force_limit:
+            return False
+        tmag2 = samples.tmag2[:cut]
+        if float(tmag2.max()) > self._screen_torque2:
+            return False
+        if samples.status[:cut].any():
+            return False
+        if not enough_history or fmag.shape[0] < self._rate_window:
+            return False
+        dt_min = self._rate_window * self.sample_period_us / US_PER_S
+        if (max(fmax, prev_max) - min(fmin, prev_min)) / dt_min > 0.9 * lim.max_force_rate_n_s:
+            return False
+        if self._screen_noiseless or self.faults._sim_frozen_possible():
+            return False
+        return True
 
     def _rotations(self, plan: ArmPlan, n: int) -> np.ndarray:
         return plan.rotation if plan.rotation.ndim == 2 else plan.rotation[:n]
@@ -485,10 +577,9 @@ class SimWorld:
         frac = (ts - self.now_us) / max(ts[-1] - self.now_us, 1)
         creep = c.creep_c + (c_end - c.creep_c) * frac
         force = c.forces_n(push, creep)
-        slip = np.zeros(n)
-        if c.model is not None:
-            shift = c.model.tip_shift_mm(float(force[-1])) if force[-1] > 0 else 0.0
-            slip = np.full(n, abs(shift)) + c.slip_extra_mm + self.faults._sim_slip_mm(ts, c)
+        slip = np.full(n, c.slip_mm(float(force[-1])))
+        if self.faults._sim_any_active():
+            slip = slip + self.faults._sim_slip_mm(ts, c)
         ends = np.flatnonzero(push < -1e-9)
         return _Dry(ts, plan_n, tips, -force[:, None] * c.d_base[None, :], force, push, creep, slip,
                     int(ends[0]) if ends.size else None)
