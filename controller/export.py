@@ -277,14 +277,14 @@ def _write_log(f: Any, j: Journal) -> None:
 
 # ============================================================================ the export
 def export_hdf5(session_dir: str | os.PathLike[str], out_path: str | os.PathLike[str] | None = None) -> Path:
-    """Export the session in ``session_dir`` to ``out_path`` (default ``DIR/export/session.h5``).
+    """Export the session in ``session_dir`` to ``out_path`` (default ``DIR/export.h5``, as the CLI).
 
     Written to ``.<name>.*.tmp`` beside the target, fsynced, then renamed; returns the path.
     """
     import h5py
 
     d = Path(session_dir)
-    out = Path(out_path) if out_path is not None else d / "export" / "session.h5"
+    out = Path(out_path) if out_path is not None else d / "export.h5"
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
     os.close(fd)

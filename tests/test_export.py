@@ -145,7 +145,7 @@ def test_failed_export_leaves_the_previous_file_and_no_temporary(session: Path, 
 def test_partial_session_and_damaged_model(tmp_path: Path) -> None:
     created = build_session(tmp_path / "created", "created")
     e = X.read_back(X.export_hdf5(created))
-    assert (created / "export" / "session.h5").exists()
+    assert (created / "export.h5").exists()
     assert e.steps == [] and e.step_arrays == {} and e.faults == [] and e.phases == {}
     assert e.regions == {"regions_round": -1} and e.session["status"] == "running"
     surveyed = build_session(tmp_path / "surveyed", "survey")
