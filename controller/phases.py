@@ -185,8 +185,8 @@ def phase_sampling(ctx: PhaseContext) -> None:
         feats, weights = ng.geometry_aware_inputs(pts, nrm, curv,
                                                   normal_weight_mm=10.0 * plan.sampling.geometry_weight)
         result = ng.train_neural_gas(feats, n_units=plan.sampling.units,
-                                     n_steps=plan.sampling.units * plan.sampling.steps_per_unit // 4,
-                                     batch_size=1024, seed=s.seed, sample_weights=weights)
+                                     n_steps=max(200, plan.sampling.units * plan.sampling.steps_per_unit // 16),
+                                     batch_size=256, seed=s.seed, sample_weights=weights)
         units = np.asarray(result.units)[:, :3].astype(np.float64)
         radius = s.inputs.cell.tool.tip_radius_mm
         rules = tg.TargetRules(tip_radius_mm=radius, edge_clearance_radii=plan.sampling.edge_clearance_mm / radius,
