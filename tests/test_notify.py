@@ -4,7 +4,6 @@ DiskWatch: ok / warn / pause thresholds through a fake statvfs."""
 from __future__ import annotations
 
 import json
-import os
 import sys
 import time
 from pathlib import Path
