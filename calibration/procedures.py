@@ -1,0 +1,188 @@
+"""Calibration procedures: plan reachable poses, drive the cell, collect the data each solver needs.
+
+Each ``collect_*`` works on any :class:`~elastoprobe.controller.devices.Cell` through a
+:class:`~.driver.CellDriver` (validated moves, the controller's polling loop). Poses
+the validator refuses (reach, joint limits, collisions, workspace) are skipped and
+listed; the solver then judges whether what remains is enough and well spread.
+
+Set-ups (docs/calibration.md):
+- ft: the tool in free air, turned through tilts up to ~75 deg at several headings
+  and rolls about one point; the F/T stream is tared once at the start, never between poses.
+- tcp and scanner: a rigid reference sphere (radius known from its certificate) on
+  the table, its centre roughly known (the cell's object placement, +-10 mm).
+  tcp: touch-offs whose approach leans up to ~45 deg from the probe axis, from all
+  sides; scanner: profiles with the laser plane 6..15 mm off the sphere's centre,
+  the tool tilted up to ~30 deg at headings all round.
+- object: raster sweeps of the scanner over the object (controller.acquire), mapped
+  with the calibrated scanner mount, then mesh-to-cloud registration.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from elastoprobe.controller.errors import MotionRefused
+from elastoprobe.controller.geometry import Pose, rotvec_to_matrix
+from elastoprobe.controller.probe import ProbeFault
+
+from .driver import CellDriver, try_reach
+from .scanner_sphere import SphereProfile
+
+DOWN = np.diag([1.0, -1.0, -1.0])      # tool z pointing down, tool x along base +x
+
+
+def tool_rotation(tilt_deg: float, tilt_azimuth_deg: float, heading_deg: float) -> np.ndarray:
+    """A tool turned ``heading_deg`` about its own axis from straight down, then tilted by
+    ``tilt_deg`` about the horizontal axis perpendicular to azimuth ``tilt_azimuth_deg``."""
+    az = np.radians(tilt_azimuth_deg)
+    axis = np.array([-np.sin(az), np.cos(az), 0.0])
+    return (rotvec_to_matrix(axis * np.radians(tilt_deg)) @ rotvec_to_matrix(np.array([0.0, 0.0, np.radians(heading_deg)]))
+            @ DOWN)
+
+
+@dataclass
+class Collected:
+    """What a procedure gathered, and what it had to skip (with the reasons)."""
+
+    skipped: list[str] = field(default_factory=list)
+    robot_time_s: float = 0.0
+
+
+# ----------------------------------------------------------------------------------- F/T
+FT_ORIENTATIONS = [(0, 0, 0), (0, 0, 90), (0, 0, 180), (40, 0, 0), (40, 90, 45), (40, 180, 90), (40, 270, 135),
+                   (75, 0, 90), (75, 90, 0), (75, 180, 180), (75, 270, 270), (60, 45, 300), (60, 225, 30),
+                   (20, 135, 200)]
+
+
+@dataclass
+class FTData(Collected):
+    r_base_tcp: list[np.ndarray] = field(default_factory=list)
+    force_n: list[np.ndarray] = field(default_factory=list)
+    torque_nm: list[np.ndarray] = field(default_factory=list)
+
+
+def collect_ft(driver: CellDriver, centre_mm: np.ndarray, settle_s: float = 0.5, average_s: float = 1.0) -> FTData:
+    """Static F/T readings at spread orientations about ``centre_mm`` (TCP position, base frame)."""
+    out = FTData()
+    t0 = driver.cell.clock.now_s()
+    neutral = Pose(np.asarray(centre_mm, float), DOWN)
+    driver.travel_to(neutral)
+    driver.tare()
+    for tilt, az, heading in FT_ORIENTATIONS:
+        target = Pose(np.asarray(centre_mm, float), tool_rotation(tilt, az, heading))
+        if not try_reach(driver, target, via=neutral):
+            out.skipped.append(f"ft pose tilt {tilt} az {az} heading {heading}: refused")
+            continue
+        driver.begin_step()
+        f, t, _ = driver.still_wrench(settle_s, average_s)
+        out.r_base_tcp.append(driver.pose().rotation)
+        out.force_n.append(f)
+        out.torque_nm.append(t)
+    try_reach(driver, neutral)
+    out.robot_time_s = driver.cell.clock.now_s() - t0
+    return out
+
+
+# ----------------------------------------------------------------------------------- tip
+@dataclass
+class TouchData(Collected):
+    rotations: list[np.ndarray] = field(default_factory=list)
+    positions_mm: list[np.ndarray] = field(default_factory=list)
+    approach_dirs: list[np.ndarray] = field(default_factory=list)
+
+
+def touch_plan(n: int, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(approach direction e, tool rotation) pairs: e from above at elevations 35..90 deg all
+    round; the probe axis leaned 0..45 deg from e, always still pushing down-ish."""
+    rng = np.random.default_rng(seed)
+    plan = []
+    for k in range(n * 4):
+        if len(plan) >= n:
+            break
+        elev = np.radians(rng.uniform(35.0, 85.0))
+        az = 2 * np.pi * (k + rng.uniform(0, 0.5)) / max(n, 1) * 1.618
+        e = -np.array([np.cos(elev) * np.cos(az), np.cos(elev) * np.sin(az), np.sin(elev)])
+        lean = np.radians([0.0, 25.0, 45.0][k % 3])
+        perp = np.cross(e, rng.normal(size=3))
+        perp /= np.linalg.norm(perp)
+        d = rotvec_to_matrix(perp * lean) @ e
+        if d[2] > -0.3:
+            continue
+        x = np.cross([0.0, 0.0, 1.0], d) if abs(d[2]) < 0.99 else np.array([1.0, 0.0, 0.0])
+        x = np.cross(rotvec_to_matrix(d * rng.uniform(-np.pi, np.pi)) @ x, d)
+        x /= np.linalg.norm(x)
+        rot = np.column_stack([x, np.cross(d, x), d])
+        plan.append((e, rot))
+    return plan
+
+
+def collect_touches(driver: CellDriver, centre_mm: np.ndarray, rho_mm: float, n: int = 18, seed: int = 0,
+                    standoff_mm: float = 8.0) -> TouchData:
+    """Touch-offs on the reference sphere (centre roughly ``centre_mm``; ``rho_mm`` = sphere + tip radius)."""
+    out = TouchData()
+    t0 = driver.cell.clock.now_s()
+    c = np.asarray(centre_mm, dtype=float)
+    for e, rot in touch_plan(n, seed):
+        start = Pose(c - e * (rho_mm + standoff_mm), rot)
+        try:
+            driver.travel_to(start)
+        except (MotionRefused, ProbeFault) as exc:
+            out.skipped.append(f"touch from {np.round(e, 2).tolist()}: {exc}")
+            continue
+        driver.begin_step()
+        hit = driver.touch(e, standoff_mm + 8.0)
+        if hit is None:
+            out.skipped.append(f"touch from {np.round(e, 2).tolist()}: no contact")
+            driver.back_off(e, 1.0)
+            continue
+        out.rotations.append(hit.rotation)
+        out.positions_mm.append(hit.position_mm)
+        out.approach_dirs.append(e)
+        driver.back_off(e, standoff_mm)
+    out.robot_time_s = driver.cell.clock.now_s() - t0
+    return out
+
+
+# ----------------------------------------------------------------------------------- scanner
+@dataclass
+class SphereScans(Collected):
+    profiles: list[SphereProfile] = field(default_factory=list)
+
+
+def scan_plan(n: int, seed: int, sphere_radius_mm: float, tip_radius_mm: float,
+              gap_mm: float = 15.0) -> list[tuple[Pose, np.ndarray]]:
+    """(tool rotation as a Pose with zero position, sphere centre in the TCP frame) pairs."""
+    rng = np.random.default_rng(seed)
+    plan = []
+    for k in range(n):
+        tilt = [0.0, 15.0, 30.0][k % 3]
+        rot = tool_rotation(tilt, rng.uniform(0, 360), 360.0 * k / n + rng.uniform(-10, 10))
+        side = 1.0 if k % 2 == 0 else -1.0
+        y_off = side * rng.uniform(6.0, 15.0)
+        centre_tcp = np.array([rng.uniform(-12.0, 12.0), y_off,
+                               sphere_radius_mm + tip_radius_mm + gap_mm + rng.uniform(0.0, 15.0)])
+        plan.append((Pose(np.zeros(3), rot), centre_tcp))
+    return plan
+
+
+def collect_sphere_scans(driver: CellDriver, centre_mm: np.ndarray, sphere_radius_mm: float, tip_radius_mm: float,
+                         n: int = 30, seed: int = 0, profiles_per_pose: int = 2) -> SphereScans:
+    """Profiles of the reference sphere from ``n`` planned poses (refused ones skipped)."""
+    out = SphereScans()
+    t0 = driver.cell.clock.now_s()
+    c = np.asarray(centre_mm, dtype=float)
+    for rot_pose, centre_tcp in scan_plan(n, seed, sphere_radius_mm, tip_radius_mm):
+        target = Pose(c - rot_pose.rotation @ centre_tcp, rot_pose.rotation)
+        try:
+            driver.travel_to(target)
+        except (MotionRefused, ProbeFault) as exc:
+            out.skipped.append(f"scan pose at {np.round(target.position_mm, 0).tolist()}: {exc}")
+            continue
+        driver.begin_step()
+        driver.hold(0.05)
+        scans, poses = driver.scan_burst(profiles_per_pose)
+        for sc, p6 in zip(scans, poses):
+            out.profiles.append(SphereProfile(Pose.from_list(p6), np.column_stack([sc.x_mm, sc.z_mm])))
+    out.robot_time_s = driver.cell.clock.now_s() - t0
+    return out
