@@ -39,6 +39,7 @@ from .journal import FaultRecord, Journal, StepRecord
 MAX_CLOUD_POINTS = 6000          # points drawn of the cloud (subsampled, seeded)
 MAX_FAULT_TRACES = 24            # fault F/T figures embedded; the rest are listed
 MAX_REGIONS_DRAWN = 8            # regions with their own profile figures
+STEP_CHUNK = 64                  # done steps loaded from the journal at a time (bounds memory)
 DPI = 80
 SECTION_IDS = ("numbers", "region-map", "profiles", "measured-vs-model", "predictions", "disagreement",
                "training", "timeline", "faults", "provenance")
@@ -122,8 +123,10 @@ def _collect_targets(j: Journal, phases: list[dict[str, Any]], steps: list[StepR
 def _load_profiles(j: Journal, steps: list[StepRecord], labels: dict[int, int]) -> list[StepProfile]:
     out = []
     done = [s for s in steps if s.status == "done"]
-    results = j.step_results([s.step_id for s in done]) if done else {}
-    for s in done:
+    results: dict[int, Any] = {}
+    for k, s in enumerate(done):
+        if k % STEP_CHUNK == 0:   # a chunk at a time: raw scans are large, only profiles are kept
+            results = j.step_results([r.step_id for r in done[k:k + STEP_CHUNK]])
         res = results[s.step_id]
         depth = np.asarray(res.profile_depth_mm, dtype=float)
         x = np.asarray(res.profile_x_mm, dtype=float) if res.profile_x_mm is not None else np.arange(depth.size, dtype=float)
