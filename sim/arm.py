@@ -261,6 +261,7 @@ class SimArm:
         self._seek_threshold_n: float | None = None
         self._last_plan_u: np.ndarray | None = None
         self._last_plan_du: np.ndarray | None = None
+        self._move_target: Pose | None = None
         self._protective_since_us: int | None = None
         self._estop = False
         self._connected = True
@@ -307,8 +308,10 @@ class SimArm:
         rate, accel = self._move_rates(path, table, speed_mm_s, accel_mm_s2)
         now = self._world.now_us
         total_us = int(math.ceil(trapezoid_total_s(1.0, rate, accel) * US_PER_S))
-        return self._start(SimMotion("move_linear"), path,
-                           _Law("trapezoid", now, 0.0, 1.0, rate=rate, accel=accel, end_us=now + total_us))
+        motion = self._start(SimMotion("move_linear"), path,
+                             _Law("trapezoid", now, 0.0, 1.0, rate=rate, accel=accel, end_us=now + total_us))
+        self._move_target = target
+        return motion
 
     def seek_contact(self, direction: np.ndarray, speed_mm_s: float, contact_force_n: float,
                      max_distance_mm: float) -> SimMotion:
@@ -449,6 +452,7 @@ class SimArm:
         self._motion = motion
         self._regulator = None
         self._seek_threshold_n = None
+        self._move_target = None
         return motion
 
     def _halt(self, t_us: int, decel_mm_s2: float) -> None:
@@ -530,6 +534,14 @@ class SimArm:
                     self._seek_threshold_n = None
                 else:
                     motion._finish(MotionState.DONE)
+                    target = self._move_target
+                    if motion.kind == "move_linear" and target is not None:
+                        # Hold exactly the commanded pose (bit for bit, whatever the path's rounding).
+                        q = self._path.joints_table[-1:]
+                        self._path = _Path(target.position_mm, np.zeros(3), target.rotation, np.zeros(3),
+                                           np.zeros(1), q)
+                        self._u, self._du = 0.0, 0.0
+                        self._law = _Law("hold", t, 0.0)
         elif law.kind == "stop" and self._du == 0.0:
             self._law = _Law("hold", t, self._u)
         lo, hi = self._path.u_table[0], self._path.u_table[-1]
