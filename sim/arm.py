@@ -273,14 +273,16 @@ class SimArm:
                               {"control_period_ms": self._world.control_period_us / 1000.0})
 
     def status(self) -> ArmStatus:
-        self._world.faults._sim_check_connection("status")
+        """The arm's state bits; without a connection, the last known pose and connected=False."""
+        connected = self._world.faults._sim_connected()
         u = self._u
         pose = self._path.pose(u)
         return ArmStatus(t_s=self._world.now_s(), tcp_pose=pose, joints_rad=self._path.joints(u),
                          tcp_speed_mm_s=abs(self._du) * self._path.speed_scale,
                          program_running=self._program_running,
                          protective_stop=self._protective_since_us is not None,
-                         emergency_stop=self._estop, is_moving=abs(self._du) * self._path.speed_scale > 1e-3)
+                         emergency_stop=self._estop, is_moving=abs(self._du) * self._path.speed_scale > 1e-3,
+                         connected=connected)
 
     def inverse_kinematics(self, tcp_pose: Pose, seed_joints_rad: np.ndarray | None = None) -> np.ndarray | None:
         seed = self._path.joints(self._u) if seed_joints_rad is None else seed_joints_rad

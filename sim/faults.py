@@ -251,6 +251,9 @@ class FaultInjector:
                     count = min(count, int(requested * a.magnitude))
         return count
 
+    def _sim_connected(self) -> bool:
+        return self._connected
+
     def _sim_check_connection(self, what: str) -> None:
         if not self._connected:
             raise DeviceError(f"{what}: connection to the robot lost")

@@ -75,7 +75,7 @@ class ProbeGeometry:
     tip_radius_mm: float
 
 
-@dataclass
+@dataclass(eq=False)
 class _Burst:
     exposures_us: list[int]
     correlated_shape: np.ndarray     # unit-RMS shape along the line, fixed for the burst
@@ -135,6 +135,8 @@ class SimLineScanner:
         period = int(round(US_PER_S / self._s.rate_hz))
         first = w.now_us + w.control_period_us
         exposures = [first + k * period for k in range(deliver)]
+        if not exposures:
+            return              # a scanner that times out: the trigger is taken, nothing comes
         # Each burst of a step gets its own correlated shape, keyed by its index in the step.
         self._burst_index += 1
         seed, step, attempt = w.step_key
@@ -168,7 +170,7 @@ class SimLineScanner:
             return
         burst.exposures_us.remove(snap.t_us)
         if not burst.exposures_us:
-            self._pending.remove(burst)
+            self._pending = [b for b in self._pending if b is not burst]
         x, z = self.profile(snap, noise=True, correlated_shape=burst.correlated_shape)
         self._frame += 1
         ready = snap.t_us + int(round(self._s.latency_ms * 1000.0))
