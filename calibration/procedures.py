@@ -11,7 +11,7 @@ Set-ups (docs/calibration.md):
 - tcp and scanner: a rigid reference sphere (radius known from its certificate) on
   the table, its centre roughly known (the cell's object placement, +-10 mm).
   tcp: touch-offs whose approach leans up to ~45 deg from the probe axis, from all
-  sides; scanner: profiles with the laser plane 6..15 mm off the sphere's centre,
+  sides; scanner: profiles with the laser plane 8..16 mm off the sphere's centre,
   the tool tilted up to ~30 deg at headings all round.
 - object: raster sweeps of the scanner over the object (controller.acquire), mapped
   with the calibrated scanner mount, then mesh-to-cloud registration.
@@ -159,7 +159,7 @@ def scan_plan(n: int, seed: int, sphere_radius_mm: float, tip_radius_mm: float,
         tilt = [0.0, 15.0, 30.0][k % 3]
         rot = tool_rotation(tilt, rng.uniform(0, 360), 360.0 * k / n + rng.uniform(-10, 10))
         side = 1.0 if k % 2 == 0 else -1.0
-        y_off = side * rng.uniform(6.0, 15.0)
+        y_off = side * rng.uniform(8.0, 16.0)
         centre_tcp = np.array([rng.uniform(-12.0, 12.0), y_off,
                                sphere_radius_mm + tip_radius_mm + gap_mm + rng.uniform(0.0, 15.0)])
         plan.append((Pose(np.zeros(3), rot), centre_tcp))

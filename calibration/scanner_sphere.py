@@ -53,12 +53,47 @@ def fit_circle(xz_mm: np.ndarray) -> tuple[np.ndarray, float]:
     return out.x[:2], float(out.x[2])
 
 
+def table_line_mask(xz_mm: np.ndarray, inlier_mm: float = 0.3, min_points: int = 15, min_extent_mm: float = 15.0,
+                    trials: int = 200, seed: int = 0) -> np.ndarray:
+    """Points (N,2, finite) on the profile's dominant straight line, if it is long: the table.
+
+    Removed before the circle search because a short straight run lies within a thin band
+    of a large circle and would outvote a small arc of the sphere.
+    """
+    p = np.asarray(xz_mm, dtype=float)
+    best = np.zeros(len(p), dtype=bool)
+    if len(p) < min_points:
+        return best
+    rng = np.random.default_rng(seed)
+    for _ in range(trials):
+        a, b = p[rng.choice(len(p), 2, replace=False)]
+        d = b - a
+        length = float(np.linalg.norm(d))
+        if length < 1e-6:
+            continue
+        normal = np.array([-d[1], d[0]]) / length
+        inl = np.abs((p - a) @ normal) < inlier_mm
+        if inl.sum() > best.sum():
+            best = inl
+    if best.sum() < min_points:
+        return np.zeros(len(p), dtype=bool)
+    direction = p[best] - p[best].mean(axis=0)
+    _, _, vt = np.linalg.svd(direction, full_matrices=False)
+    extent = float(np.ptp(direction @ vt[0]))
+    return best if extent >= min_extent_mm else np.zeros(len(p), dtype=bool)
+
+
 def robust_circle(xz_mm: np.ndarray, max_radius_mm: float, inlier_mm: float = 0.3, trials: int = 200,
                   seed: int = 0) -> CircleFit | None:
     """RANSAC circle on a profile (N,2) with radius <= ``max_radius_mm``: the sphere's arc among table
-    points and stray samples. None when no arc of at least MIN_ARC_POINTS points is found."""
-    p = np.asarray(xz_mm, dtype=float)
-    p = p[np.all(np.isfinite(p), axis=1)]
+    points (the dominant long straight run, removed first) and stray samples. ``inliers`` indexes the
+    finite points. None when no arc of at least MIN_ARC_POINTS points spanning 30 deg is found."""
+    p_all = np.asarray(xz_mm, dtype=float)
+    p_all = p_all[np.all(np.isfinite(p_all), axis=1)]
+    if len(p_all) < MIN_ARC_POINTS:
+        return None
+    candidate = ~table_line_mask(p_all, inlier_mm, seed=seed)
+    p = p_all[candidate]
     if len(p) < MIN_ARC_POINTS:
         return None
     rng = np.random.default_rng(seed)
@@ -81,8 +116,16 @@ def robust_circle(xz_mm: np.ndarray, max_radius_mm: float, inlier_mm: float = 0.
     if inl.sum() < MIN_ARC_POINTS:
         return None
     centre, radius = fit_circle(p[inl])
+    if radius > max_radius_mm * 1.02:
+        return None
+    ang = np.arctan2(p[inl, 1] - centre[1], p[inl, 0] - centre[0])
+    span = np.ptp(np.unwrap(np.sort(ang)))
+    if span < np.radians(30.0):
+        return None          # too short an arc to pin its centre down
     rms = float(np.sqrt(np.mean((np.linalg.norm(p[inl] - centre, axis=1) - radius) ** 2)))
-    return CircleFit(centre, radius, rms, inl)
+    mask = np.zeros(len(p_all), dtype=bool)
+    mask[np.flatnonzero(candidate)[inl]] = True
+    return CircleFit(centre, radius, rms, mask)
 
 
 def _circle_through(p3: np.ndarray) -> tuple[np.ndarray, float]:
@@ -174,7 +217,7 @@ def solve_scanner_sphere(profiles: list[SphereProfile], sphere_radius_mm: float,
     """The scanner mount from sphere profiles (see the module docstring).
 
     ``initial_tcp_to_scanner`` (the cell file's mount) decides which side of the laser
-    plane each circle's sphere centre lies on, and nothing else. Refuses fewer than
+    plane each circle's sphere centre lies on, and is the second start of the refinement. Refuses fewer than
     8 usable profiles, a rotation spread under ``min_spread_deg``, a scaled
     condition number over ``max_condition`` or a point-to-sphere RMS over ``max_rms_mm``.
     """
@@ -212,20 +255,36 @@ def solve_scanner_sphere(profiles: list[SphereProfile], sphere_radius_mm: float,
     pts_s, idx = _points_scanner(used, masks)
     pose_r = rot[idx]
     pose_t = trans[idx]
-    r0 = mount.rotation
 
-    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return r0 @ rotvec_to_matrix(x[:3]), x[3:6], x[6:9]
+    def refine(start: Pose, centre0: np.ndarray):  # noqa: ANN202 — scipy OptimizeResult and the unpacker
+        r0 = start.rotation
 
-    def residual(x: np.ndarray) -> np.ndarray:
-        r_s, t_s, c = unpack(x)
-        p_tcp = pts_s @ r_s.T + t_s
-        p_base = np.einsum("nij,nj->ni", pose_r, p_tcp) + pose_t
-        return np.linalg.norm(p_base - c, axis=1) - sphere_radius_mm
+        def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            return r0 @ rotvec_to_matrix(x[:3]), x[3:6], x[6:9]
 
-    x0 = np.concatenate([np.zeros(3), mount.position_mm, centre])
-    sol = least_squares(residual, x0, loss="soft_l1", f_scale=inlier_mm, x_scale=np.array([0.01] * 3 + [1.0] * 6),
-                        max_nfev=200)
+        def residual(x: np.ndarray) -> np.ndarray:
+            r_s, t_s, c = unpack(x)
+            p_tcp = pts_s @ r_s.T + t_s
+            p_base = np.einsum("nij,nj->ni", pose_r, p_tcp) + pose_t
+            return np.linalg.norm(p_base - c, axis=1) - sphere_radius_mm
+
+        x0 = np.concatenate([np.zeros(3), start.position_mm, centre0])
+        sol = least_squares(residual, x0, loss="soft_l1", f_scale=inlier_mm,
+                            x_scale=np.array([0.01] * 3 + [1.0] * 6), max_nfev=300)
+        return sol, unpack, residual
+
+    # Two starts: the linear solution and the given mount (the linear one can be thrown off
+    # by a profile whose centre was put on the wrong side of the laser plane); the lower
+    # robust cost wins.
+    starts = [(mount, centre), (initial_tcp_to_scanner, _sphere_centre(fits, initial_tcp_to_scanner, sphere_radius_mm))]
+    sol, unpack, residual = min((refine(m, c0) for m, c0 in starts), key=lambda t: t[0].cost)
+    # Trim: points more than 1 mm off the sphere at the first solution (a stray arc) are dropped,
+    # and the fit is repeated from it.
+    r_s1, t_s1, c1 = unpack(sol.x)
+    far = np.abs(residual(sol.x)) > max(1.0, 3.0 * inlier_mm)
+    if far.any() and (~far).sum() > 50:
+        pts_s, pose_r, pose_t = pts_s[~far], pose_r[~far], pose_t[~far]
+        sol, unpack, residual = refine(Pose(t_s1, r_s1), c1)
     cond = scaled_condition_number(sol.jac)
     if not np.isfinite(cond) or cond > max_condition:
         raise CalibrationError(f"scanner: the mount is not observable from these poses (condition number "
