@@ -27,6 +27,7 @@ if TYPE_CHECKING:
 # planned by "sampling", the survey of densified points by "densify", characterization
 # by "regions".
 SURVEY_PHASES = ("sampling", "densify")
+FEATURE_HALF_WINDOW_MM = 15.0
 CHARACTERIZE = "regions"
 
 
@@ -63,7 +64,31 @@ def step_profile(session: "Session", target: ProbeTarget, data: StepData) -> tup
     refs = prof.step_scan_points(data.reference_xz_mm, data.reference_pose, cell.tcp_to_scanner,
                                  cell.base_to_object)
     depth = prof.profile_from_scans(scans, target.point_mm, target.normal, target.t, grid, refs)
-    return depth, grid.x_mm
+    return plausible_depths(depth, data, target, cell, session.inputs.plan.probing.standoff_mm), grid.x_mm
+
+
+def plausible_depths(depth_mm: np.ndarray, data: StepData, target: ProbeTarget, cell: Any,
+                     standoff_mm: float, margin_mm: float = 2.0) -> np.ndarray:
+    """Blank out depths the probe cannot have made.
+
+    The surface cannot sink deeper than the tip went in (plus a margin for the
+    dent's shift and noise), nor rise by more than that margin; larger values are
+    occlusion artefacts where the reference and the loaded scans saw different
+    things (a box wall, a pillow's rim falling away to the table). The tip's
+    indentation is measured from the poses: how far the TCP moved along the normal
+    between the reference scans (standoff) and the loaded scans.
+    """
+    n_base = cell.base_to_object.apply_vector(target.normal)
+    ref_z = np.asarray(data.reference_pose)[:, :3] @ n_base
+    load_z = np.asarray(data.scan_pose)[:, :3] @ n_base
+    moved_mm = float(np.median(ref_z)) - float(np.median(load_z))
+    # The approach gap (standoff along d) has a normal component standoff * sin(angle);
+    # the rest of the travel along the normal is the indentation.
+    indentation_mm = moved_mm - standoff_mm * np.sin(np.radians(data.angle_deg))
+    bound = max(indentation_mm, 0.0) + margin_mm
+    out = np.asarray(depth_mm, dtype=float).copy()
+    out[(out > bound) | (out < -margin_mm)] = np.nan
+    return out
 
 
 def _targets_from_arrays(arrays: dict[str, np.ndarray], first_index: int = 0) -> dict[int, ProbeTarget]:
@@ -138,7 +163,7 @@ def phase_cloud(ctx: PhaseContext) -> None:
             s._log("sweep_line_skipped", reason=why)
         normals = None
         j.add_robot_time("sweep", robot_s)
-    obj_pts, plane = cl.remove_table(pts, seed=s.seed)
+    obj_pts, plane = remove_table_below(pts, seed=s.seed)
     if normals is None or len(normals) != len(obj_pts):
         normals = orient_outward_from_above(obj_pts, cl.estimate_normals(obj_pts, k=16))
     ctx.cloud_mm, ctx.cloud_normals = obj_pts, normals
@@ -147,6 +172,31 @@ def phase_cloud(ctx: PhaseContext) -> None:
                                 "robot_s": robot_s},
                    {"points_mm": obj_pts.astype(np.float32), "normals": normals.astype(np.float32)})
     s._log("phase", name="cloud", n_points=int(len(obj_pts)))
+
+
+def remove_table_below(points_mm: np.ndarray, seed: int, max_tries: int = 4) -> tuple[np.ndarray, tuple[np.ndarray, float]]:
+    """The table is the large horizontal plane with the object on it and nothing under it.
+
+    A wide object has big flat faces of its own (the pillow's top can hold as many
+    points as the visible table); a plane with many points below it is a face of the
+    object, so its points are set aside and the search goes on.
+    """
+    from .learning import cloud as cl
+
+    up = np.array([0.0, 0.0, 1.0])
+    rest = points_mm
+    for _ in range(max_tries):
+        kept, (normal, offset) = cl.remove_table(rest, seed=seed, up=up)
+        height = points_mm @ normal - offset
+        below = float(np.mean(height < -5.0))
+        if below < 0.02:
+            return points_mm[height > 2.0], (normal, offset)
+        # A face of the object: drop its inliers and look for a lower plane.
+        h_rest = rest @ normal - offset
+        rest = rest[np.abs(h_rest) > 2.0]
+        if len(rest) < 100:
+            break
+    raise RuntimeError("no table plane found under the scanned points")
 
 
 def orient_outward_from_above(points_mm: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -268,7 +318,10 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
         ids, depth, forces = _survey_profiles(ctx, sorted(ctx.targets))
         if len(ids) == 0:
             raise RuntimeError("no surveyed target has a complete survey: cannot find regions")
-        feats, names = rg.survey_features(depth, ctx.grid.x_mm, forces)
+        # Features from the dent itself: the grid's ends see the object's edges and
+        # the table, which say nothing about the material under the tip.
+        window = np.abs(ctx.grid.x_mm) <= FEATURE_HALF_WINDOW_MM
+        feats, names = rg.survey_features(depth[:, :, window], ctx.grid.x_mm[window], forces)
         pts = np.array([ctx.targets[i].point_mm for i in ids])
         nrm = np.array([ctx.targets[i].normal for i in ids])
         edges = tg.surface_graph(pts, nrm)
@@ -356,6 +409,7 @@ def phase_models(ctx: PhaseContext, round_: int) -> None:
         if s.machine.can("learn"):
             s.machine.fire("learn")
         m = s.inputs.plan.model
+        model_dir.mkdir(parents=True, exist_ok=True)
         outputs: dict[str, Any] = {"regions": {}}
         noise = measured_noise_mm(ctx)
         outputs["noise_mm"] = noise
