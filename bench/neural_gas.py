@@ -29,7 +29,7 @@ from elastoprobe.controller.learning.neural_gas import (
 )
 
 THREADS = 2
-N_STEPS, BATCH, LLOYD_ITERS = 250, 4096, 3  # ~1 epoch of annealed NG, then lam -> 0 passes
+N_STEPS, BATCH, LLOYD_ITERS = 200, 4096, 3  # ~0.8 epoch of annealed NG, then lam -> 0 passes
 REFERENCE_SAMPLES = 3000
 
 
