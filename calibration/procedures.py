@@ -131,7 +131,11 @@ def collect_touches(driver: CellDriver, centre_mm: np.ndarray, rho_mm: float, n:
             out.skipped.append(f"touch from {np.round(e, 2).tolist()}: {exc}")
             continue
         driver.begin_step()
-        hit = driver.touch(e, standoff_mm + 8.0)
+        try:
+            hit = driver.touch(e, standoff_mm + 8.0)
+        except MotionRefused as exc:      # the touching path itself is not clear: next touch
+            out.skipped.append(f"touch from {np.round(e, 2).tolist()}: {exc}")
+            continue
         if hit is None:
             out.skipped.append(f"touch from {np.round(e, 2).tolist()}: no contact")
             driver.back_off(e, 1.0)
