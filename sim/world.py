@@ -713,9 +713,19 @@ class SimWorld:
             self._record_press(press)
 
     def _record_press(self, press: Press) -> None:
-        """Permanent dents depend on the MAX force ever applied near a point: record only a new maximum."""
+        """Permanent dents depend only on the MAX force ever applied near a point.
+
+        The object adds up the dents it is given, so a press near an old one that goes
+        higher replaces that one's force and the object's dents are rebuilt from the maxima.
+        """
         for old in self.presses:
-            if np.linalg.norm(old.point_obj - press.point_obj) < 0.5 and old.max_force_n >= press.max_force_n:
+            if np.linalg.norm(old.point_obj - press.point_obj) < 0.5:
+                if old.max_force_n >= press.max_force_n:
+                    return
+                old.max_force_n = press.max_force_n
+                self.obj.reset_history()
+                for p in self.presses:
+                    self.obj.add_permanent_dent(p.point_obj, p.normal_obj, p.max_force_n)
                 return
         self.presses.append(press)
         self.obj.add_permanent_dent(press.point_obj, press.normal_obj, press.max_force_n)
