@@ -322,6 +322,10 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
         # the table, which say nothing about the material under the tip.
         window = np.abs(ctx.grid.x_mm) <= FEATURE_HALF_WINDOW_MM
         feats, names = rg.survey_features(depth[:, :, window], ctx.grid.x_mm[window], forces)
+        # Regions of similar ELASTICITY: peak depths and compliance. The dent's width
+        # also follows the local geometry (a pillow's rounded rim), which is not material.
+        elastic = [k for k, name in enumerate(names) if not name.startswith("width")]
+        feats, names = feats[:, elastic], [names[k] for k in elastic]
         pts = np.array([ctx.targets[i].point_mm for i in ids])
         nrm = np.array([ctx.targets[i].normal for i in ids])
         edges = tg.surface_graph(pts, nrm)
