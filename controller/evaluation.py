@@ -88,15 +88,34 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
     def true_profile(point: np.ndarray, normal: np.ndarray, force: float, angle: float) -> np.ndarray:
         return truth.true_profile_mm(point, normal, scan_direction(normal, ref), force, angle, x)
 
+    # The region of interest is where the scanner can see the surface: outside the tip's
+    # footprint (the tip hides the surface under it, and a deep dent shows the tip
+    # itself) and where this session's scans of the region actually had data on that
+    # side of the probe (the probe body shadows the other side; which side depends on
+    # whether the angle is under or over 90 degrees).
+    coverage: dict[tuple[int, bool], np.ndarray] = {}
+    counts: dict[tuple[int, bool], int] = {}
+    for rec, res in measured:
+        key = (target_labels.get(rec.plan.target_index, -1), rec.plan.angle_deg <= 90.0)
+        coverage[key] = coverage.get(key, np.zeros(len(x))) + np.isfinite(res.profile_depth_mm)
+        counts[key] = counts.get(key, 0) + 1
+    outside_tip = np.abs(x) > radius
+
+    def roi(label: int | None, angle: float, truth_row: np.ndarray) -> np.ndarray:
+        key = (label if label is not None else -1, angle <= 90.0)
+        seen = coverage[key] >= 0.5 * counts[key] if key in coverage else np.zeros(len(x), bool)
+        return ev.roi_mask(truth_row[None, :])[0] & outside_tip & seen
+
     # Noise floor and held-out angles/forces at the characterized points.
-    noise_pred, noise_true = [], []
-    ha_pred, ha_true, hf_pred, hf_true = [], [], [], []
+    noise_pred, noise_true, noise_roi = [], [], []
+    ha_pred, ha_true, ha_roi, hf_pred, hf_true, hf_roi = [], [], [], [], [], []
     points_done: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for rec, res in measured:
         f = float(np.linalg.norm(np.nanmean(res.scan_force_n, axis=0)))
         p, n = np.asarray(rec.plan.point_mm), np.asarray(rec.plan.normal)
         noise_pred.append(res.profile_depth_mm)
         noise_true.append(truth.true_profile_mm(p, n, np.asarray(rec.plan.t), f, rec.plan.angle_deg, x))
+        noise_roi.append(roi(target_labels.get(rec.plan.target_index), rec.plan.angle_deg, noise_true[-1]))
         points_done[rec.plan.target_index] = (p, n)
     for ti, (p, n) in points_done.items():
         label = target_labels.get(ti)
@@ -107,14 +126,16 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
             for f in ch.forces_n[1:-1]:
                 ha_pred.append(m.predict_mm(f, a).copy())
                 ha_true.append(true_profile(p, n, f, a))
+                ha_roi.append(roi(label, a, ha_true[-1]))
         for f in _held_out_forces(list(ch.forces_n)):
             for a in ch.angles_deg:
                 hf_pred.append(m.predict_mm(f, a).copy())
                 hf_true.append(true_profile(p, n, f, a))
+                hf_roi.append(roi(label, a, hf_true[-1]))
 
     # Held-out points: unprobed cloud points, interior of their predicted region, facing up.
     rng = np.random.default_rng(seed)
-    hp_pred, hp_true = [], []
+    hp_pred, hp_true, hp_roi = [], [], []
     up = normals[:, 2] > np.cos(np.radians(plan.sampling.max_tilt_deg))
     from scipy.spatial import cKDTree
 
@@ -134,11 +155,12 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
                 for a in (45.0, 90.0, 135.0):
                     hp_pred.append(m.predict_mm(f, a).copy())
                     hp_true.append(true_profile(pts[k], normals[k], f, a))
+                    hp_roi.append(roi(label, a, hp_true[-1]))
 
-    def rmse(pred_list: list[np.ndarray], true_list: list[np.ndarray]) -> float | None:
+    def rmse(pred_list: list[np.ndarray], true_list: list[np.ndarray], roi_list: list[np.ndarray]) -> float | None:
         if not pred_list:
             return None
-        return ev.profile_rmse_mm(np.array(pred_list), np.array(true_list))
+        return ev.profile_rmse_mm(np.array(pred_list), np.array(true_list), np.array(roi_list))
 
     peak = float(np.nanmax(np.array(noise_true))) if noise_true else None
     mirror = [ev.mirror_residual(m, np.array(ch.forces_n), np.array([a for a in ch.angles_deg if a < 90.0]))
@@ -150,10 +172,12 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         "worst_region_iou": _num(scores["worst_region_iou"]),
         "boundary_mm_mean": _num(scores["boundary_mm_mean"]),
         "boundary_mm_p90": _num(scores["boundary_mm_p90"]),
-        "profile_rmse_mm": {"held_out_angles": _num(rmse(ha_pred, ha_true)),
-                            "held_out_forces": _num(rmse(hf_pred, hf_true)),
-                            "held_out_points": _num(rmse(hp_pred, hp_true))},
-        "noise_floor_mm": _num(rmse(noise_pred, noise_true)),
+        "profile_rmse_mm": {"held_out_angles": _num(rmse(ha_pred, ha_true, ha_roi)),
+                            "held_out_forces": _num(rmse(hf_pred, hf_true, hf_roi)),
+                            "held_out_points": _num(rmse(hp_pred, hp_true, hp_roi))},
+        "profile_rmse_roi": "truth > 5% of its peak, |x| > tip radius, and seen by the scanner on that side "
+                            "in >= half of the region's measured profiles",
+        "noise_floor_mm": _num(rmse(noise_pred, noise_true, noise_roi)),
         "peak_depth_mm": _num(peak),
         "mirror_residual": _num(float(np.nanmean(mirror)) if mirror else None),
         "probes": int(len(done)),
