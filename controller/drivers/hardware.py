@@ -1,0 +1,948 @@
+"""The hardware process: owns the F/T stream and the arm driver and runs the check-and-stop path.
+
+Why a separate process (DESIGN §5): the safety path must keep running whatever the
+controller does (a long journal fsync, model training, a Python exception, a debugger
+stop), and must stop when the controller is gone. So a ``spawn``-ed child — the
+hardware process — owns :class:`~.ati_netft.NetFTClient` and :class:`~.ur_link.URLink`
+(which itself runs ur_rtde in a supervised grandchild) and has four threads:
+
+- **safety** (:class:`SafetyLoop`): wakes on every RDT datagram (the client's receive
+  thread signals it), reads the new samples, runs ``SafetyGuard.check_block`` (vectorised,
+  first crossing) and, on a trip, sends the stop (speedStop / stopL) AT ONCE, and only
+  then records the trip for the controller. It also watches for contact during a contact
+  search (|F| >= threshold stops the arm at the sample rate) and checks for a stale
+  stream. It is the only caller of ``URLink.heartbeat()``: the robot's watchdog is kicked
+  only while this loop runs (if it hangs, ur_rtde stops kicking and the arm stops).
+- **control**: at ``control_hz`` (125 Hz) reads the arm's state through the link and runs
+  the outer loops on UR motion: contact search = speedL along d (distance bound), force
+  regulation = PI on the ATI reading commanding speedL along d; and follows moveL
+  progress. A gate lock orders its speedL against the safety thread's stop: once a motion
+  is marked stopped, no later speedL of it can reach the robot.
+- **main**: serves the controller's requests (a pipe, one request at a time) and dies
+  with its parent: ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` plus a parent-pid check.
+- the NetFT receive thread (inside the client).
+
+Threads, not more processes, inside: the stop must be sent by the code that saw the
+crossing, without a hop; the GIL switch interval is lowered so a woken safety thread runs
+promptly. ur_rtde's own crashes and hangs stay in URLink's grandchild: a crash or a hang
+(past the call deadline) kills and restarts it — its new control script replaces the old
+program, so the arm stops — and the controller sees a DeviceError once, from ``status()``
+or the next command.
+
+The controller side (:class:`HardwareProcess`) gives an :class:`~elastoprobe.controller.devices.Arm`
+(:class:`HardwareArm`) and a :class:`~elastoprobe.controller.devices.ForceTorqueSensor`
+(:class:`HardwareFT`: the same blocks the guard checked, forwarded). Every request has a
+deadline; if the hardware process dies or hangs it is killed and restarted (bounded) and
+the call raises DeviceError.
+
+Units: controller side mm, mm/s, N, base frame (Pose); the link speaks ur_rtde units (m,
+rotation vectors); forces in the sensor frame, load ON the tool (WrenchBlock convention).
+Times are ``time.monotonic()`` seconds, the same clock in every process (RealClock).
+"""
+from __future__ import annotations
+
+import atexit
+import collections
+import ctypes
+import itertools
+import math
+import multiprocessing as mp
+import os
+import signal
+import sys
+import threading
+import time
+import weakref
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from ..clock import Clock, RealClock
+from ..devices import ArmStatus, DeviceIdentity, MotionState, Trip, WrenchBlock
+from ..errors import DeviceError, DeviceTimeout, MotionRefused
+from ..geometry import Pose
+from ..safety import SafetyGuard, SafetyLimits
+from .ur_link import URLinkConfig, URState
+
+PR_SET_PDEATHSIG = 1
+_ACTIVE = (MotionState.RUNNING,)
+
+
+# ====================================================================== configuration
+@dataclass(frozen=True)
+class RegulatorSettings:
+    """The force loop (PI on |F| with feed-forward of the reference ramp, speedL along d).
+
+    ``gain``: fraction of the force error corrected per loop period; ``integral_per_s``:
+    integral action; the loop's gain is scaled by an online contact-stiffness estimate (N/mm),
+    since rubber is ~50x stiffer than foam. DONE once |error| <= max(tolerance_n,
+    tolerance_rel x target) for ``settle_updates`` periods at the target; then it holds.
+    """
+
+    max_speed_mm_s: float = 15.0
+    accel_mm_s2: float = 500.0
+    gain: float = 0.2
+    integral_per_s: float = 1.0
+    tolerance_n: float = 0.1
+    tolerance_rel: float = 0.02
+    settle_updates: int = 10
+    initial_stiffness_n_mm: float = 2.0
+    force_window: int = 10           # samples averaged for the loop's force reading
+
+
+@dataclass(frozen=True)
+class HardwareConfig:
+    """What the hardware process needs (units in the names, base frame).
+
+    ``probe_axis_sensor``: the probe axis in the sensor frame (for the lateral-force limit).
+    ``flange_to_tcp`` and ``joint_limits_rad`` give the controller-side IK.
+    """
+
+    robot_host: str
+    ft_host: str
+    limits: SafetyLimits
+    rdt_port: int = 49152
+    calinfo_port: int = 49151
+    ft_rate_hz: float = 1000.0
+    probe_axis_sensor: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    flange_to_tcp: Pose = field(default_factory=Pose.identity)
+    joint_limits_rad: np.ndarray | None = None
+    link: URLinkConfig = field(default_factory=URLinkConfig)
+    regulator: RegulatorSettings = field(default_factory=RegulatorSettings)
+    control_hz: float = 125.0
+    stop_decel_m_s2: float = 4.0          # stopL / speedStop on a trip, a contact, stop()
+    seek_accel_m_s2: float = 0.5
+    move_tolerance_mm: float = 0.5        # a moveL counts as DONE within this of its target
+    move_grace_s: float = 0.5             # time for a new moveL to show up in the state
+    safety_period_s: float = 0.002        # longest wait for F/T data before a stale check
+    call_timeout_s: float = 15.0          # controller -> hardware process request deadline
+    start_timeout_s: float = 60.0
+    max_restarts: int = 2
+    lifetime_s: float = 7 * 24 * 3600.0
+
+
+# ====================================================================== the safety loop
+@dataclass
+class LatencyStats:
+    """Wall-clock seconds from the arrival of the block holding a crossing to the stop sent."""
+
+    samples_s: collections.deque = field(default_factory=lambda: collections.deque(maxlen=100_000))
+
+    def add(self, seconds: float) -> None:
+        self.samples_s.append(float(seconds))
+
+    def summary(self) -> dict[str, float | int | None]:
+        if not self.samples_s:
+            return {"trips": 0, "p50_ms": None, "p99_ms": None, "max_ms": None}
+        a = np.asarray(self.samples_s) * 1e3
+        return {"trips": int(a.size), "p50_ms": float(np.percentile(a, 50)), "p99_ms": float(np.percentile(a, 99)),
+                "max_ms": float(a.max())}
+
+
+class SafetyLoop:
+    """The check-and-stop path over an F/T stream (used by the hardware process and the bench).
+
+    ``read_block()`` returns the samples that arrived since the last call; ``wait_data(t)``
+    blocks up to t s for new data (True if some arrived); ``arrival_s()`` the wall time the
+    newest data arrived; ``on_trip(trip, arrival_s)`` must stop the arm at once;
+    ``on_contact(t_s, arrival_s)`` ends a contact search; ``heartbeat()`` tells the robot
+    link the safety path is alive. The guard and its carry-over are protected by ``lock``
+    (a tare must not fall between a read and its check).
+    """
+
+    def __init__(self, guard: SafetyGuard, read_block: Callable[[], WrenchBlock],
+                 wait_data: Callable[[float], bool], arrival_s: Callable[[], float],
+                 on_trip: Callable[[Trip, float], None], on_contact: Callable[[float, float], None],
+                 heartbeat: Callable[[], None] = lambda: None, period_s: float = 0.002,
+                 forward: Callable[[WrenchBlock], None] | None = None, recent: int = 64) -> None:
+        self.guard = guard
+        self.read_block = read_block
+        self.wait_data = wait_data
+        self.arrival_s = arrival_s
+        self.on_trip = on_trip
+        self.on_contact = on_contact
+        self.heartbeat = heartbeat
+        self.period_s = period_s
+        self.forward = forward
+        self.lock = threading.Lock()
+        self.contact_threshold_n: float | None = None
+        self._recent = np.zeros((recent, 3))
+        self._recent_n = 0
+        self.iterations = 0
+        self.blocks = 0
+
+    def recent_force_n(self, count: int) -> np.ndarray:
+        """The latest ``count`` force samples (sensor frame, tared), oldest first."""
+        with self.lock:
+            k = min(count, self._recent_n, self._recent.shape[0])
+            return self._recent[self._recent.shape[0] - k:].copy()
+
+    def step(self) -> None:
+        """One iteration: wait for data (bounded), check it, act on a crossing."""
+        got = self.wait_data(self.period_s)
+        self.heartbeat()
+        self.iterations += 1
+        with self.lock:
+            block = self.read_block() if got else WrenchBlock.empty()
+            if not len(block):
+                trip = self.guard.check_stale(time.monotonic())
+                arrival = time.monotonic()
+                contact_t = None
+            else:
+                self.blocks += 1
+                arrival = self.arrival_s()
+                trip = self.guard.check_block(block)
+                contact_t = None
+                thr = self.contact_threshold_n
+                if thr is not None:
+                    fmag = np.sqrt(np.einsum("ij,ij->i", block.force_n, block.force_n))
+                    hit = np.flatnonzero(fmag >= thr)
+                    if hit.size and (trip is None or block.t_s[hit[0]] < trip.t_s):
+                        contact_t = float(block.t_s[hit[0]])
+                self._remember(block.force_n)
+        # Act first, then report: the stop goes out before anything else happens.
+        if trip is not None:
+            self.on_trip(trip, arrival)
+        elif contact_t is not None:
+            self.contact_threshold_n = None
+            self.on_contact(contact_t, arrival)
+        if len(block) and self.forward is not None:
+            self.forward(block)
+
+    def _remember(self, force_n: np.ndarray) -> None:
+        k = min(force_n.shape[0], self._recent.shape[0])
+        self._recent = np.roll(self._recent, -k, axis=0)
+        self._recent[-k:] = force_n[-k:]
+        self._recent_n = min(self._recent_n + k, self._recent.shape[0])
+
+    def run(self, stop: threading.Event, end_s: float) -> None:
+        while not stop.is_set() and time.monotonic() < end_s:
+            self.step()
+
+
+# ====================================================================== hardware-process side
+class _Motion:
+    """One motion command inside the hardware process (its state is read by the controller)."""
+
+    # Ids unique across restarts of the hardware process (a stale handle never aliases a new motion).
+    _ids = itertools.count(time.time_ns() // 1000 % 10**12)
+
+    def __init__(self, kind: str, **params: Any) -> None:
+        self.id = next(self._ids)
+        self.kind = kind
+        self.state = MotionState.RUNNING
+        self.progress = 0.0
+        self.t_start_s = time.monotonic()
+        self.params = params
+        self.holding = False              # regulate_force: DONE and still holding the force
+        self.note = ""
+
+    @property
+    def active(self) -> bool:
+        """Still commanding the arm (RUNNING, or a regulation holding its force)."""
+        return self.state == MotionState.RUNNING or self.holding
+
+    def finish(self, state: MotionState, note: str = "") -> None:
+        if self.active:
+            self.state = state
+            self.holding = False
+            self.note = note
+            if state in (MotionState.DONE, MotionState.CONTACT):
+                self.progress = 1.0
+
+
+@dataclass
+class _Regulation:
+    direction: np.ndarray
+    target_n: float
+    rate_n_s: float
+    start_n: float
+    t0_s: float
+    stiffness_n_mm: float
+    integral: float = 0.0
+    last_force_n: float | None = None
+    last_u_mm: float = 0.0
+    in_band: int = 0
+    trace: collections.deque = field(default_factory=lambda: collections.deque(maxlen=2000))  # (t, F, ref, v, k)
+
+    def reference_n(self, t_s: float) -> float:
+        elapsed = t_s - self.t0_s
+        if self.target_n >= self.start_n:
+            return min(self.target_n, self.start_n + self.rate_n_s * elapsed)
+        return max(self.target_n, self.start_n - self.rate_n_s * elapsed)
+
+
+def _set_parent_death_signal() -> None:
+    if sys.platform.startswith("linux"):
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
+            raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+
+
+class _HardwareServer:
+    """Everything that runs inside the hardware process."""
+
+    def __init__(self, conn: Any, cfg: HardwareConfig, parent_pid: int) -> None:
+        from .ati_netft import NetFTClient
+        from .ur_link import URLink
+
+        class _NotifyingNetFT(NetFTClient):
+            """The Net F/T client, waking the safety thread on every datagram."""
+
+            def __init__(self, *args: Any, **kwargs: Any) -> None:
+                self.data_event = threading.Event()
+                self.last_arrival_s = 0.0
+                super().__init__(*args, **kwargs)
+
+            def _ingest(self, records: Any, arrival_s: float) -> None:
+                super()._ingest(records, arrival_s)
+                self.last_arrival_s = arrival_s
+                self.data_event.set()
+
+        self.conn = conn
+        self.cfg = cfg
+        self.parent_pid = parent_pid
+        self.stop_event = threading.Event()
+        self.ft = _NotifyingNetFT(cfg.ft_host, cfg.rdt_port, cfg.calinfo_port, rate_hz=cfg.ft_rate_hz)
+        self.link = URLink(cfg.robot_host, cfg.link).start()
+        self.guard = SafetyGuard(cfg.limits, np.asarray(cfg.probe_axis_sensor, float), rate_hz=cfg.ft_rate_hz)
+        self.gate = threading.Lock()          # orders speedL (control) against stops (safety)
+        self.motion: _Motion | None = None
+        self.motions: collections.OrderedDict[int, _Motion] = collections.OrderedDict()
+        self.regulation: _Regulation | None = None
+        self.last_regulation: _Regulation | None = None
+        self.state: URState | None = None
+        self.pending_errors: list[str] = []
+        self.latency = LatencyStats()
+        self.outbox: collections.deque[WrenchBlock] = collections.deque()
+        self.outbox_n = 0
+        self.outbox_lock = threading.Lock()
+        self.safety = SafetyLoop(self.guard, self.ft.read_block, self._wait_ft, lambda: self.ft.last_arrival_s,
+                                 self._on_trip, self._on_contact, self.link.heartbeat, cfg.safety_period_s,
+                                 forward=self._forward)
+        self.threads = [threading.Thread(target=self._safety_main, name="hw-safety", daemon=True),
+                        threading.Thread(target=self._control_main, name="hw-control", daemon=True)]
+
+    # ------------------------------------------------------------------ threads
+    def start(self) -> None:
+        for th in self.threads:
+            th.start()
+        deadline = time.monotonic() + 5.0
+        while self.state is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+
+    def _wait_ft(self, timeout_s: float) -> bool:
+        ev = self.ft.data_event
+        got = ev.wait(timeout_s)
+        ev.clear()
+        return got
+
+    def _safety_main(self) -> None:
+        try:
+            self.safety.run(self.stop_event, time.monotonic() + self.cfg.lifetime_s)
+        except BaseException as exc:  # noqa: BLE001 — a dead safety loop stops the heartbeat: the arm stops
+            self.pending_errors.append(f"safety loop died: {type(exc).__name__}: {exc}")
+            raise
+
+    def _forward(self, block: WrenchBlock) -> None:
+        with self.outbox_lock:
+            self.outbox.append(block)
+            self.outbox_n += len(block)
+            limit = int(10.0 * self.cfg.ft_rate_hz)          # 10 s unread: drop the oldest
+            while self.outbox_n > limit and len(self.outbox) > 1:
+                self.outbox_n -= len(self.outbox.popleft())
+
+    def _control_main(self) -> None:
+        period = 1.0 / self.cfg.control_hz
+        next_t = time.monotonic()
+        end = next_t + self.cfg.lifetime_s
+        while not self.stop_event.is_set() and time.monotonic() < end:
+            try:
+                self.state = self.link.state()
+                self._update_motion(self.state)
+            except DeviceError as exc:
+                self._link_failed(str(exc))
+            except Exception as exc:  # noqa: BLE001 — keep the loop alive; the controller hears of it
+                self._link_failed(f"control loop: {type(exc).__name__}: {exc}")
+            next_t += period
+            now = time.monotonic()
+            if next_t < now - 0.1:
+                next_t = now
+            self.stop_event.wait(max(0.0, next_t - now))
+
+    def _link_failed(self, message: str) -> None:
+        self.pending_errors.append(message)
+        m = self.motion
+        if m is not None:
+            m.finish(MotionState.FAULT, message)
+        self.regulation = None
+        self.safety.contact_threshold_n = None
+        self.state = None
+
+    # ------------------------------------------------------------------ stops (safety thread)
+    def _send_stop(self, m: _Motion | None) -> None:
+        decel = self.cfg.stop_decel_m_s2
+        try:
+            if m is not None and m.kind in ("seek_contact", "regulate_force"):
+                self.link.speed_stop(decel)
+            else:
+                self.link.stop_linear(decel)
+        except DeviceError as exc:
+            # The link restarts its child, whose new program stops the arm anyway.
+            self.pending_errors.append(f"stop failed: {exc}")
+
+    def _on_trip(self, trip: Trip, arrival_s: float) -> None:
+        m = self.motion
+        first = self.guard.tripped is trip
+        if (m is not None and m.active) or first:
+            if m is not None:
+                m.finish(MotionState.TRIPPED, trip.message)
+            self.regulation = None
+            self.safety.contact_threshold_n = None
+            with self.gate:
+                self._send_stop(m)
+            self.latency.add(time.monotonic() - arrival_s)
+
+    def _on_contact(self, t_s: float, arrival_s: float) -> None:
+        m = self.motion
+        if m is None or m.kind != "seek_contact" or not m.active:
+            return
+        m.finish(MotionState.CONTACT, f"contact at t={t_s:.4f} s")
+        with self.gate:
+            self._send_stop(m)
+
+    # ------------------------------------------------------------------ motion updates (control thread)
+    def _update_motion(self, st: URState) -> None:
+        m = self.motion
+        if m is None or not m.active:
+            return
+        if st.protective_stopped or st.emergency_stopped or not st.program_running or not st.connected:
+            why = ("emergency stop" if st.emergency_stopped else "protective stop" if st.protective_stopped
+                   else "program not running" if not st.program_running else "connection lost")
+            m.finish(MotionState.FAULT, why)
+            self.regulation = None
+            self.safety.contact_threshold_n = None
+            return
+        pos_mm = st.tcp_pose_ur[:3] * 1e3
+        if m.kind == "move_linear":
+            move = m.params["link_move"]
+            m.progress = move.fraction_done(st)
+            target = np.asarray(m.params["target_ur"][:3]) * 1e3
+            at_target = float(np.linalg.norm(pos_mm - target)) <= self.cfg.move_tolerance_mm
+            if not move.is_running(st):
+                if at_target and st.tcp_speed_m_s < 1e-4:
+                    m.finish(MotionState.DONE)
+                elif time.monotonic() - m.t_start_s > self.cfg.move_grace_s and st.tcp_speed_m_s < 1e-4:
+                    m.finish(MotionState.FAULT, "moveL ended away from its target")
+        elif m.kind == "seek_contact":
+            d = m.params["direction"]
+            travelled = float((pos_mm - m.params["start_mm"]) @ d)
+            m.progress = travelled / m.params["max_distance_mm"]
+            if travelled >= m.params["max_distance_mm"]:
+                self.safety.contact_threshold_n = None
+                m.finish(MotionState.NO_CONTACT, f"no contact within {m.params['max_distance_mm']:.1f} mm")
+                with self.gate:
+                    self._send_stop(m)
+        elif m.kind == "regulate_force":
+            self._regulate(m, pos_mm)
+
+    def _measured_force_n(self) -> float:
+        recent = self.safety.recent_force_n(self.cfg.regulator.force_window)
+        return float(np.linalg.norm(recent.mean(axis=0))) if recent.shape[0] else 0.0
+
+    def _regulate(self, m: _Motion, pos_mm: np.ndarray) -> None:
+        reg = self.regulation
+        if reg is None:
+            return
+        s = self.cfg.regulator
+        period = 1.0 / self.cfg.control_hz
+        now = time.monotonic()
+        force = self._measured_force_n()
+        u = float(pos_mm @ reg.direction)
+        if reg.last_force_n is not None:
+            du, df = u - reg.last_u_mm, force - reg.last_force_n
+            # Contact stiffness (N/mm) from successive periods while moving into the load.
+            if abs(du) > 2e-3 and force > 0.3 and df * du > 0:
+                k_obs = min(max(df / du, 0.05), 1000.0)
+                reg.stiffness_n_mm = math.exp(0.8 * math.log(reg.stiffness_n_mm) + 0.2 * math.log(k_obs))
+        reg.last_force_n, reg.last_u_mm = force, u
+        ref, ref_next = reg.reference_n(now), reg.reference_n(now + period)
+        err = ref - force
+        k = reg.stiffness_n_mm
+        reg.integral += err * period
+        bound = s.max_speed_mm_s * k / max(s.integral_per_s, 1e-9)
+        reg.integral = min(max(reg.integral, -bound), bound)
+        speed = (ref_next - ref) / period / k + s.gain * err / (k * period) + s.integral_per_s * reg.integral / k
+        speed = min(max(speed, -s.max_speed_mm_s), s.max_speed_mm_s)
+        with self.gate:
+            if not m.active or self.regulation is not reg:
+                return
+            t_call = time.monotonic()
+            self.link.speed_linear(np.concatenate([reg.direction * speed * 1e-3, np.zeros(3)]), s.accel_mm_s2 * 1e-3)
+        reg.trace.append((now, force, ref, speed, k, time.monotonic() - t_call))
+        tol = max(s.tolerance_n, s.tolerance_rel * reg.target_n)
+        reg.in_band = reg.in_band + 1 if (ref == reg.target_n and abs(err) <= tol) else 0
+        if m.state == MotionState.RUNNING:
+            m.progress = force / reg.target_n if reg.target_n > 0 else 1.0
+            if reg.in_band >= s.settle_updates:
+                m.state, m.progress, m.holding = MotionState.DONE, 1.0, True
+
+    # ------------------------------------------------------------------ requests (main thread)
+    def _new_motion(self, kind: str, **params: Any) -> _Motion:
+        self._raise_pending()
+        old = self.motion
+        if old is not None and old.active:
+            old.finish(MotionState.STOPPED, "superseded")
+        self.regulation = None
+        self.safety.contact_threshold_n = None
+        m = _Motion(kind, **params)
+        self.motion = m
+        self.motions[m.id] = m
+        while len(self.motions) > 256:
+            self.motions.popitem(last=False)
+        return m
+
+    def _raise_pending(self) -> None:
+        if self.pending_errors:
+            errors, self.pending_errors = self.pending_errors, []
+            raise DeviceError("; ".join(dict.fromkeys(errors)))
+
+    def _ready_state(self) -> URState:
+        st = self.state
+        if st is None:
+            st = self.state = self.link.state()
+        return st
+
+    def op_status(self) -> dict[str, Any]:
+        self._raise_pending()
+        st = self._ready_state()
+        return {"t_s": st.t_s, "pose_ur": st.tcp_pose_ur.tolist(), "q": st.joints_rad.tolist(),
+                "speed_mm_s": st.tcp_speed_m_s * 1e3, "program_running": st.program_running,
+                "protective": st.protective_stopped, "emergency": st.emergency_stopped,
+                "connected": st.connected and self.link.alive}
+
+    def op_move_linear(self, target_ur: list[float], speed_mm_s: float, accel_mm_s2: float) -> int:
+        m = self._new_motion("move_linear", target_ur=list(target_ur))
+        with self.gate:
+            m.params["link_move"] = self.link.move_linear(target_ur, speed_mm_s * 1e-3, accel_mm_s2 * 1e-3)
+        m.t_start_s = time.monotonic()
+        return m.id
+
+    def op_seek_contact(self, direction: list[float], speed_mm_s: float, contact_force_n: float,
+                        max_distance_mm: float) -> int:
+        d = np.asarray(direction, float)
+        d = d / np.linalg.norm(d)
+        st = self._ready_state()
+        m = self._new_motion("seek_contact", direction=d, start_mm=st.tcp_pose_ur[:3] * 1e3,
+                             max_distance_mm=float(max_distance_mm))
+        self.safety.contact_threshold_n = float(contact_force_n)
+        with self.gate:
+            if m.active:
+                self.link.speed_linear(np.concatenate([d * speed_mm_s * 1e-3, np.zeros(3)]), self.cfg.seek_accel_m_s2)
+        return m.id
+
+    def op_regulate_force(self, direction: list[float], target_force_n: float, rate_n_s: float) -> int:
+        d = np.asarray(direction, float)
+        d = d / np.linalg.norm(d)
+        m = self._new_motion("regulate_force", direction=d)
+        s = self.cfg.regulator
+        self.regulation = _Regulation(d, float(target_force_n), float(rate_n_s), self._measured_force_n(),
+                                      time.monotonic(), s.initial_stiffness_n_mm)
+        self.last_regulation = self.regulation
+        return m.id
+
+    def op_stop(self) -> bool:
+        m = self.motion
+        if m is not None:
+            m.finish(MotionState.STOPPED, "stop requested")
+        self.regulation = None
+        self.safety.contact_threshold_n = None
+        with self.gate:
+            self._send_stop(m)
+        return True
+
+    def op_motion(self, motion_id: int) -> tuple[str, float, str]:
+        m = self.motions.get(motion_id)
+        if m is None:
+            return MotionState.STOPPED.value, 0.0, "forgotten"
+        return m.state.value, float(min(max(m.progress, 0.0), 1.0)), m.note
+
+    def op_trip(self) -> Trip | None:
+        return self.guard.tripped
+
+    def op_rearm(self) -> bool:
+        with self.safety.lock:
+            return self.guard.rearm()
+
+    def op_recover(self) -> bool:
+        result = self.link.recover_protective_stop()
+        self.state = None
+        return bool(result.get("ok", False))
+
+    def op_read_block(self) -> WrenchBlock:
+        with self.outbox_lock:
+            blocks = list(self.outbox)
+            self.outbox.clear()
+            self.outbox_n = 0
+        return WrenchBlock.concat(blocks)
+
+    def op_tare(self) -> bool:
+        with self.safety.lock:
+            self.ft.tare()
+            # A deliberate step in the readings is not a force rate.
+            self.guard.note_stream_restart()
+        return True
+
+    def op_identity(self) -> dict[str, Any]:
+        ft = self.ft.identity()
+        return {"arm": dict(self.link.identity()), "ft": {"model": ft.model, "serial": ft.serial,
+                                                          "firmware": ft.firmware, "extra": dict(ft.extra)}}
+
+    def op_stats(self) -> dict[str, Any]:
+        c = self.ft.counters()
+        return {"latency": self.latency.summary(), "safety_iterations": self.safety.iterations,
+                "safety_blocks": self.safety.blocks, "link_restarts": self.link.restarts,
+                "link_child_pid": self.link.child_pid, "ft_received": c.received, "ft_lost": c.lost,
+                "link_faults": [f"{f.kind}: {f.message}" for f in self.link.faults],
+                "regulation_trace": [] if self.last_regulation is None else list(self.last_regulation.trace)}
+
+    # ------------------------------------------------------------------ serve
+    def serve(self) -> int:
+        end = time.monotonic() + self.cfg.lifetime_s
+        while time.monotonic() < end:
+            if os.getppid() != self.parent_pid:
+                return 0
+            if not self.conn.poll(0.05):
+                continue
+            try:
+                msg = self.conn.recv()
+            except EOFError:
+                return 0
+            if msg[0] == "close":
+                return 0
+            rid, name, args = msg[1], msg[2], msg[3]
+            try:
+                result = getattr(self, "op_" + name)(*args)
+                self.conn.send(("ok", rid, result))
+            except MotionRefused as exc:
+                self.conn.send(("refused", rid, str(exc)))
+            except DeviceTimeout as exc:
+                self.conn.send(("timeout", rid, str(exc)))
+            except Exception as exc:  # noqa: BLE001 — every failure goes back to the controller
+                self.conn.send(("err", rid, f"{type(exc).__name__}: {exc}"))
+        return 0
+
+    def close(self) -> None:
+        self.stop_event.set()
+        try:
+            m = self.motion
+            if m is not None and m.active:
+                with self.gate:
+                    self._send_stop(m)
+        except Exception:  # noqa: BLE001 — closing is best effort
+            pass
+        for th in self.threads:
+            th.join(1.0)
+        self.link.close()
+        self.ft.close()
+
+
+def _hardware_main(conn: Any, cfg: HardwareConfig, parent_pid: int) -> None:
+    """Entry point of the hardware process (spawned)."""
+    _set_parent_death_signal()
+    if os.getppid() != parent_pid:        # the parent died before prctl took effect
+        os._exit(0)
+    sys.setswitchinterval(0.0005)          # a woken safety thread gets the GIL promptly
+    try:
+        server = _HardwareServer(conn, cfg, parent_pid)
+        server.start()
+        conn.send(("ready", server.op_identity()))
+    except Exception as exc:  # noqa: BLE001 — tell the controller why, then exit
+        try:
+            conn.send(("fatal", f"{type(exc).__name__}: {exc}"))
+        finally:
+            os._exit(2)
+    code = 0
+    try:
+        code = server.serve()
+    finally:
+        server.close()
+        conn.close()
+    os._exit(code)
+
+
+# ====================================================================== controller side
+class HardwareProcess:
+    """The controller's handle on the hardware process: start, requests with deadlines, restart.
+
+    ``arm`` and ``ft`` are the Arm and ForceTorqueSensor the controller programs against.
+    """
+
+    def __init__(self, cfg: HardwareConfig) -> None:
+        self.cfg = cfg
+        self._ctx = mp.get_context("spawn")
+        self._lock = threading.RLock()
+        self._proc: Any = None
+        self._conn: Any = None
+        self._rid = 0
+        self.restarts = 0
+        self._dead_reason: str | None = None
+        self.identity_info: dict[str, Any] = {}
+        self.arm = HardwareArm(self)
+        self.ft = HardwareFT(self)
+
+    # -- lifecycle
+    def start(self) -> "HardwareProcess":
+        with self._lock:
+            self._spawn()
+        ref = weakref.ref(self)
+        atexit.register(lambda: ref() is not None and ref().close(1.0))
+        return self
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        with self._lock:
+            if self._proc is not None and self._proc.is_alive() and self._conn is not None:
+                try:
+                    self._conn.send(("close",))
+                except OSError:
+                    pass
+                self._proc.join(timeout_s)
+            self._kill()
+            self._dead_reason = "closed"
+
+    def __enter__(self) -> "HardwareProcess":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def pid(self) -> int | None:
+        return None if self._proc is None else self._proc.pid
+
+    def _spawn(self) -> None:
+        parent_conn, child_conn = self._ctx.Pipe(duplex=True)
+        # Not a daemon: it must be allowed to start URLink's ur_rtde child. It still dies
+        # with this process (PR_SET_PDEATHSIG), and an exit handler closes it first.
+        proc = self._ctx.Process(target=_hardware_main, name="elastoprobe-hardware",
+                                 args=(child_conn, self.cfg, os.getpid()), daemon=False)
+        proc.start()
+        child_conn.close()
+        self._proc, self._conn = proc, parent_conn
+        deadline = time.monotonic() + self.cfg.start_timeout_s
+        while time.monotonic() < deadline:
+            if parent_conn.poll(0.05):
+                try:
+                    msg = parent_conn.recv()
+                except EOFError:
+                    break
+                if msg[0] == "ready":
+                    self.identity_info = dict(msg[1])
+                    return
+                if msg[0] == "fatal":
+                    self._kill()
+                    raise DeviceError(f"hardware process failed to start: {msg[1]}")
+            elif not proc.is_alive():
+                break
+        code = proc.exitcode
+        self._kill()
+        raise DeviceError(f"hardware process did not become ready (exit code {code})")
+
+    def _kill(self) -> None:
+        if self._proc is not None and self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(3.0)
+        if self._conn is not None:
+            try:
+                self._conn.close()
+            except OSError:
+                pass
+        self._conn = None
+
+    def _restart(self, why: str) -> None:
+        """Kill the hardware process (its link child dies with it: the watchdog stops the arm)
+        and start a new one, bounded by ``max_restarts``."""
+        self._kill()
+        if self.restarts >= self.cfg.max_restarts:
+            self._dead_reason = f"{why}; gave up after {self.restarts} restarts"
+            return
+        self.restarts += 1
+        try:
+            self._spawn()
+        except DeviceError as exc:
+            self._dead_reason = f"{why}; restart failed: {exc}"
+
+    # -- requests
+    def call(self, name: str, *args: Any, timeout_s: float | None = None) -> Any:
+        with self._lock:
+            if self._dead_reason is not None:
+                raise DeviceError(f"hardware process is down: {self._dead_reason}")
+            if self._conn is None:
+                raise DeviceError("hardware process is not started")
+            self._rid += 1
+            rid = self._rid
+            try:
+                self._conn.send(("call", rid, name, args))
+            except OSError as exc:
+                self._restart(f"pipe broke during {name}")
+                raise DeviceError(f"hardware process died during {name}; restarted") from exc
+            deadline = time.monotonic() + (self.cfg.call_timeout_s if timeout_s is None else timeout_s)
+            while True:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    self._restart(f"{name} hung")
+                    raise DeviceTimeout(f"hardware process did not answer {name} in time; killed and restarted")
+                try:
+                    msg = self._conn.recv() if self._conn.poll(min(remaining, 0.05)) else None
+                except (EOFError, OSError):
+                    msg = None
+                    if self._proc is not None:
+                        self._proc.join(0.5)
+                if msg is None:
+                    if self._proc is None or not self._proc.is_alive():
+                        code = None if self._proc is None else self._proc.exitcode
+                        self._restart(f"hardware process exited (code {code}) during {name}")
+                        raise DeviceError(f"hardware process died during {name} (code {code}); restarted")
+                    continue
+                kind, mid, payload = msg
+                if mid != rid:
+                    continue                       # a stale answer to a call that timed out
+                if kind == "ok":
+                    return payload
+                if kind == "refused":
+                    raise MotionRefused(payload)
+                if kind == "timeout":
+                    raise DeviceTimeout(payload)
+                raise DeviceError(f"hardware {name}: {payload}")
+
+    def stats(self) -> dict[str, Any]:
+        return dict(self.call("stats"))
+
+
+class HardwareMotion:
+    """Handle of a motion running in the hardware process (implements Motion)."""
+
+    def __init__(self, proc: HardwareProcess, motion_id: int, kind: str) -> None:
+        self._proc = proc
+        self._id = motion_id
+        self._kind = kind
+        self._final: tuple[MotionState, float] | None = None
+        self.note = ""
+
+    @property
+    def kind(self) -> str:
+        return self._kind
+
+    def _poll(self) -> tuple[MotionState, float]:
+        if self._final is not None:
+            return self._final
+        try:
+            state, progress, note = self._proc.call("motion", self._id)
+        except DeviceError as exc:
+            self.note = str(exc)
+            self._final = (MotionState.FAULT, 0.0)
+            return self._final
+        self.note = note
+        result = (MotionState(state), float(progress))
+        if result[0] not in (MotionState.RUNNING, MotionState.DONE) or (
+                result[0] == MotionState.DONE and self._kind != "regulate_force"):
+            self._final = result
+        return result
+
+    def state(self) -> MotionState:
+        return self._poll()[0]
+
+    def progress(self) -> float:
+        return self._poll()[1]
+
+
+class HardwareArm:
+    """The Arm the controller drives; every call goes to the hardware process."""
+
+    def __init__(self, proc: HardwareProcess) -> None:
+        self._proc = proc
+        self._model: Any = None
+
+    def identity(self) -> DeviceIdentity:
+        info = dict(self._proc.identity_info.get("arm", {}))
+        return DeviceIdentity("arm", info.pop("model", "UR"), info.pop("serial", "unknown"),
+                              info.pop("polyscope", "unknown"), info)
+
+    def status(self) -> ArmStatus:
+        d = self._proc.call("status")
+        return ArmStatus(t_s=float(d["t_s"]), tcp_pose=Pose.from_ur(d["pose_ur"]),
+                         joints_rad=np.asarray(d["q"], float), tcp_speed_mm_s=float(d["speed_mm_s"]),
+                         program_running=bool(d["program_running"]), protective_stop=bool(d["protective"]),
+                         emergency_stop=bool(d["emergency"]), is_moving=float(d["speed_mm_s"]) > 0.1,
+                         connected=bool(d["connected"]))
+
+    def inverse_kinematics(self, tcp_pose: Pose, seed_joints_rad: np.ndarray | None = None) -> np.ndarray | None:
+        from ..kinematics import inverse, ur5e
+
+        if self._model is None:
+            self._model = ur5e(self._proc.cfg.flange_to_tcp, self._proc.cfg.joint_limits_rad)
+        seed = self.status().joints_rad if seed_joints_rad is None else seed_joints_rad
+        return inverse(self._model, tcp_pose, seed)
+
+    def move_linear(self, target: Pose, speed_mm_s: float, accel_mm_s2: float) -> HardwareMotion:
+        if not (0.0 < speed_mm_s <= 1000.0) or not (0.0 < accel_mm_s2 <= 5000.0):
+            raise MotionRefused(f"moveL speed {speed_mm_s} mm/s or acceleration {accel_mm_s2} mm/s^2 out of range")
+        if self.inverse_kinematics(target) is None:
+            raise MotionRefused(f"target {np.round(target.position_mm, 1).tolist()} mm is out of reach or joint limits")
+        mid = self._proc.call("move_linear", list(target.to_ur()), float(speed_mm_s), float(accel_mm_s2))
+        return HardwareMotion(self._proc, mid, "move_linear")
+
+    def seek_contact(self, direction: np.ndarray, speed_mm_s: float, contact_force_n: float,
+                     max_distance_mm: float) -> HardwareMotion:
+        if speed_mm_s <= 0 or contact_force_n <= 0 or max_distance_mm <= 0:
+            raise MotionRefused("seek_contact needs a positive speed, force threshold and distance")
+        mid = self._proc.call("seek_contact", [float(v) for v in direction], float(speed_mm_s),
+                              float(contact_force_n), float(max_distance_mm))
+        return HardwareMotion(self._proc, mid, "seek_contact")
+
+    def regulate_force(self, direction: np.ndarray, target_force_n: float, rate_n_s: float) -> HardwareMotion:
+        if target_force_n < 0 or rate_n_s <= 0:
+            raise MotionRefused("regulate_force needs a target >= 0 N and a positive rate")
+        mid = self._proc.call("regulate_force", [float(v) for v in direction], float(target_force_n),
+                              float(rate_n_s))
+        return HardwareMotion(self._proc, mid, "regulate_force")
+
+    def stop(self) -> None:
+        self._proc.call("stop")
+
+    def trip(self) -> Trip | None:
+        return self._proc.call("trip")
+
+    def rearm(self) -> bool:
+        return bool(self._proc.call("rearm"))
+
+    def recover_protective_stop(self) -> bool:
+        cfg = self._proc.cfg.link
+        return bool(self._proc.call("recover", timeout_s=cfg.unlock_wait_s + cfg.recovery_attempts * 2.0 + 30.0))
+
+
+class HardwareFT:
+    """The ForceTorqueSensor the controller reads: blocks forwarded by the safety loop."""
+
+    def __init__(self, proc: HardwareProcess) -> None:
+        self._proc = proc
+
+    def identity(self) -> DeviceIdentity:
+        info = self._proc.identity_info.get("ft", {})
+        return DeviceIdentity("ft", info.get("model", "ATI Net F/T"), info.get("serial", "unknown"),
+                              info.get("firmware", "unknown"), dict(info.get("extra", {})))
+
+    @property
+    def rate_hz(self) -> float:
+        return self._proc.cfg.ft_rate_hz
+
+    def read_block(self) -> WrenchBlock:
+        return self._proc.call("read_block")
+
+    def tare(self) -> None:
+        self._proc.call("tare")
+
+
+__all__ = ["HardwareConfig", "HardwareProcess", "HardwareArm", "HardwareFT", "HardwareMotion", "RegulatorSettings",
+           "SafetyLoop", "LatencyStats", "Clock", "RealClock"]
