@@ -9,8 +9,9 @@ then unload along the normal and retract. F/T at 1 kHz, scanner at 50 Hz.
 Prints ONE JSON object: profiles_per_s, ft_samples_per_s, realtime_factor (simulated
 robot time / wall time; realtime_factor_cpu uses this process's CPU time, which is
 what to compare on a shared machine), and the same figures for a baseline run in the same process
-(the scanner's plane-cut cache off and the safety guard fed every sub-chunk instead
-of in screened batches).
+(the scanner's caches off — plane cut and burst shadow mask — and the safety guard fed
+every sub-chunk instead of in screened batches). On a shared machine compare the two
+within one run; absolute figures move with the load.
 
     python bench/sim_throughput.py [--quick]
 """
@@ -170,10 +171,16 @@ def run(cache: bool, batch: bool, scans_per_step: int) -> dict:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="10 scans per step instead of 40")
+    ap.add_argument("--repeats", type=int, default=2, help="interleaved runs of each variant (best is reported)")
     args = ap.parse_args(argv)
     scans = 10 if args.quick else 40
-    fast = run(cache=True, batch=True, scans_per_step=scans)
-    base = run(cache=False, batch=False, scans_per_step=scans)
+    # Interleaved repeats, best of each: the machine is shared and its load moves.
+    fasts, bases = [], []
+    for _ in range(args.repeats):
+        fasts.append(run(cache=True, batch=True, scans_per_step=scans))
+        bases.append(run(cache=False, batch=False, scans_per_step=scans))
+    fast = min(fasts, key=lambda r: r["cpu_s"])
+    base = min(bases, key=lambda r: r["cpu_s"])
 
     def num(x: float) -> float | None:
         return round(x, 3) if math.isfinite(x) else None
@@ -194,13 +201,14 @@ def main(argv: list[str] | None = None) -> int:
         "subchunks": fast["subchunks"],
         "guard_calls": fast["guard_calls"],
         "plane_cuts": fast["plane_cuts"],
-        "baseline": "scanner plane-cut cache off, safety guard fed every sub-chunk",
+        "baseline": "scanner caches off (plane cut, burst shadow mask), safety guard fed every sub-chunk",
         "baseline_realtime_factor": num(base["realtime_factor"]),
         "baseline_realtime_factor_cpu": num(base["realtime_factor_cpu"]),
         "baseline_profiles_per_s": num(base["profiles_per_s"]),
         "baseline_ft_samples_per_s": num(base["ft_samples_per_s"]),
         "baseline_wall_time_s": num(base["wall_s"]),
         "baseline_guard_calls": base["guard_calls"],
+        "repeats": args.repeats,
         "goal_realtime_factor": 100.0,
         "goal_reached": bool(fast["realtime_factor"] >= 100.0),
     }

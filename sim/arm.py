@@ -139,6 +139,9 @@ def ramp_to_u(t_s: np.ndarray, u0: float, v0: float, v1: float, accel: float) ->
         return u0 + v0 * t, np.full(t.shape, v0)
     a = math.copysign(accel, dv)
     t_r = abs(dv) / accel
+    if t.size and t_r <= float(t.min()):
+        # The (short) change of rate is over before the first instant: a straight line.
+        return (u0 + v0 * t_r + 0.5 * a * t_r * t_r - v1 * t_r) + v1 * t, np.full(t.shape, v1)
     tr = np.minimum(t, t_r)
     u = u0 + v0 * tr + 0.5 * a * tr * tr + v1 * np.maximum(t - t_r, 0.0)
     v = np.where(t < t_r, v0 + a * t, v1)

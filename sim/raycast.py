@@ -186,3 +186,23 @@ def segments_to_point_distance(p: np.ndarray, q: np.ndarray, c: np.ndarray) -> n
     with np.errstate(divide="ignore", invalid="ignore"):
         s = np.clip(np.where(dd > 0, ((c - p) * d).sum(axis=1) / dd, 0.0), 0.0, 1.0)
     return np.linalg.norm(p + s[:, None] * d - c, axis=1)
+
+
+def segments_blocked(p: np.ndarray, q: np.ndarray, a: np.ndarray, b: np.ndarray, radius_mm: float) -> np.ndarray:
+    """Which segments p_i q_i (N,3) pass within ``radius_mm`` of the segment a b (a capsule).
+
+    Exact; an axis-aligned bounding-box test first, so only the few candidate rows get
+    the segment-to-segment distance.
+    """
+    lo = np.minimum(p, q)
+    hi = np.maximum(p, q)
+    cap_lo = np.minimum(a, b) - radius_mm
+    cap_hi = np.maximum(a, b) + radius_mm
+    cand = np.flatnonzero(np.all((hi >= cap_lo) & (lo <= cap_hi), axis=1))
+    out = np.zeros(p.shape[0], dtype=bool)
+    if cand.size:
+        if np.allclose(a, b):
+            out[cand] = segments_to_point_distance(p[cand], q[cand], a) < radius_mm
+        else:
+            out[cand] = segments_to_segment_distance(p[cand], q[cand], a, b) < radius_mm
+    return out

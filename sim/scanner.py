@@ -37,7 +37,7 @@ import numpy as np
 from elastoprobe.controller.devices import DeviceIdentity, Scan
 from elastoprobe.controller.geometry import Pose
 
-from .raycast import PlaneCut, PlaneSlicer, cast_fan, plane_hits, segments_to_point_distance, segments_to_segment_distance
+from .raycast import PlaneCut, PlaneSlicer, cast_fan, plane_hits, segments_blocked
 from .world import US_PER_S, Stream, WorldSnapshot
 
 if TYPE_CHECKING:   # pragma: no cover
@@ -61,7 +61,7 @@ class ScannerSettings:
     table_dropout_prob: float = 0.002
     tip_dropout_prob: float = 0.3          # extra loss where the surface is pressed in near the tip
     probe_shadow: bool = True              # tests of the contact physics can switch the probe off
-    cache_cuts: bool = True                # the benchmark's baseline switches the cut cache off
+    cache_cuts: bool = True                # plane cuts and burst shadow masks (the benchmark's baseline: off)
 
 
 @dataclass(frozen=True)
@@ -112,6 +112,7 @@ class SimLineScanner:
         self._noise_rng = np.random.default_rng(0)
         self._dropout_rng = np.random.default_rng(0)
         self._burst_index = 0
+        self._shadow_cache: tuple | None = None
         self.stats = {"captures": 0, "cuts": 0}
 
     # ------------------------------------------------------------------ LineScanner
@@ -139,6 +140,7 @@ class SimLineScanner:
             return              # a scanner that times out: the trigger is taken, nothing comes
         # Each burst of a step gets its own correlated shape, keyed by its index in the step.
         self._burst_index += 1
+        self._shadow_cache = None
         seed, step, attempt = w.step_key
         rng = np.random.default_rng([seed & 0xFFFFFFFF, step & 0xFFFFFFFF, attempt & 0xFFFFFFFF,
                                      int(Stream.SCAN_CORRELATED), self._burst_index])
@@ -156,6 +158,7 @@ class SimLineScanner:
         self._noise_rng = w.rng(Stream.SCAN_NOISE)
         self._dropout_rng = w.rng(Stream.SCAN_DROPOUT)
         self._burst_index = 0
+        self._shadow_cache = None
 
     def _sim_due(self, start_us: int, end_us: int) -> list[int]:
         """Exposure instants in (start, end]."""
@@ -294,6 +297,22 @@ class SimLineScanner:
         """Samples whose laser ray or camera view is blocked by the probe or its tip."""
         if not self._s.probe_shadow or not np.any(hit):
             return np.zeros(r.shape[0], dtype=bool)
+        # Within a burst the arm holds still but for micrometres of force-loop motion: reuse
+        # the mask while the pose and every range stay within 0.01 mm (reset every burst
+        # and every step, so it never depends on history).
+        key_pose = np.concatenate([snap.tcp_pose.position_mm, snap.tcp_pose.rotation.ravel() * 100.0])
+        cached = self._shadow_cache if self._s.cache_cuts else None
+        if cached is not None:
+            c_pose, c_r, c_hit, c_mask = cached
+            if (np.array_equal(c_hit, hit) and float(np.max(np.abs(c_pose - key_pose))) < 0.01
+                    and float(np.max(np.abs(c_r[hit] - r[hit]))) < 0.01):
+                return c_mask
+        mask = self._shadow_mask(o, dirs, r, snap, obj_scanner, hit)
+        self._shadow_cache = (key_pose, r.copy(), hit.copy(), mask)
+        return mask
+
+    def _shadow_mask(self, o: np.ndarray, dirs: np.ndarray, r: np.ndarray, snap: WorldSnapshot,
+                     obj_scanner: Pose, hit: np.ndarray) -> np.ndarray:
         p = self._probe
         obj_tcp = snap.base_to_object.inverse().compose(snap.tcp_pose)
         a = obj_tcp.apply(p.axis_a_mm)
@@ -305,13 +324,13 @@ class SimLineScanner:
         back = 0.5
         laser_end = o + np.maximum(rr - back, 0.0)[:, None] * dirs
         origin = np.broadcast_to(o, pts.shape)
-        blocked = segments_to_segment_distance(origin, laser_end, a, b) < p.radius_mm
-        blocked |= segments_to_point_distance(origin, laser_end, tip) < p.tip_radius_mm
+        blocked = segments_blocked(origin, laser_end, a, b, p.radius_mm)
+        blocked |= segments_blocked(origin, laser_end, tip, tip, p.tip_radius_mm)
         camera = obj_scanner.apply(np.array([0.0, self._s.camera_baseline_mm, 0.0]))
         view_dir = camera - pts
         view_len = np.linalg.norm(view_dir, axis=1, keepdims=True)
         start = pts + view_dir / np.maximum(view_len, 1e-9) * back
         cam = np.broadcast_to(camera, pts.shape)
-        blocked |= segments_to_segment_distance(start, cam, a, b) < p.radius_mm
-        blocked |= segments_to_point_distance(start, cam, tip) < p.tip_radius_mm
+        blocked |= segments_blocked(start, cam, a, b, p.radius_mm)
+        blocked |= segments_blocked(start, cam, tip, tip, p.tip_radius_mm)
         return blocked & hit

@@ -427,7 +427,9 @@ class SimWorld:
         plan = self.arm._sim_plan(ts)
         rot = plan.rotation
         offset = self.tip_offset_tcp_mm
-        if rot.ndim == 2:
+        if not offset.any():
+            tips = plan.position_mm
+        elif rot.ndim == 2:
             tips = plan.position_mm + (rot @ offset)
         else:
             tips = plan.position_mm + np.einsum("nij,j->ni", rot, offset)
@@ -556,8 +558,11 @@ class SimWorld:
 
     # ------------------------------------------------------------------ contact physics (dry)
     def _dry(self, ts: np.ndarray, plan: ArmPlan, tips: np.ndarray, n: int) -> _Dry:
-        plan_n = ArmPlan(plan.position_mm[:n], plan.rotation if plan.rotation.ndim == 2 else plan.rotation[:n],
-                         plan.speed_mm_s[:n])
+        if n == plan.position_mm.shape[0]:
+            plan_n = plan
+        else:
+            plan_n = ArmPlan(plan.position_mm[:n], plan.rotation if plan.rotation.ndim == 2 else plan.rotation[:n],
+                             plan.speed_mm_s[:n])
         c = self.contact
         if c is None:
             zeros = np.zeros(n)
