@@ -32,6 +32,10 @@ from .signals import OperatorFlags
 EXIT_DONE, EXIT_FAULT, EXIT_PAUSED = 0, 1, 3
 
 
+class InternalError(ElastoprobeError):
+    """An unexpected error inside the controller; the arm was stopped and parked (exit 1)."""
+
+
 class SessionPaused(Exception):
     """The session stopped cleanly with work left (exit 3)."""
 
@@ -104,9 +108,13 @@ class Session:
         from .cellfactory import build_cell
 
         self.flags.install()
-        cell_lock = CellLock(self.inputs.cell.name)
+        # The cell lock guards real hardware; an in-process simulated cell (or a dry run)
+        # is private to this controller, so parallel dry runs need no lock.
+        real = self.inputs.cell.kind != "simulated" and not self.dry_run
+        cell_lock = CellLock(self.inputs.cell.name) if real else None
         try:
-            cell_lock.acquire()
+            if cell_lock is not None:
+                cell_lock.acquire()
             self.journal = self._open_journal(resume)
             self.log = JsonlLog(self.dir / "log.jsonl")
             self.log.write("session_start", resume=resume, seed=self.seed, plan=self.inputs.plan.name)
@@ -125,7 +133,8 @@ class Session:
                 self.journal.close()
             if self.log is not None:
                 self.log.close()
-            cell_lock.release()
+            if cell_lock is not None:
+                cell_lock.release()
             self.flags.restore()
 
     # ------------------------------------------------------------------ journal
@@ -200,6 +209,18 @@ class Session:
             j.set_status("aborted", str(exc))
             self._log("session_aborted", reason=str(exc))
             return EXIT_FAULT
+        except Exception as exc:
+            # A bug or an unplanned device error: stop and park the arm first, keep the
+            # journal consistent (the session stays resumable), and leave the traceback
+            # in the log for the developers.
+            import traceback
+
+            self.cell.arm.stop()
+            self._park()
+            j.set_status("failed", f"{type(exc).__name__}: {exc}")
+            self._log("internal_error", error=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc())
+            raise InternalError(f"{type(exc).__name__}: {exc} (details in {self.dir / 'log.jsonl'}; "
+                                f"the session can be resumed)") from exc
 
     def _make_executor(self, machine: SessionMachine) -> ProbeExecutor:
         from .validation import build_validator
