@@ -134,6 +134,8 @@ class PagedNormal:
 
 # Force/push table of one contact: equilibrium |F| (N) against equilibrium push (mm).
 _FORCE_GRID_N = np.concatenate([[0.0], np.geomspace(1e-3, 600.0, 320)])
+_ONES = np.ones(4096)
+_ONES.setflags(write=False)
 _SHIFT_FORCE_N = np.concatenate([[0.0], np.geomspace(1e-3, 600.0, 48)])
 TABLE_STIFFNESS_N_MM = 400.0     # the table is rigid next to any probed material
 MIN_APPROACH_DEG = 2.0           # a grazing touch is treated as this shallow a push
@@ -186,12 +188,11 @@ class Contact:
             return TABLE_STIFFNESS_N_MM * np.maximum(push_mm, 0.0)
         eq = np.maximum(push_mm, 0.0) / creep_c
         grid = self.push_grid_mm
-        f = np.interp(eq, grid, _FORCE_GRID_N)
-        beyond = eq > grid[-1]
-        if beyond.any():
+        f = np.interp(eq, grid, _FORCE_GRID_N)      # 0 at push <= 0 (the grid starts at 0 N, 0 mm)
+        if float(eq.max()) > grid[-1]:
             slope = (_FORCE_GRID_N[-1] - _FORCE_GRID_N[-2]) / (grid[-1] - grid[-2])
-            f = np.where(beyond, _FORCE_GRID_N[-1] + (eq - grid[-1]) * slope, f)
-        return np.where(push_mm > 0.0, f, 0.0)
+            f = np.where(eq > grid[-1], _FORCE_GRID_N[-1] + (eq - grid[-1]) * slope, f)
+        return f
 
     def creep_after(self, c0: float, push0_mm: float, push1_mm: float, dt_s: float) -> float:
         """Creep state after ``dt_s`` in which the push went from push0 to push1."""
@@ -452,13 +453,13 @@ class SimWorld:
         arm_event = self.arm._sim_event(dry.ts_us[:cut], samples)
         if arm_event is not None and arm_event < cut:
             cut, event = arm_event + 1, "arm"
-        over = np.flatnonzero(dry.force_mag_n[:cut] > self.ur_force_limit_n)
-        if over.size:
-            cut, event = int(over[0]) + 1, "ur_force"
         slip_trip_at = None
         if self.contact is not None:
-            slipping = np.flatnonzero(np.abs(dry.slip_mm[:cut]) > self.limits.slip_mm)
-            if slipping.size:
+            if float(dry.force_mag_n[:cut].max()) > self.ur_force_limit_n:
+                over = np.flatnonzero(dry.force_mag_n[:cut] > self.ur_force_limit_n)
+                cut, event = int(over[0]) + 1, "ur_force"
+            if float(dry.slip_mm[:cut].max()) > self.limits.slip_mm:
+                slipping = np.flatnonzero(dry.slip_mm[:cut] > self.limits.slip_mm)
                 slip_trip_at = int(slipping[0])
                 cut, event = slip_trip_at + 1, "slip"
         # The check-and-stop path on the block as it arrives.
@@ -577,17 +578,20 @@ class SimWorld:
             return _Dry(ts, plan_n, tips, force[:, None] * up_base[None, :], force, pen, np.ones(n), np.zeros(n),
                         int(ends[0]) if ends.size else None)
         push = (tips - c.tip_touch_base) @ c.d_base
-        dt_s = (ts[-1] - self.now_us) / US_PER_S
-        c_end = c.creep_after(c.creep_c, c.push_mm, float(push[-1]), dt_s)
-        frac = (ts - self.now_us) / max(ts[-1] - self.now_us, 1)
-        creep = c.creep_c + (c_end - c.creep_c) * frac
+        if c.creep_beta > 0.0:
+            dt_s = (ts[-1] - self.now_us) / US_PER_S
+            c_end = c.creep_after(c.creep_c, c.push_mm, float(push[-1]), dt_s)
+            frac = (ts - self.now_us) / max(ts[-1] - self.now_us, 1)
+            creep = c.creep_c + (c_end - c.creep_c) * frac
+        else:
+            creep = _ONES[:n] if n <= _ONES.shape[0] else np.ones(n)
         force = c.forces_n(push, creep)
         slip = np.full(n, c.slip_mm(float(force[-1])))
         if self.faults._sim_any_active():
             slip = slip + self.faults._sim_slip_mm(ts, c)
-        ends = np.flatnonzero(push < -1e-9)
+        ends = np.flatnonzero(push < -1e-9) if float(push.min()) < -1e-9 else ()
         return _Dry(ts, plan_n, tips, -force[:, None] * c.d_base[None, :], force, push, creep, slip,
-                    int(ends[0]) if ends.size else None)
+                    int(ends[0]) if len(ends) else None)
 
     def _commit(self, dry: _Dry, cut: int) -> None:
         last = cut - 1
