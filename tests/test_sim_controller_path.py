@@ -1,0 +1,51 @@
+"""The controller's own probe executor and cloud sweep drive the simulated cell end to end."""
+from __future__ import annotations
+
+import numpy as np
+
+from elastoprobe.controller.geometry import Pose, probe_tcp_pose
+from elastoprobe.controller.machine import SessionMachine
+from elastoprobe.controller.probe import ForceLevel, ProbeExecutor, ProbeSettings, ProbeTarget
+
+from test_sim_helpers import make_cell
+
+
+class _NoValidation:
+    def validate_path(self, start: Pose, end: Pose, contact_allowed: bool = False) -> None:
+        return None
+
+
+def _executor(cell) -> ProbeExecutor:
+    settings = ProbeSettings(scans_per_step=10, settle_s=1.0, standoff_mm=15.0, force_rate_n_s=10.0,
+                             force_tolerance_n=0.5, contact_force_n=0.4, contact_speed_mm_s=5.0,
+                             free_speed_mm_s=150.0, free_accel_mm_s2=600.0, search_distance_mm=30.0,
+                             tip_radius_mm=cell.params.tip_radius_mm)
+    return ProbeExecutor(cell, SessionMachine(initial="planning"), settings, _NoValidation(), object_top_z_mm=130.0)
+
+
+def test_probe_executor_runs_force_levels_on_the_sim():
+    cell = make_cell()
+    ex = _executor(cell)
+    steps = []
+    target = ProbeTarget(0, np.array([0.0, 0.0, 130.0]), np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]))
+    ex.probe(target, 90.0, [ForceLevel(1, 3.0), ForceLevel(2, 8.0)], steps.append)
+    assert [s.step_id for s in steps] == [1, 2]
+    for step, force in zip(steps, (3.0, 8.0)):
+        assert step.scans_xz_mm.shape == (10, 256, 2)
+        assert abs(step.force_magnitude_n() - force) < 0.2
+        assert np.isfinite(step.scans_xz_mm[..., 1]).mean() > 0.2
+        # The measured force direction: the probe pushes down into the ball top.
+        assert step.measured_direction()[2] < -0.99
+    assert cell.arm.trip() is None and cell.world.contact is None
+
+
+def test_scan_while_moving_gives_profiles_along_the_sweep():
+    cell = make_cell()
+    ex = _executor(cell)
+    down = probe_tcp_pose(np.array([400.0, -80.0, 170.0]), np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]), 90.0)
+    end = Pose(np.array([400.0, 80.0, 170.0]), down.rotation)   # tip 40 mm above the ball top
+    scans, poses = ex.scan_while_moving(down, end, 150.0)
+    assert len(scans) >= int(160.0 / 150.0 * cell.scanner.rate_hz)
+    ys = poses[:, 1]
+    assert np.all(np.diff(ys) >= -1e-9) and ys[-1] - ys[0] > 100.0
+    assert sum(np.isfinite(s.z_mm).sum() for s in scans) > 1000
