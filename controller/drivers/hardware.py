@@ -22,6 +22,10 @@ hardware process — owns :class:`~.ati_netft.NetFTClient` and :class:`~.ur_link
   with its parent: ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` plus a parent-pid check.
 - the NetFT receive thread (inside the client).
 
+Sample times: the safety path and the controller get the device's sampling instants
+(:class:`DeviceTimebase`: sequence number / rate on the client's anchor), not arrival-clamped
+ones, so a burst delayed in transit does not fake a force rate.
+
 Threads, not more processes, inside: the stop must be sent by the code that saw the
 crossing, without a hop; the GIL switch interval is lowered so a woken safety thread runs
 promptly. ur_rtde's own crashes and hangs stay in URLink's grandchild: a crash or a hang
@@ -138,6 +142,30 @@ class LatencyStats:
         a = np.asarray(self.samples_s) * 1e3
         return {"trips": int(a.size), "p50_ms": float(np.percentile(a, 50)), "p99_ms": float(np.percentile(a, 99)),
                 "max_ms": float(a.max())}
+
+
+class DeviceTimebase:
+    """Sample times from the device's sequence numbers: t = offset + seq / rate_hz.
+
+    The Net F/T client stamps records no later than their arrival, so a burst that arrives
+    after the network or a starved thread held it back gets compressed times (tens of
+    microseconds apart). The force-rate limit divides by these differences: a compressed
+    burst turns 0.05 N of noise into thousands of N/s. The device sampled them 1/rate apart,
+    so the safety path uses that. ``offset`` follows the client's anchor (the largest
+    ``t - seq/rate`` seen, never decreasing): a stall still shows as a gap.
+    """
+
+    def __init__(self, rate_hz: float) -> None:
+        self.period_s = 1.0 / float(rate_hz)
+        self.offset_s: float | None = None
+
+    def retime(self, block: WrenchBlock) -> WrenchBlock:
+        if not len(block):
+            return block
+        nominal = block.seq.astype(np.float64) * self.period_s
+        offset = float(np.max(block.t_s - nominal))
+        self.offset_s = offset if self.offset_s is None else max(self.offset_s, offset)
+        return WrenchBlock(self.offset_s + nominal, block.seq, block.force_n, block.torque_nm, block.status)
 
 
 class SafetyLoop:
@@ -318,7 +346,9 @@ class _HardwareServer:
         self.outbox: collections.deque[WrenchBlock] = collections.deque()
         self.outbox_n = 0
         self.outbox_lock = threading.Lock()
-        self.safety = SafetyLoop(self.guard, self.ft.read_block, self._wait_ft, lambda: self.ft.last_arrival_s,
+        self.timebase = DeviceTimebase(cfg.ft_rate_hz)
+        self.safety = SafetyLoop(self.guard, lambda: self.timebase.retime(self.ft.read_block()), self._wait_ft,
+                                 lambda: self.ft.last_arrival_s,
                                  self._on_trip, self._on_contact, self.link.heartbeat, cfg.safety_period_s,
                                  forward=self._forward)
         self.threads = [threading.Thread(target=self._safety_main, name="hw-safety", daemon=True),
@@ -490,18 +520,20 @@ class _HardwareServer:
 
     # ------------------------------------------------------------------ requests (main thread)
     def _new_motion(self, kind: str, **params: Any) -> _Motion:
+        """Supersede the current motion; the new one is published by :meth:`_publish`."""
         self._raise_pending()
         old = self.motion
         if old is not None and old.active:
             old.finish(MotionState.STOPPED, "superseded")
         self.regulation = None
         self.safety.contact_threshold_n = None
-        m = _Motion(kind, **params)
+        return _Motion(kind, **params)
+
+    def _publish(self, m: _Motion) -> None:
         self.motion = m
         self.motions[m.id] = m
         while len(self.motions) > 256:
             self.motions.popitem(last=False)
-        return m
 
     def _raise_pending(self) -> None:
         if self.pending_errors:
@@ -526,7 +558,8 @@ class _HardwareServer:
         m = self._new_motion("move_linear", target_ur=list(target_ur))
         with self.gate:
             m.params["link_move"] = self.link.move_linear(target_ur, speed_mm_s * 1e-3, accel_mm_s2 * 1e-3)
-        m.t_start_s = time.monotonic()
+            m.t_start_s = time.monotonic()
+            self._publish(m)
         return m.id
 
     def op_seek_contact(self, direction: list[float], speed_mm_s: float, contact_force_n: float,
@@ -536,10 +569,10 @@ class _HardwareServer:
         st = self._ready_state()
         m = self._new_motion("seek_contact", direction=d, start_mm=st.tcp_pose_ur[:3] * 1e3,
                              max_distance_mm=float(max_distance_mm))
-        self.safety.contact_threshold_n = float(contact_force_n)
         with self.gate:
-            if m.active:
-                self.link.speed_linear(np.concatenate([d * speed_mm_s * 1e-3, np.zeros(3)]), self.cfg.seek_accel_m_s2)
+            self._publish(m)
+            self.safety.contact_threshold_n = float(contact_force_n)
+            self.link.speed_linear(np.concatenate([d * speed_mm_s * 1e-3, np.zeros(3)]), self.cfg.seek_accel_m_s2)
         return m.id
 
     def op_regulate_force(self, direction: list[float], target_force_n: float, rate_n_s: float) -> int:
@@ -547,9 +580,11 @@ class _HardwareServer:
         d = d / np.linalg.norm(d)
         m = self._new_motion("regulate_force", direction=d)
         s = self.cfg.regulator
-        self.regulation = _Regulation(d, float(target_force_n), float(rate_n_s), self._measured_force_n(),
-                                      time.monotonic(), s.initial_stiffness_n_mm)
-        self.last_regulation = self.regulation
+        reg = _Regulation(d, float(target_force_n), float(rate_n_s), self._measured_force_n(), time.monotonic(),
+                          s.initial_stiffness_n_mm)
+        with self.gate:
+            self._publish(m)
+            self.regulation = self.last_regulation = reg
         return m.id
 
     def op_stop(self) -> bool:
@@ -945,4 +980,4 @@ class HardwareFT:
 
 
 __all__ = ["HardwareConfig", "HardwareProcess", "HardwareArm", "HardwareFT", "HardwareMotion", "RegulatorSettings",
-           "SafetyLoop", "LatencyStats", "Clock", "RealClock"]
+           "SafetyLoop", "LatencyStats", "DeviceTimebase", "Clock", "RealClock"]

@@ -37,6 +37,7 @@ import numpy as np
 
 STATE_FILE = "serve.json"
 DEFAULT_LIFETIME_S = 4 * 3600.0
+MIN_RANGE_MM = 40.0          # the simulated scanner's near limit (ScannerSettings.min_range_mm)
 
 
 @dataclass
@@ -94,10 +95,13 @@ def start_servers(cell_spec: Any, cell_path: str | Path, seed: int, *, object_pa
                             counts_per_force=backend.counts_per_force, counts_per_torque=backend.counts_per_torque,
                             seed=seed, max_lifetime_s=lifetime_s).start()
         transport, host, port = scanner_transport(sc_spec.url)
-        # The fixed x grid spans the laser fan at the nominal range (scanner to tip); z is
-        # quantised at 5 um around it (sim depth noise is >= 10 um).
-        nominal_mm = float(np.linalg.norm(cell_spec.tool.tcp_to_scanner.pose().position_mm)) or 150.0
-        span_mm = 2.0 * nominal_mm * math.tan(math.radians(sc_spec.field_of_view_deg) / 2.0)
+        # The fixed x grid spans the laser fan out to the maximum range (the table seen from a
+        # sweep is far); z is quantised over [MIN_RANGE_MM, max_range_mm] (int16: ~6 um at
+        # 400 mm, below the simulated depth noise of >= 10 um).
+        far_mm = float(sc_spec.max_range_mm)
+        span_mm = 2.0 * far_mm * math.tan(math.radians(sc_spec.field_of_view_deg) / 2.0)
+        z_mid_mm = (MIN_RANGE_MM + far_mm) / 2.0
+        z_scale_mm = (far_mm - MIN_RANGE_MM) / 65000.0
         holder: dict[str, Any] = {}
 
         def profile(counter: int, device_t_s: float) -> np.ndarray:
@@ -107,7 +111,7 @@ def start_servers(cell_spec: Any, cell_path: str | Path, seed: int, *, object_pa
         if transport == "tcp":
             kwargs.update(host=host, port=port)
         scanner = ScannerPtyServer(profile, n_points=sc_spec.samples_per_profile, x_span_mm=span_mm,
-                                   z_scale_mm=0.005, z_offset_mm=nominal_mm, rate_hz=sc_spec.rate_hz,
+                                   z_scale_mm=z_scale_mm, z_offset_mm=z_mid_mm, rate_hz=sc_spec.rate_hz,
                                    serial=f"SIM-LLS-{seed:04d}", seed=seed, max_lifetime_s=lifetime_s, **kwargs)
         grid = scanner.x_offset + scanner.x_scale * np.arange(scanner.n_points)
         holder["source"] = backend.profile_source(grid)
@@ -154,6 +158,9 @@ def serve(cell_spec: Any, cell_path: str | Path, seed: int, stop_event: threadin
     Returns the state (addresses) it served. ``ready`` is set once everything listens (and
     the state file, if ``run_dir`` is given, is written)."""
     stop_event = stop_event or threading.Event()
+    # Four busy threads share one GIL (emulator tick, Net F/T, scanner, RTDE sessions): a short
+    # switch interval keeps the 1 kHz F/T stream from being starved into bursts.
+    sys.setswitchinterval(0.0005)
     served = start_servers(cell_spec, cell_path, seed, object_path=object_path, lifetime_s=lifetime_s)
     try:
         if run_dir is not None:
