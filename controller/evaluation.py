@@ -73,13 +73,16 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
 
     pts = cloud.arrays["points_mm"].astype(float)
     normals = cloud.arrays["normals"].astype(float)
+    plan = inputs.plan
+    # "The reachable scanned surface": points whose normal the probe can approach
+    # (within the plan's tilt limit). Vertical walls are scanned but never probed.
+    reachable = normals[:, 2] >= np.cos(np.radians(plan.sampling.max_tilt_deg))
     pred = final.arrays["cloud_labels"]
     true = truth.region_of(pts)
-    scores = ev.region_map_scores(pred, true, None, pts)
+    scores = ev.region_map_scores(pred[reachable], true[reachable], None, pts[reachable])
     target_labels = dict(zip(regions_rec.arrays["labelled_targets"].tolist(),
                              regions_rec.arrays["labels"].tolist())) if regions_rec is not None else {}
 
-    plan = inputs.plan
     ch = plan.phases.characterize
     x = np.linspace(-plan.model.profile_span_mm / 2, plan.model.profile_span_mm / 2, plan.model.profile_samples)
     radius = inputs.cell.tool.tip_radius_mm
@@ -167,6 +170,7 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
               for m in models.values()]
     return {
         "regions_found": int(len(np.unique(pred))),
+        "scored_points": int(reachable.sum()),
         "regions_true": int(len(truth.region_names())),
         "region_map_error": _num(scores["mislabelled_fraction"]),
         "worst_region_iou": _num(scores["worst_region_iou"]),
