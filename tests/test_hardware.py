@@ -1,0 +1,119 @@
+"""The hardware process on loopback: contact search and force loop against the simulated
+world's truth, a force spike over UDP tripping and stopping the arm, a protective stop
+with bounded recovery; plus the pieces that need no network (device timebase, resampling)."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from elastoprobe.controller.devices import MotionState, WrenchBlock
+from elastoprobe.controller.drivers.hardware import DeviceTimebase
+from elastoprobe.controller.drivers.ur_link import URLinkConfig
+from elastoprobe.controller.geometry import Pose
+from elastoprobe.sim.servers.world_backend import resample_profile
+from test_loopback_rig import make_rig, wait_for, wait_motion
+
+
+def test_device_timebase_undoes_compressed_bursts() -> None:
+    tb = DeviceTimebase(1000.0)
+    seq = np.arange(100, 110)
+    # Ten samples that arrived together 40 ms late: the client clamped them to arrival.
+    t_client = np.concatenate([[10.100], 10.140 + np.arange(1, 10) * 1e-5])
+    z = np.zeros((10, 3))
+    out = tb.retime(WrenchBlock(t_client, seq, z, z, np.zeros(10, np.uint32)))
+    assert np.allclose(np.diff(out.t_s), 1e-3)
+    # The next block keeps the spacing and never goes back in time.
+    out2 = tb.retime(WrenchBlock(np.array([10.2]), np.array([110]), z[:1], z[:1], np.zeros(1, np.uint32)))
+    assert out2.t_s[0] > out.t_s[-1]
+
+
+def test_resample_keeps_holes_and_interpolates_lines() -> None:
+    x = np.linspace(-10, 10, 41)
+    z = 100.0 + 0.5 * x
+    z[18:23] = np.nan                        # a shadow
+    grid = np.linspace(-12, 12, 97)
+    out = resample_profile(x, z, grid)
+    inside = (np.abs(grid) <= 10) & ~((grid > -1.3) & (grid < 1.3))
+    assert np.allclose(out[inside & np.isfinite(out)], 100.0 + 0.5 * grid[inside & np.isfinite(out)])
+    assert np.isfinite(out[inside]).mean() > 0.95
+    assert np.all(np.isnan(out[np.abs(grid) > 10]))
+    assert np.all(np.isnan(out[np.abs(grid) < 1.0]))     # the hole is not bridged
+
+
+@pytest.mark.loopback
+@pytest.mark.timeout(120)
+def test_contact_force_loop_and_spike_trip_on_loopback() -> None:
+    rig = make_rig(130)
+    try:
+        arm, ft = rig.hw.arm, rig.hw.ft
+        above = rig.go_above_ball()
+        time.sleep(0.3)
+        ft.tare()
+        d = above.rotation[:, 2]                              # tool +z: straight down
+        seek = arm.seek_contact(d, 5.0, 0.4, 40.0)
+        assert wait_motion(seek, 15.0) == MotionState.CONTACT
+        tip_z = arm.status().tcp_pose.position_mm[2]
+        # The ball (radius 65 mm, top at 130 mm) touches a 5 mm tip when its centre is near 135 mm.
+        assert 133.0 < tip_z < 137.0
+        press = arm.regulate_force(d, 5.0, 10.0)
+        assert wait_motion(press, 10.0) == MotionState.DONE
+        ft.read_block()
+        time.sleep(1.0)
+        block = ft.read_block()
+        measured = np.linalg.norm(block.force_n.mean(axis=0))
+        truth = rig.backend.world.contact.force_n         # the simulated world's true contact force
+        assert abs(measured - 5.0) < 0.25
+        assert abs(truth - 5.0) < 0.6                      # tare left gravity and bias out; drift is small
+        assert press.state() == MotionState.DONE           # still holding
+        # Unload, then a free move interrupted by a force spike streamed over UDP.
+        arm.stop()
+        assert wait_motion(arm.move_linear(above, 20.0, 500.0), 10.0) == MotionState.DONE
+        far = Pose(above.position_mm + np.array([0.0, 80.0, 0.0]), above.rotation)
+        move = arm.move_linear(far, 20.0, 500.0)
+        time.sleep(0.8)
+        assert move.state() == MotionState.RUNNING
+        rig.backend.inject("force_spike", magnitude=80.0, duration_s=0.06)
+        assert wait_motion(move, 3.0) == MotionState.TRIPPED
+        trip = arm.trip()
+        assert trip is not None and trip.kind in ("force", "force_rate", "lateral_force")
+        assert trip.raw is not None and len(trip.raw) > 100
+        assert wait_for(lambda: not rig.emulator.is_moving(), 1.0)
+        stopped_y = rig.emulator.tcp_pose_ur()[1] * 1e3
+        assert stopped_y < far.position_mm[1] - 20.0       # stopped well short of the target
+        time.sleep(0.3)
+        assert abs(rig.emulator.tcp_pose_ur()[1] * 1e3 - stopped_y) < 0.5   # and stays stopped
+        assert arm.rearm()                                 # the spike is over: below the hysteresis
+        assert arm.trip() is None
+        stats = rig.hw.stats()
+        assert stats["latency"]["trips"] >= 1
+    finally:
+        rig.close()
+
+
+@pytest.mark.loopback
+@pytest.mark.timeout(120)
+def test_protective_stop_mid_probe_then_bounded_recovery() -> None:
+    rig = make_rig(140, unlock_delay_s=1.0,
+                   link=URLinkConfig(frequency_hz=125.0, call_timeout_s=3.0, unlock_wait_s=1.2))
+    try:
+        arm = rig.hw.arm
+        above = rig.go_above_ball(160.0)
+        time.sleep(0.3)
+        rig.hw.ft.tare()
+        seek = arm.seek_contact(above.rotation[:, 2], 5.0, 0.4, 40.0)
+        time.sleep(0.5)
+        rig.emulator.inject_protective_stop("test")
+        assert wait_motion(seek, 3.0) == MotionState.FAULT
+        assert wait_for(lambda: arm.status().protective_stop, 2.0)
+        z_stop = arm.status().tcp_pose.position_mm[2]
+        assert z_stop > 140.0                               # it never reached the ball
+        assert arm.recover_protective_stop()
+        status = arm.status()
+        assert status.program_running and not status.protective_stop
+        # Re-seeded from the measured pose: a new move works.
+        assert wait_motion(arm.move_linear(above, 50.0, 500.0), 10.0) == MotionState.DONE
+        assert np.linalg.norm(arm.status().tcp_pose.position_mm - above.position_mm) < 1.0
+    finally:
+        rig.close()

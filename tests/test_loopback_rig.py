@@ -1,0 +1,113 @@
+"""Shared rig of the loopback tests (no tests here): the served world + the hardware process.
+
+``make_rig(octet)`` serves config/cells/loopback.yaml's simulated world on a free 127.0.0.x
+(from ``octet`` on; ephemeral F/T and scanner ports) inside the test process, and starts
+the real drivers' hardware process against it. ``Rig.close()`` stops everything.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from elastoprobe.controller.config import CellSpec, load_cell
+from elastoprobe.controller.devices import Motion, MotionState
+from elastoprobe.controller.drivers.hardware import HardwareConfig, HardwareProcess
+from elastoprobe.controller.drivers.real_cell import hardware_config
+from elastoprobe.controller.drivers.ur_link import URLinkConfig
+from elastoprobe.controller.geometry import Pose
+from elastoprobe.sim.servers.serve import ServedCell, start_servers
+
+ROOT = Path(__file__).resolve().parent.parent
+CELL = ROOT / "config" / "cells" / "loopback.yaml"
+ABOVE_BALL_MM = np.array([400.0, 0.0, 150.0])     # the ball's top is at z = 130 mm
+
+
+def wait_for(predicate: Callable[[], bool], timeout_s: float, period_s: float = 0.01) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(period_s)
+    return bool(predicate())
+
+
+def wait_motion(motion: Motion, timeout_s: float) -> MotionState:
+    wait_for(lambda: motion.state() != MotionState.RUNNING, timeout_s)
+    return motion.state()
+
+
+def cell_on(host: str) -> CellSpec:
+    spec, _ = load_cell(CELL)
+    return spec.model_copy(update={
+        "robot": spec.robot.model_copy(update={"host": host}),
+        "ft": spec.ft.model_copy(update={"host": host, "rdt_port": 0, "calinfo_port": 0}),
+        "scanner": spec.scanner.model_copy(update={"url": f"socket://{host}:0"})})
+
+
+@dataclass
+class Rig:
+    spec: CellSpec
+    served: ServedCell
+    cfg: HardwareConfig
+    hw: HardwareProcess | None = None
+    extra: list[Any] = field(default_factory=list)
+
+    @property
+    def emulator(self) -> Any:
+        return self.served.emulator
+
+    @property
+    def backend(self) -> Any:
+        return self.served.backend
+
+    def start_hardware(self) -> HardwareProcess:
+        self.hw = HardwareProcess(self.cfg).start()
+        return self.hw
+
+    def go_above_ball(self, z_mm: float = 150.0) -> Pose:
+        arm = self.hw.arm
+        rot = arm.status().tcp_pose.rotation
+        target = Pose(np.array([400.0, 0.0, z_mm]), rot)
+        assert wait_motion(arm.move_linear(target, 150.0, 600.0), 15.0) == MotionState.DONE
+        return target
+
+    def close(self) -> None:
+        for thing in self.extra:
+            try:
+                thing.close()
+            except Exception:  # noqa: BLE001 — teardown is best effort
+                pass
+        if self.hw is not None:
+            self.hw.close()
+        self.served.stop()
+
+
+def make_rig(octet: int, *, unlock_delay_s: float = 5.0, link: URLinkConfig | None = None,
+             start_hardware: bool = True, **cfg_overrides: Any) -> Rig:
+    """Serve the world on the first free 127.0.0.x from ``octet`` and start the hardware process."""
+    last: Exception | None = None
+    for o in range(octet, octet + 8):
+        spec = cell_on(f"127.0.0.{o}")
+        try:
+            served = start_servers(spec, CELL, seed=3, lifetime_s=600.0, unlock_delay_s=unlock_delay_s)
+            break
+        except OSError as exc:
+            last = exc
+    else:
+        raise RuntimeError(f"no free loopback address from 127.0.0.{octet}: {last}")
+    cfg = hardware_config(spec, spec.limits.safety(), rdt_port=served.state["rdt_port"],
+                          calinfo_port=served.state["calinfo_port"],
+                          link=link or URLinkConfig(frequency_hz=125.0, call_timeout_s=3.0, start_timeout_s=30.0))
+    cfg = replace(cfg, call_timeout_s=20.0, **cfg_overrides)
+    rig = Rig(spec, served, cfg)
+    if start_hardware:
+        try:
+            rig.start_hardware()
+        except BaseException:
+            rig.close()
+            raise
+    return rig
