@@ -28,6 +28,9 @@ if TYPE_CHECKING:
 # by "regions".
 SURVEY_PHASES = ("sampling", "densify")
 FEATURE_HALF_WINDOW_MM = 15.0
+# The simulator key of the cloud sweep: above every planned step id (ids count up
+# from 0), below the simulator's own "outside any step" key (2**32 - 1).
+SWEEP_STEP_KEY = 2**32 - 2
 CHARACTERIZE = "regions"
 
 
@@ -63,8 +66,32 @@ def step_profile(session: "Session", target: ProbeTarget, data: StepData) -> tup
     scans = prof.step_scan_points(data.scans_xz_mm, data.scan_pose, cell.tcp_to_scanner, cell.base_to_object)
     refs = prof.step_scan_points(data.reference_xz_mm, data.reference_pose, cell.tcp_to_scanner,
                                  cell.base_to_object)
-    depth = prof.profile_from_scans(scans, target.point_mm, target.normal, target.t, grid, refs)
+    depth = robust_average(prof.scan_depths(scans, target.point_mm, target.normal, target.t, grid, refs))
     return plausible_depths(depth, data, target, cell, session.inputs.plan.probing.standoff_mm), grid.x_mm
+
+
+def robust_average(depths_mm: np.ndarray, k_mad: float = 4.0) -> np.ndarray:
+    """Per-sample mean of the scans after dropping outliers beyond ``k_mad`` MADs of the median.
+
+    A laser on dark, rough fabric returns false reflections: single scans with
+    depths millimetres off. A plain mean of 30 scans keeps them as spikes; the
+    median/MAD screen removes them and the mean of the rest keeps the 1/sqrt(N)
+    noise reduction. Samples seen by fewer than 3 scans use the plain mean.
+    """
+    d = np.asarray(depths_mm, dtype=float)
+    if d.ndim != 2 or d.shape[0] == 0:
+        return np.full(d.shape[-1] if d.ndim else 0, np.nan)
+    with np.errstate(all="ignore"):
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", category=RuntimeWarning)
+            med = np.nanmedian(d, axis=0)
+            mad = np.nanmedian(np.abs(d - med), axis=0)
+            count = np.sum(np.isfinite(d), axis=0)
+            scale = np.maximum(1.4826 * mad, 1e-3)
+            keep = np.abs(d - med) <= k_mad * scale
+            screened = np.where(keep | (count < 3)[None, :], d, np.nan)
+            return np.nanmean(screened, axis=0)
 
 
 def plausible_depths(depth_mm: np.ndarray, data: StepData, target: ProbeTarget, cell: Any,
@@ -154,6 +181,9 @@ def phase_cloud(ctx: PhaseContext) -> None:
         robot_s = 0.0
     else:
         s.machine.fire("sweep")
+        # Key the sweep's simulator noise here: a resumed session reaches this point
+        # after other motions (the resume retract) than an uninterrupted one.
+        cell.begin_step((s.seed, SWEEP_STEP_KEY, 0))
         mesh = s.world.object_mesh
         verts = cell.base_to_object.apply(np.asarray(mesh.vertices))
         pts, robot_s, skipped = acquire_cloud(s.executor, verts.min(axis=0), verts.max(axis=0),
