@@ -265,6 +265,7 @@ class SimArm:
         self._last_plan_u: np.ndarray | None = None
         self._last_plan_du: np.ndarray | None = None
         self._move_target: Pose | None = None
+        self._motion_started_us = world.now_us
         self._protective_since_us: int | None = None
         self._estop = False
         self._connected = True
@@ -455,6 +456,7 @@ class SimArm:
             self._motion._finish(MotionState.STOPPED)
         self._path, self._law, self._u, self._du = path, law, float(law.u0), 0.0
         self._motion = motion
+        self._motion_started_us = self._world.now_us
         self._regulator = None
         self._seek_threshold_n = None
         self._move_target = None
@@ -477,6 +479,9 @@ class SimArm:
         return float(np.linalg.norm(recent.mean(axis=0)))
 
     # ------------------------------------------------------------------ world hooks (simulator internals)
+    def _sim_motion_started_after(self, t_us: int) -> bool:
+        return self._motion is not None and self._motion_started_us > t_us
+
     def _sim_tcp_pose(self) -> Pose:
         return self._path.pose(self._u)
 

@@ -348,6 +348,8 @@ class SimWorld:
         self.contact: Contact | None = None
         self.presses: list[Press] = []
         self.trip: Trip | None = None
+        self._latched_force_n = 0.0
+        self._latched_us = 0
         self._obj_bounds = np.asarray(obj.mesh.bounds, dtype=float) if obj is not None else None
         # Clearance bookkeeping: the tip is free anywhere within _free_radius of _free_centre.
         self._free_centre: np.ndarray | None = None
@@ -480,7 +482,11 @@ class SimWorld:
         self._commit(dry, cut)
         if trip is not None and self.trip is None:
             self.trip = _trip_truncated(trip, self.guard)
-        if trip is not None:
+            self._latched_force_n = max(float(trip.value) if trip.kind == "force" else 0.0,
+                                        float(np.max(samples.fmag[:cut])) if samples.fmag is not None else 0.0)
+            self._latched_us = self.now_us
+            self.arm._sim_halt(self.now_us, "tripped")
+        elif trip is not None and self._halts_recovery(trip, samples, cut):
             self.arm._sim_halt(self.now_us, "tripped")
         elif event == "ur_force":
             self.arm._sim_protective_stop(self.now_us, f"UR force limit: |F| {dry.force_mag_n[cut - 1]:.0f} N")
@@ -553,6 +559,20 @@ class SimWorld:
         if self._screen_noiseless or self.faults._sim_frozen_possible():
             return False
         return True
+
+    def _halts_recovery(self, trip: Trip, samples, cut: int) -> bool:
+        """While a trip is latched, the controller unloads and retracts: a motion commanded
+        after the trip is stopped again only by a new kind of crossing or a force rising 10 %
+        beyond the level that tripped (the UR's own force limit still applies)."""
+        if self.trip is None:
+            return True
+        if not self.arm._sim_motion_started_after(self._latched_us):
+            return True
+        force_kinds = ("force", "force_rate", "lateral_force", "torque")
+        if trip.kind in force_kinds and self.trip.kind in force_kinds:
+            fmax = float(np.max(samples.fmag[:cut])) if samples.fmag is not None and cut else 0.0
+            return fmax > 1.1 * max(self._latched_force_n, self.limits.max_force_n)
+        return trip.kind != self.trip.kind
 
     def _rotations(self, plan: ArmPlan, n: int) -> np.ndarray:
         return plan.rotation if plan.rotation.ndim == 2 else plan.rotation[:n]

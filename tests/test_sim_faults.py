@@ -58,6 +58,12 @@ def test_force_limit_trip_overshoot_is_physical_and_small():
     assert 0.0 < overshoot_n < 2.0
     # Above the hysteresis level the guard refuses to re-arm.
     assert not cell.arm.rearm()
+    # Unloading along the normal is not stopped again by the same, still-latched crossing.
+    pose = cell.arm.status().tcp_pose
+    from elastoprobe.controller.geometry import Pose
+    assert wait(cell, cell.arm.move_linear(Pose(pose.position_mm + n * 20.0, pose.rotation), 10.0, 500.0)) \
+        == MotionState.DONE
+    assert cell.world.contact is None and cell.arm.rearm()
 
 
 def test_stalled_stream_is_missing_data_and_trips_stale():
