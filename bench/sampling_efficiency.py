@@ -337,7 +337,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="looser error targets also reported (probes_to_error), comma-separated")
     ap.add_argument("--budgets", default=",".join(map(str, DEFAULT_BUDGETS)),
                     help="survey contacts per rung, increasing (comma-separated)")
-    ap.add_argument("--densify-start", type=int, default=16, help="neural-gas units before densifying")
+    ap.add_argument("--densify-start", type=int, default=32, help="neural-gas units before densifying")
     ap.add_argument("--densify-per-round", type=int, default=None, help="default: the plan's points_per_round")
     ap.add_argument("--cloud-points", type=int, default=60_000)
     ap.add_argument("--eval-points", type=int, default=12_000)

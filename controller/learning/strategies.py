@@ -57,22 +57,31 @@ class SurveySurface:
         return int(self.points_mm.shape[0])
 
 
-def seen_from_above(points_mm: np.ndarray, normals: np.ndarray, cell_mm: float = 3.0,
+def seen_from_above(points_mm: np.ndarray, normals: np.ndarray, cell_mm: float | None = None,
                     cover_tol_mm: float = 3.0) -> np.ndarray:
     """(P,) True for points a scanner sweeping from above can see.
 
     Drops downward-facing points (n_z < 0) and upward-facing points covered by other
-    surface (a point whose xy cell holds surface more than ``cover_tol_mm`` higher, e.g.
-    the pillow's top under the box). Walls (n_z ~ 0) are kept: the tilted scanner sees them.
+    surface: a point is covered when its xy cell or one of the 8 around it (cells of
+    ``cell_mm``, so a sparse cloud still has a covering point nearby) holds surface more
+    than ``cover_tol_mm`` higher, e.g. the pillow's top under the box. Walls (n_z ~ 0) are
+    kept: the tilted scanner sees them. Default ``cell_mm``: 3 median point spacings.
     """
     p = np.asarray(points_mm, dtype=float)
     nz = np.asarray(normals, dtype=float)[:, 2]
+    if cell_mm is None:
+        sub = p[np.random.default_rng(0).permutation(p.shape[0])[:5000]]
+        cell_mm = 3.0 * float(np.median(cKDTree(p).query(sub, k=2)[0][:, 1]))
     cells = np.floor(p[:, :2] / cell_mm).astype(np.int64)
-    _, inv = np.unique(cells, axis=0, return_inverse=True)
-    inv = inv.reshape(-1)
-    top = np.full(inv.max() + 1, -np.inf)
-    np.maximum.at(top, inv, p[:, 2])
-    covered = (nz > 0.3) & (p[:, 2] < top[inv] - cover_tol_mm)
+    cells -= cells.min(axis=0) - 1                     # a free border for the 3x3 neighbourhood
+    shape = tuple(cells.max(axis=0) + 2)
+    top = np.full(shape, -np.inf)
+    np.maximum.at(top, (cells[:, 0], cells[:, 1]), p[:, 2])
+    around = top.copy()
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            around[1:-1, 1:-1] = np.maximum(around[1:-1, 1:-1], top[1 + di:shape[0] - 1 + di, 1 + dj:shape[1] - 1 + dj])
+    covered = (nz > 0.3) & (p[:, 2] < around[cells[:, 0], cells[:, 1]] - cover_tol_mm)
     return (nz >= 0.0) & ~covered
 
 
@@ -181,10 +190,15 @@ def random_targets(surface: SurveySurface, rules: tg.TargetRules, budget: int, s
     (the cloud is area-uniform, so a uniform draw of its points is uniform in area)."""
     idx = np.flatnonzero(surface.reachable)
     order = np.random.default_rng([seed, 41]).permutation(idx)
-    # Enough candidates for the rules to drop some, without testing the whole cloud.
-    cand = surface.points_mm[order[: min(order.size, 3 * budget + 20)]]
-    found = tg.make_targets(cand, surface.points_mm, surface.normals, surface.curvature, rules, reference_dir)
-    return _targets_prefix(found, budget)
+    # Enough candidates for the rules to drop some, without testing the whole cloud: draw
+    # more (the same prefix, longer) until the budget is met.
+    n_cand = 2 * budget + 20
+    while True:
+        cand = surface.points_mm[order[: min(order.size, n_cand)]]
+        found = tg.make_targets(cand, surface.points_mm, surface.normals, surface.curvature, rules, reference_dir)
+        if len(found) >= budget or n_cand >= order.size:
+            return _targets_prefix(found, budget)
+        n_cand *= 2
 
 
 def neural_gas_targets(surface: SurveySurface, rules: tg.TargetRules, n_units: int, seed: int = 0,
