@@ -13,7 +13,7 @@ Set-ups (docs/calibration.md):
   tcp: touch-offs whose approach leans up to ~45 deg from the probe axis, from all
   sides; scanner: profiles with the laser plane 8..16 mm off the sphere's centre,
   the tool tilted up to ~30 deg at headings all round.
-- object: raster sweeps of the scanner over the object (controller.acquire), mapped
+- object: raster sweeps of the scanner over the object along both base axes, mapped
   with the calibrated scanner mount, then mesh-to-cloud registration.
 """
 from __future__ import annotations
@@ -188,5 +188,63 @@ def collect_sphere_scans(driver: CellDriver, centre_mm: np.ndarray, sphere_radiu
         scans, poses = driver.scan_burst(profiles_per_pose)
         for sc, p6 in zip(scans, poses):
             out.profiles.append(SphereProfile(Pose.from_list(p6), np.column_stack([sc.x_mm, sc.z_mm])))
+    out.robot_time_s = driver.cell.clock.now_s() - t0
+    return out
+
+
+# ----------------------------------------------------------------------------------- object
+def sweep_lines_both_axes(lo_mm: np.ndarray, hi_mm: np.ndarray, tcp_z_mm: float, strip_mm: float,
+                          margin_mm: float = 40.0) -> list[tuple[Pose, Pose]]:
+    """Raster lines over a base-frame box: along y (laser plane x-z) and along x (laser plane y-z),
+    both headings each. One axis alone samples the walls facing along the travel only at the profile
+    spacing: the walls parallel to the laser plane are never hit, so the object's position along
+    the travel would be known only to about that spacing."""
+    from elastoprobe.controller.geometry import probe_tcp_pose
+
+    lo, hi = np.asarray(lo_mm, float), np.asarray(hi_mm, float)
+    up = np.array([0.0, 0.0, 1.0])
+    lines = []
+    for along, across in ((1, 0), (0, 1)):
+        for sign in (1.0, -1.0):
+            t = np.zeros(3)
+            t[across] = sign
+            steps = np.arange(lo[across] - margin_mm, hi[across] + margin_mm + 1e-9, strip_mm)
+            for i, s in enumerate(steps if sign > 0 else steps[::-1]):
+                a, b = np.zeros(3), np.zeros(3)
+                a[across] = b[across] = s
+                a[along], b[along] = lo[along] - margin_mm, hi[along] + margin_mm
+                if i % 2:
+                    a, b = b, a
+                a[2] = b[2] = tcp_z_mm
+                lines.append((probe_tcp_pose(a, up, t, 90.0), probe_tcp_pose(b, up, t, 90.0)))
+    return lines
+
+
+@dataclass
+class ObjectCloud(Collected):
+    points_base_mm: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+
+def sweep_object(driver: CellDriver, lo_mm: np.ndarray, hi_mm: np.ndarray, tcp_to_scanner: Pose,
+                 spacing_mm: float = 3.0, height_above_mm: float = 40.0, strip_mm: float = 120.0) -> ObjectCloud:
+    """Scan the object's bounding box (base frame) in both raster directions; points mapped with
+    ``tcp_to_scanner`` (in the frame of the TCP the arm reports). Refused lines are skipped."""
+    from elastoprobe.controller.acquire import scan_points_base
+
+    out = ObjectCloud()
+    t0 = driver.cell.clock.now_s()
+    speed = spacing_mm * driver.cell.scanner.rate_hz
+    pts = []
+    for start, end in sweep_lines_both_axes(lo_mm, hi_mm, float(hi_mm[2]) + height_above_mm, strip_mm):
+        try:
+            scans, poses = driver.ex.scan_while_moving(start, end, speed)
+        except MotionRefused as exc:
+            out.skipped.append(f"line {np.round(start.position_mm, 0).tolist()} -> "
+                               f"{np.round(end.position_mm, 0).tolist()}: {exc}")
+            continue
+        if scans:
+            xz = np.stack([np.stack([s.x_mm, s.z_mm], axis=1) for s in scans])
+            pts.append(scan_points_base(xz, poses, tcp_to_scanner))
+    out.points_base_mm = np.vstack(pts) if pts else np.zeros((0, 3))
     out.robot_time_s = driver.cell.clock.now_s() - t0
     return out

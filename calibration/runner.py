@@ -24,7 +24,7 @@ from .common import CalibrationError
 from .driver import CellDriver, build_validator, probe_settings
 from .ft_payload import PayloadFit, solve_payload
 from .object_registration import ObjectFit, register_object
-from .procedures import collect_ft, collect_sphere_scans, collect_touches
+from .procedures import collect_ft, collect_sphere_scans, collect_touches, sweep_object
 from .scanner_sphere import ScannerFit, solve_scanner_sphere
 from .tcp_pivot import TipFit, solve_sphere_touches
 
@@ -96,39 +96,20 @@ def calibrate_scanner(driver: CellDriver, cell_spec, seed: int = 0) -> Section: 
                                        "robot_time_s": data.robot_time_s}, fit.data_sha256, fit)
 
 
-class _Remounted:
-    """The cell as the controller sees it, with a calibrated scanner mount (everything else delegated)."""
-
-    def __init__(self, cell: Cell, tcp_to_scanner: Pose) -> None:
-        self._cell = cell
-        self.tcp_to_scanner = tcp_to_scanner
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._cell, name)
-
-
 def calibrate_object(driver: CellDriver, cell_spec, mesh, tcp_to_scanner: Pose,  # noqa: ANN001
                      spacing_mm: float = 3.0, height_above_mm: float = 40.0) -> Section:
-    """Sweep the object with the scanner (mapped through ``tcp_to_scanner``, in the frame of the
-    TCP the arm reports) and register ``mesh`` (object frame) onto the cloud."""
-    from elastoprobe.controller.acquire import acquire_cloud
-
-    cell = driver.cell
-    nominal = cell.base_to_object
+    """Sweep the object with the scanner in both raster directions (mapped through
+    ``tcp_to_scanner``, in the frame of the TCP the arm reports) and register ``mesh``
+    (object frame) onto the cloud."""
+    nominal = driver.cell.base_to_object
     mesh_base = mesh.copy()
     mesh_base.apply_transform(nominal.matrix())
     lo, hi = mesh_base.bounds
-    driver.ex.cell = _Remounted(cell, tcp_to_scanner)        # type: ignore[assignment]
-    try:
-        t0 = cell.clock.now_s()
-        obj_pts, _, skipped = acquire_cloud(driver.ex, lo, hi, spacing_mm, height_above_mm)
-        robot_s = cell.clock.now_s() - t0
-    finally:
-        driver.ex.cell = cell
-    fit: ObjectFit = register_object(mesh, nominal.apply(obj_pts), nominal)
+    data = sweep_object(driver, lo, hi, tcp_to_scanner, spacing_mm, height_above_mm)
+    fit: ObjectFit = register_object(mesh, data.points_base_mm, nominal)
     result = {"base_to_object": pose_list(fit.base_to_object), "correction": pose_list(fit.correction)}
-    return Section("object", result, {"icp": fit.report.to_dict(), "skipped": skipped, "robot_time_s": robot_s},
-                   fit.data_sha256, fit)
+    return Section("object", result, {"icp": fit.report.to_dict(), "skipped": data.skipped,
+                                      "robot_time_s": data.robot_time_s}, fit.data_sha256, fit)
 
 
 # ------------------------------------------------------------------------------ simulated set-up
