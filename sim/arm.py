@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from elastoprobe.controller.devices import ArmStatus, DeviceIdentity, MotionState, Trip
-from elastoprobe.controller.errors import DeviceError, MotionRefused
+from elastoprobe.controller.errors import MotionRefused
 from elastoprobe.controller.geometry import Pose, matrix_to_rotvec, rotvec_to_matrix
 from elastoprobe.controller.kinematics import ArmModel, forward, inverse, linear_path_joints
 
@@ -333,7 +333,6 @@ class SimArm:
         accel = self._settings.seek_accel_mm_s2
         now = self._world.now_us
         total_us = int(math.ceil(trapezoid_total_s(max_distance_mm, speed_mm_s, accel) * US_PER_S))
-        self._seek_threshold_n = float(contact_force_n)
         motion = self._start(SimMotion("seek_contact"), path,
                              _Law("trapezoid", now, 0.0, float(max_distance_mm), rate=speed_mm_s, accel=accel,
                                   end_us=now + total_us))
@@ -351,10 +350,8 @@ class SimArm:
         path = self._line_path(e, lo, hi)
         now = self._world.now_us
         motion = self._start(SimMotion("regulate_force"), path, _Law("hold", now, 0.0))
-        period = self._settings.force_loop_period_us
         self._regulator = _Regulator(e, float(target_force_n), float(rate_n_s), self._measured_force_n(), now,
                                      next_update_us=now, last_u=0.0)
-        del period
         return motion
 
     def stop(self) -> None:

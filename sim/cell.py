@@ -16,7 +16,6 @@ enables miscalibration, or after an "object moved" fault).
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
