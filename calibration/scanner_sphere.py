@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from elastoprobe.controller.geometry import Pose, matrix_to_rotvec, rotvec_to_matrix
+from elastoprobe.controller.geometry import Pose, rotvec_to_matrix
 
 from .common import (CalibrationError, FitReport, data_sha256, residual_stats, rotation_spread_deg,
                      scaled_condition_number)
