@@ -3,7 +3,8 @@
 Prints ONE JSON object. The cloud is 1,000,000 points sampled (seed 0) on the synthetic
 box-on-pillow surface, plain xyz features (geometry awareness off). Every figure is
 measured in this run on the same points:
-  ours_*              train_neural_gas (minibatch, top-K neighbourhood, Lloyd finish)
+  ours_*              train_neural_gas (minibatch, top-K neighbourhood, Lloyd finish), torch on
+                      2 threads; ours_1thread_* the same on one thread (same units, same qe)
   reference_*         exact online NG (reference_online_ng), timed on a prefix of the same
                       sample order and scaled by its per-sample cost to ours' sample count
   kmeans_*            scikit-learn KMeans (k-means++, one init, Lloyd)
@@ -37,13 +38,12 @@ def _finite(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(x) else round(float(x), 4)
 
 
-def run_ours(points: np.ndarray, n_units: int) -> dict:
+def run_ours(points: np.ndarray, n_units: int, threads: int, prefix: str) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
-    result = train_neural_gas(points, n_units, N_STEPS, BATCH, seed=0, lloyd_iters=LLOYD_ITERS)
+    result = train_neural_gas(points, n_units, N_STEPS, BATCH, seed=0, lloyd_iters=LLOYD_ITERS, n_threads=threads)
     # CPU seconds beside wall seconds: the machine is shared, wall time includes waiting.
-    return {"ours_s": time.perf_counter() - t0, "ours_cpu_s": time.process_time() - c0,
-            "ours_qe_mm2": result.quantization_error,
-            "ours_samples": N_STEPS * BATCH + LLOYD_ITERS * points.shape[0]}
+    return {f"{prefix}_s": time.perf_counter() - t0, f"{prefix}_cpu_s": time.process_time() - c0,
+            f"{prefix}_qe_mm2": result.quantization_error}
 
 
 def run_reference(points: np.ndarray, n_units: int, ours_samples: int) -> dict:
@@ -80,17 +80,18 @@ def main() -> None:
     parser.add_argument("--no-kmeans", action="store_true", help="skip the (slow) k-means baselines")
     args = parser.parse_args()
 
-    import torch
     from threadpoolctl import threadpool_limits
 
-    torch.set_num_threads(THREADS)
     points, _ = sample_mesh(box_on_pillow_mesh(), args.points, seed=0)
     points = points.astype(np.float32)
     row: dict = {"n_points": args.points, "n_units": args.units, "threads": THREADS, "cpu_count": os.cpu_count(),
                  "load_average_1min": os.getloadavg()[0],
                  "n_steps": N_STEPS, "batch_size": BATCH, "lloyd_iters": LLOYD_ITERS}
     with threadpool_limits(THREADS):
-        row.update(run_ours(points, args.units))
+        row.update(run_ours(points, args.units, THREADS, "ours"))
+        # One thread: its CPU seconds are the work itself, whatever else the machine runs.
+        row.update(run_ours(points, args.units, 1, "ours_1thread"))
+        row["ours_samples"] = N_STEPS * BATCH + LLOYD_ITERS * points.shape[0]
         row.update(run_reference(points, args.units, row["ours_samples"]))
         row.update(run_kmeans(points, args.units) if not args.no_kmeans else
                    {"kmeans_s": None, "kmeans_qe_mm2": None, "minibatch_kmeans_s": None,

@@ -26,7 +26,11 @@ def test_batch_one_without_cutoff_is_exactly_online_ng():
     rng = np.random.default_rng(3)
     feats = np.vstack([rng.normal(0, 1, (150, 3)), rng.normal(4, 0.5, (150, 3))])  # float64
     n_units, n_steps, seed = 12, 600, 5
-    ours = train_neural_gas(feats, n_units, n_steps, batch_size=1, seed=seed, cutoff=None)
+    import torch
+
+    threads = torch.get_num_threads()
+    ours = train_neural_gas(feats, n_units, n_steps, batch_size=1, seed=seed, cutoff=None, n_threads=1)
+    assert torch.get_num_threads() == threads  # restored
     ref = reference_online_ng(feats, initial_units(feats, n_units, seed), sample_indices(len(feats), n_steps, seed))
     assert not np.allclose(ref, initial_units(feats, n_units, seed))  # it did train
     np.testing.assert_allclose(ours.units, ref, rtol=0, atol=1e-9)
@@ -37,7 +41,7 @@ def test_batch_one_with_cutoff_is_close_to_online_ng():
     rng = np.random.default_rng(4)
     feats = rng.uniform(0, 10, (400, 2))
     n_units, n_steps, seed = 40, 800, 1
-    ours = train_neural_gas(feats, n_units, n_steps, batch_size=1, seed=seed)
+    ours = train_neural_gas(feats, n_units, n_steps, batch_size=1, seed=seed, n_threads=1)
     ref = reference_online_ng(feats, initial_units(feats, n_units, seed), sample_indices(len(feats), n_steps, seed))
     err = np.abs(ours.units - ref).max()
     assert 0 < err < 1e-2
@@ -54,9 +58,9 @@ def test_minibatch_ng_quality_on_uniform_square_near_kmeans():
     rng = np.random.default_rng(0)
     pts = rng.uniform(0, 100, (40_000, 2)).astype(np.float32)  # mm
     n_units = 64
-    ng = train_neural_gas(pts, n_units, n_steps=300, batch_size=1024, seed=0)
+    ng = train_neural_gas(pts, n_units, n_steps=300, batch_size=1024, seed=0, n_threads=1)
     random_qe = quantization_error(pts, initial_units(pts, n_units, 0))
-    km = KMeans(n_units, n_init=3, random_state=0).fit(pts)
+    km = KMeans(n_units, n_init=3, random_state=0).fit(pts)  # the better of three k-means++ runs
     km_qe = quantization_error(pts, km.cluster_centers_)
     assert ng.quantization_error < 0.7 * random_qe
     assert ng.quantization_error <= 1.03 * km_qe
@@ -108,9 +112,10 @@ def test_geometry_aware_units_gather_at_edges(box_cloud):
     def share_near_edges(units):
         return float(np.mean(edges.query(units[:, :3])[0] < band_mm))
 
-    plain = train_neural_gas(pts.astype(np.float32), 150, n_steps=120, batch_size=1024, seed=0)
+    plain = train_neural_gas(pts.astype(np.float32), 150, n_steps=120, batch_size=1024, seed=0, n_threads=1)
     feats, weights = geometry_aware_inputs(pts, normals, curv)
-    aware = train_neural_gas(feats, 150, n_steps=120, batch_size=1024, seed=0, sample_weights=weights)
+    aware = train_neural_gas(feats, 150, n_steps=120, batch_size=1024, seed=0,
+                             sample_weights=weights, n_threads=1)
     plain_share, aware_share = share_near_edges(plain.units), share_near_edges(aware.units)
     # Plain NG follows density: about the band's share of the area. Geometry-aware: clearly more.
     assert plain_share < 1.6 * area_share

@@ -100,11 +100,26 @@ def train_neural_gas(features: np.ndarray, n_units: int, n_steps: int, batch_siz
     step s at fraction s / (n_steps - 1). ``cutoff=None`` keeps every unit in the
     neighbourhood (exact NG). ``lloyd_iters`` full passes at lam -> 0 and eps = 1
     finish (each unit to the mean of its points; the limit of the schedule).
+    ``n_threads`` sets torch's intra-op threads for this call only (restored after):
+    on a busy machine one thread is often faster than two for small batches.
     """
     import torch
 
+    threads_before = torch.get_num_threads()
     if n_threads is not None:
         torch.set_num_threads(n_threads)
+    try:
+        return _train(features, n_units, n_steps, batch_size, seed, schedule, sample_weights, init_units, cutoff,
+                      lloyd_iters, history_points, history_every)
+    finally:
+        torch.set_num_threads(threads_before)
+
+
+def _train(features: np.ndarray, n_units: int, n_steps: int, batch_size: int, seed: int, schedule: Schedule,
+           sample_weights: np.ndarray | None, init_units: np.ndarray | None, cutoff: float | None,
+           lloyd_iters: int, history_points: int, history_every: int) -> NeuralGasResult:
+    import torch
+
     x_all = torch.from_numpy(np.ascontiguousarray(features))
     n_points, dim = x_all.shape
     if not 1 <= n_units <= n_points:
