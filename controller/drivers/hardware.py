@@ -57,7 +57,7 @@ import sys
 import threading
 import time
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -142,6 +142,28 @@ class LatencyStats:
         a = np.asarray(self.samples_s) * 1e3
         return {"trips": int(a.size), "p50_ms": float(np.percentile(a, 50)), "p99_ms": float(np.percentile(a, 99)),
                 "max_ms": float(a.max())}
+
+
+class StopFirstGuard(SafetyGuard):
+    """SafetyGuard whose trips carry their raw F/T history only once the stop has gone out.
+
+    ``SafetyGuard`` snapshots the last seconds of raw data into every Trip as it detects it;
+    with one-sample blocks at 1 kHz that is a concatenation of thousands of arrays (over a
+    millisecond) standing between the crossing and the stop. The check itself is unchanged
+    (``check_block`` is SafetyGuard's); :meth:`attach_raw` adds the history after the stop.
+    """
+
+    def _trip(self, kind: str, t_s: float, value: float, limit: float, message: str) -> Trip:
+        trip = Trip(kind=kind, t_s=t_s, value=value, limit=limit, message=message, raw=None)
+        if self.tripped is None:
+            self.tripped = trip
+        return trip
+
+    def attach_raw(self, trip: Trip) -> Trip:
+        full = replace(trip, raw=self.raw_history())
+        if self.tripped is trip:
+            self.tripped = full
+        return full
 
 
 class DeviceTimebase:
@@ -232,6 +254,10 @@ class SafetyLoop:
         # Act first, then report: the stop goes out before anything else happens.
         if trip is not None:
             self.on_trip(trip, arrival)
+            attach = getattr(self.guard, "attach_raw", None)
+            if attach is not None and trip.raw is None:
+                with self.lock:
+                    attach(trip)
         elif contact_t is not None:
             self.contact_threshold_n = None
             self.on_contact(contact_t, arrival)
@@ -334,7 +360,7 @@ class _HardwareServer:
         self.stop_event = threading.Event()
         self.ft = _NotifyingNetFT(cfg.ft_host, cfg.rdt_port, cfg.calinfo_port, rate_hz=cfg.ft_rate_hz)
         self.link = URLink(cfg.robot_host, cfg.link).start()
-        self.guard = SafetyGuard(cfg.limits, np.asarray(cfg.probe_axis_sensor, float), rate_hz=cfg.ft_rate_hz)
+        self.guard = StopFirstGuard(cfg.limits, np.asarray(cfg.probe_axis_sensor, float), rate_hz=cfg.ft_rate_hz)
         self.gate = threading.Lock()          # orders speedL (control) against stops (safety)
         self.motion: _Motion | None = None
         self.motions: collections.OrderedDict[int, _Motion] = collections.OrderedDict()
@@ -980,4 +1006,4 @@ class HardwareFT:
 
 
 __all__ = ["HardwareConfig", "HardwareProcess", "HardwareArm", "HardwareFT", "HardwareMotion", "RegulatorSettings",
-           "SafetyLoop", "LatencyStats", "DeviceTimebase", "Clock", "RealClock"]
+           "SafetyLoop", "LatencyStats", "DeviceTimebase", "StopFirstGuard", "Clock", "RealClock"]
