@@ -18,7 +18,6 @@ from scipy.spatial import cKDTree
 from ..errors import InputError
 from ..geometry import Pose, rotvec_to_matrix
 
-MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off", ".glb", ".gltf")
 _PCA_CHUNK = 131_072  # neighbourhoods per chunk: bounds memory at ~chunk*k*3 doubles
 
 
