@@ -630,7 +630,11 @@ class _HardwareServer:
         return m.state.value, float(min(max(m.progress, 0.0), 1.0)), m.note
 
     def op_trip(self) -> Trip | None:
-        return self.guard.tripped
+        with self.safety.lock:
+            trip = self.guard.tripped
+            if trip is not None and trip.raw is None:      # asked between the stop and the snapshot
+                trip = self.guard.attach_raw(trip)
+            return trip
 
     def op_rearm(self) -> bool:
         with self.safety.lock:
