@@ -34,6 +34,20 @@ SWEEP_STEP_KEY = 2**32 - 2
 CHARACTERIZE = "regions"
 
 
+def canonical(values: np.ndarray, decimals: int) -> np.ndarray:
+    """Phase outputs rounded to a fixed grid before they are committed and used.
+
+    Linear algebra on the same numbers can differ in the last bits between processes
+    (SIMD paths depend on memory alignment); a resumed session must plan from exactly
+    the numbers an uninterrupted one used, so outputs are rounded far below any
+    physical meaning (1 nm, 1e-9 of a unit vector) and everything downstream reads the
+    rounded, committed values.
+    """
+    out = np.round(np.asarray(values, dtype=np.float64), decimals)
+    out[out == 0.0] = 0.0      # no negative zeros: their bytes differ from +0
+    return out
+
+
 def _done_steps(j: Any, phases: tuple[str, ...]) -> list[Any]:
     return [r for r in j.steps(statuses=["done"]) if r.phase in phases]
 
@@ -196,12 +210,17 @@ def phase_cloud(ctx: PhaseContext) -> None:
     obj_pts, plane = remove_table_below(pts, seed=s.seed)
     if normals is None or len(normals) != len(obj_pts):
         normals = orient_outward_from_above(obj_pts, cl.estimate_normals(obj_pts, k=16))
-    ctx.cloud_mm, ctx.cloud_normals = obj_pts, normals
+    normals = canonical(normals, 6)
     j.commit_phase("cloud", 0, {"n_points": int(len(obj_pts)), "cloud_sha256": cl.cloud_hash(obj_pts),
-                                "table_plane": {"normal": np.asarray(plane[0]).tolist(), "offset_mm": float(plane[1])},
-                                "robot_s": robot_s},
+                                "table_plane": {"normal": canonical(plane[0], 9).tolist(),
+                                                "offset_mm": float(canonical(np.array([plane[1]]), 6)[0])},
+                                "robot_s": round(float(robot_s), 3)},
                    {"points_mm": obj_pts.astype(np.float32), "normals": normals.astype(np.float32)})
     s._log("phase", name="cloud", n_points=int(len(obj_pts)))
+    # Continue from the committed (float32) cloud, exactly as a resumed session will.
+    rec = j.phase("cloud", 0)
+    assert rec is not None
+    ctx.cloud_mm, ctx.cloud_normals = rec.arrays["points_mm"].astype(float), rec.arrays["normals"].astype(float)
 
 
 def remove_table_below(points_mm: np.ndarray, seed: int, max_tries: int = 4) -> tuple[np.ndarray, tuple[np.ndarray, float]]:
@@ -280,6 +299,7 @@ def phase_sampling(ctx: PhaseContext) -> None:
             pts_t = np.vstack([pts_t, extra.point_mm])
             nrm_t = np.vstack([nrm_t, n])
             t_dirs = np.vstack([t_dirs, scan_direction(n, np.array(plan.sampling.reference_direction))])
+        pts_t, nrm_t, t_dirs = canonical(pts_t, 6), canonical(nrm_t, 9), canonical(t_dirs, 9)
         keep = _reachable(ctx, pts_t, nrm_t, t_dirs)
         pts_t, nrm_t, t_dirs = pts_t[keep], nrm_t[keep], t_dirs[keep]
         edge = np.zeros(len(pts_t), bool)
@@ -296,6 +316,9 @@ def phase_sampling(ctx: PhaseContext) -> None:
         rec = j.phase("sampling", 0)
         assert rec is not None
     ctx.targets.update(_targets_from_arrays(rec.arrays))
+    # Targets moved off a sharp edge are not characterized (their normal is less sure).
+    flags = rec.arrays.get("edge_flag", np.zeros(len(rec.arrays["target_index"]), np.int8))
+    ctx.edge_flag.update({int(i): bool(f) for i, f in zip(rec.arrays["target_index"], flags)})
 
 
 def _reachable(ctx: PhaseContext, pts: np.ndarray, nrm: np.ndarray, t_dirs: np.ndarray) -> np.ndarray:
@@ -498,11 +521,11 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
                             noise_mm=measured_noise_mm(ctx), budget=dp.points_per_round,
                             min_spacing_mm=dp.min_spacing_mm, resolution_mm=dp.resolution_mm,
                             surface_points_mm=ctx.cloud_mm)
-        new_pts = np.asarray(rnd.proposed_mm, dtype=float).reshape(-1, 3)
-        new_nrm = _cloud_normals_at(ctx, new_pts)
+        new_pts = canonical(np.asarray(rnd.proposed_mm, dtype=float).reshape(-1, 3), 6)
+        new_nrm = canonical(_cloud_normals_at(ctx, new_pts), 9)
         first = max(ctx.targets) + 1 if ctx.targets else 0
-        t_dirs = np.array([scan_direction(n, np.array(plan.sampling.reference_direction)) for n in new_nrm]) \
-            if len(new_pts) else np.zeros((0, 3))
+        t_dirs = canonical(np.array([scan_direction(n, np.array(plan.sampling.reference_direction))
+                                     for n in new_nrm]), 9) if len(new_pts) else np.zeros((0, 3))
         keep = _reachable(ctx, new_pts, new_nrm, t_dirs) if len(new_pts) else np.zeros(0, bool)
         new_pts, new_nrm, t_dirs = new_pts[keep], new_nrm[keep], t_dirs[keep]
         idx = np.arange(first, first + len(new_pts))

@@ -15,7 +15,7 @@ import numpy as np
 
 from .devices import Cell, Motion, MotionState, Scan, Trip, WrenchBlock
 from .errors import DeviceError, DeviceTimeout, MotionRefused
-from .geometry import Pose, probe_tcp_pose
+from .geometry import Pose, probe_tcp_pose, rotvec_to_matrix
 from .machine import SessionMachine
 
 
@@ -146,10 +146,14 @@ class ProbeExecutor:
     # ------------------------------------------------------------------ public
     def probe(self, target: ProbeTarget, angle_deg: float, levels: list[ForceLevel],
               on_step_done: Callable[[StepData], None],
-              before_level: Callable[[ForceLevel], None] = lambda level: None) -> None:
+              before_level: Callable[[ForceLevel], None] = lambda level: None,
+              at_standoff: Callable[[], None] = lambda: None) -> None:
         """Probe one target at one angle through ``levels`` (increasing forces).
 
-        Calls ``on_step_done`` once per completed level; raises ProbeFault on failure
+        Calls ``at_standoff`` once the arm rests at the standoff (before the tare: what
+        follows depends only on the target, not on where the arm came from — the
+        session keys the simulator's noise there), ``before_level`` before each force
+        ramp and ``on_step_done`` once per completed level; raises ProbeFault on failure
         (the arm is stopped; the caller unloads/retracts via :meth:`safe_retract`).
         """
         s = self.s
@@ -162,6 +166,7 @@ class ProbeExecutor:
 
         self.machine.fire("go_to_target")
         self._travel_to(standoff)
+        at_standoff()
         self.machine.fire("at_standoff")
         self._tare()
         ref_scans, ref_poses = self._scan_burst(s.reference_scans)
@@ -197,7 +202,7 @@ class ProbeExecutor:
                 step_id=level.step_id, force_target_n=level.force_n, angle_deg=angle_deg,
                 scans_xz_mm=_stack_scans(scans), scan_t_s=np.array([sc.exposure_t_s for sc in scans]),
                 scan_pose=poses, scan_force_n=forces, reference_xz_mm=_stack_scans(ref_scans),
-                reference_pose=ref_poses, robot_time_s=self.cell.clock.now_s() - step_start_s))
+                reference_pose=ref_poses, robot_time_s=round(self.cell.clock.now_s() - step_start_s, 6)))
         self.machine.fire("unload")
         self._unload_and_retract(n)
 
@@ -251,6 +256,8 @@ class ProbeExecutor:
         If the direct route is refused (e.g. the wrist would swing the scanner into a
         keep-out), go by the park pose, where the arm started the session.
         """
+        self._sync_validator()
+        self._unwind_wrist()
         try:
             self._travel_legs(self._route(self.cell.arm.status().tcp_pose, standoff))
         except MotionRefused:
@@ -258,6 +265,51 @@ class ProbeExecutor:
                 raise
             here = self.cell.arm.status().tcp_pose
             self._travel_legs(self._route(here, self.park_pose) + self._route(self.park_pose, standoff))
+
+    def _sync_validator(self) -> None:
+        """Plan from the joints the arm really has: moves made without validation (a
+        retract after a fault) or cut short by a stop leave the planner's seed stale."""
+        if hasattr(self.validator, "seed_joints"):
+            self.validator.seed_joints = np.asarray(self.cell.arm.status().joints_rad, dtype=float)  # type: ignore[attr-defined]
+
+    def _unwind_wrist(self, max_wrist_rad: float = np.pi, leg_rad: float = np.radians(120.0)) -> None:
+        """Turn the last wrist joint back by a full turn at travel height when it has wound
+        beyond half a turn.
+
+        Straight moves keep the joints continuous, so the last joint winds up over
+        many contacts by whole turns that depend on the arm's history; wound up, a
+        route may be refused for joint limits that an unwound arm would take. A resumed
+        session starts from another history than an uninterrupted one, so the wrist is
+        brought back into (-180, 180] deg before every travel: routes then depend on
+        where the arm is, not on how it got there. Three 120 deg turns about the tool
+        axis (each a valid straight move); skipped if refused.
+        """
+        arm = self.cell.arm
+        q = np.asarray(arm.status().joints_rad, dtype=float)
+        if abs(q[5]) <= max_wrist_rad or not hasattr(self.validator, "seed_joints"):
+            return
+        here = arm.status().tcp_pose
+        travel_z = self.object_top_z_mm + self.s.clearance_mm
+        top = Pose(np.array([*here.position_mm[:2], max(travel_z, here.position_mm[2])]), here.rotation)
+        saved = np.array(self.validator.seed_joints, dtype=float)   # type: ignore[attr-defined]
+        for sign in (-1.0, 1.0):
+            legs: list[tuple[Pose, Pose]] = [(here, top)] if top.distance_to(here)[0] > 0.05 else []
+            start = top
+            for k in (1, 2, 3):
+                turned = Pose(top.position_mm, top.rotation @ rotvec_to_matrix(np.array([0.0, 0.0, sign * k * leg_rad])))
+                legs.append((start, turned))
+                start = turned
+            try:
+                for a, b in legs:
+                    self.validator.validate_path(a, b)
+            except MotionRefused:
+                self.validator.seed_joints = saved   # type: ignore[attr-defined]
+                continue
+            end_q6 = float(self.validator.seed_joints[5])   # type: ignore[attr-defined]
+            self.validator.seed_joints = saved   # type: ignore[attr-defined]
+            if abs(end_q6) < abs(q[5]) - np.pi:
+                self._travel_legs(legs)
+                return
 
     def _route(self, here: Pose, standoff: Pose) -> list[tuple[Pose, Pose]]:
         travel_z = self.object_top_z_mm + self.s.clearance_mm
@@ -297,6 +349,7 @@ class ProbeExecutor:
     def _unload_and_retract(self, n_base: np.ndarray) -> None:
         """Unload along the normal first (backing out along -d at 10 deg would drag the tip)."""
         arm = self.cell.arm
+        self._sync_validator()
         pose = arm.status().tcp_pose
         away = Pose(pose.position_mm + n_base * (self.s.standoff_mm + 5.0), pose.rotation)
         self.validator.validate_path(pose, away, contact_allowed=True)
@@ -404,14 +457,14 @@ class ProbeExecutor:
         if len(t) == 0:
             pose = self.cell.arm.status().tcp_pose
             out[:] = pose.to_list()
-            return out
+            return _round_pose(out)
         pos = np.asarray(self._rec.poses)
         for i, ts in enumerate(times_s):
             for axis in range(3):
                 out[i, axis] = np.interp(ts, t, pos[:, axis])
             j = int(np.clip(np.searchsorted(t, ts), 0, len(t) - 1))
             out[i, 3:] = matrix_to_rotvec(self._rec.rotations[j])
-        return out
+        return _round_pose(out)
 
     def _forces_at(self, times_s: list[float], window_s: float = 0.01) -> np.ndarray:
         """Mean F/T force (base frame) over a window around each exposure."""
@@ -444,3 +497,17 @@ def _stack_scans(scans: list[Scan]) -> np.ndarray:
     if not scans:
         return np.zeros((0, 0, 2), dtype=np.float32)
     return np.stack([np.stack([sc.x_mm, sc.z_mm], axis=1) for sc in scans]).astype(np.float32)
+
+
+def _round_pose(poses: np.ndarray) -> np.ndarray:
+    """Poses (N, 6: mm + rotation vector rad) rounded to 1 nm and 1 nrad.
+
+    Interpolating at absolute times leaves last-bit differences that depend on when a
+    step ran; a resumed session runs its steps at other absolute times than an
+    uninterrupted one and must store the same numbers (far below any measurement).
+    """
+    out = np.asarray(poses, dtype=float).reshape(-1, 6).copy()
+    out[:, :3] = np.round(out[:, :3], 6)
+    out[:, 3:] = np.round(out[:, 3:], 9)
+    out[out == 0.0] = 0.0
+    return out

@@ -217,7 +217,7 @@ class Session:
 
             self.cell.arm.stop()
             self._park()
-            j.set_status("failed", f"{type(exc).__name__}: {exc}")
+            j.set_status("fault", f"{type(exc).__name__}: {exc}")
             self._log("internal_error", error=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc())
             raise InternalError(f"{type(exc).__name__}: {exc} (details in {self.dir / 'log.jsonl'}; "
                                 f"the session can be resumed)") from exc
@@ -302,13 +302,20 @@ class Session:
         first = group[0].plan
         retry = max(self._retry_index(r.step_id) for r in group)
         done_before = {r.step_id for r in group if r.status == "done"}
-        cell.begin_step((self.seed, first.step_id, retry))
         self.progress.target = target.index
         t_start = cell.clock.now_s()
         step_time = 0.0
 
+        # Simulator noise (and injected faults) are keyed at the standoff, not before the
+        # travel: how long the travel took depends on where the arm came from, which a
+        # resumed session does not share with an uninterrupted one. The first level
+        # continues under the contact's key (re-keying it would schedule its faults twice).
+        def at_standoff() -> None:
+            cell.begin_step((self.seed, first.step_id, retry))
+
         def before_level(level: ForceLevel) -> None:
-            cell.begin_step((self.seed, level.step_id, retry))
+            if level.step_id != first.step_id:
+                cell.begin_step((self.seed, level.step_id, retry))
 
         def on_done(data: StepData) -> None:
             nonlocal step_time
@@ -329,7 +336,7 @@ class Session:
 
         levels = [ForceLevel(r.step_id, r.plan.force_n) for r in group]
         try:
-            self.executor.probe(target, first.angle_deg, levels, on_done, before_level)
+            self.executor.probe(target, first.angle_deg, levels, on_done, before_level, at_standoff)
         except MotionRefused as exc:
             self._handle_fault(ProbeFault("motion_refused", str(exc)), group)
         except ProbeFault as fault:
