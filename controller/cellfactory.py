@@ -34,9 +34,12 @@ def build_cell(inputs: SessionInputs, seed: int, dry_run: bool = False) -> Built
     kind = inputs.cell.kind
     if kind == "simulated" or dry_run:
         return _simulated(inputs, seed)
-    raise InputError(f"cell kind {kind!r}: the real-device path (ur_rtde arm, Net F/T, serial scanner in the "
-                     f"hardware process) is not wired into sessions yet; use --dry-run to rehearse this cell",
-                     path=str(inputs.cell_path))
+    # The real drivers: ur_rtde in a supervised child, the Net F/T stream and the
+    # check-and-stop path in the hardware process, the serial scanner. A loopback cell
+    # first starts the simulated servers that speak those protocols.
+    from .drivers.real_cell import build_real_cell
+
+    return build_real_cell(inputs, seed)
 
 
 def _simulated(inputs: SessionInputs, seed: int) -> BuiltCell:

@@ -259,7 +259,28 @@ def cmd_train(args: argparse.Namespace) -> int:
     return EXIT_DONE
 
 
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from elastoprobe.calibration.runner import run_calibration
+
+    from .config import DEFAULT_CELL
+
+    cell = Path(args.cell) if args.cell else DEFAULT_CELL
+    summary = run_calibration(args.kind, cell, seed=args.seed, out_path=Path(args.out) if args.out else None)
+    print(json.dumps(summary, indent=None if args.json else 2, allow_nan=False, default=str))
+    return EXIT_DONE
+
+
+def cmd_sim(args: argparse.Namespace) -> int:
+    from elastoprobe.sim.servers.serve import main_serve
+
+    from .config import DEFAULT_CELL
+
+    return main_serve(Path(args.cell) if args.cell else DEFAULT_CELL, args.seed, run_dir=args.run_dir)
+
+
 COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
+    "calibrate": cmd_calibrate,
+    "sim": cmd_sim,
     "evaluate": cmd_evaluate,
     "predict": cmd_predict,
     "report": cmd_report,
@@ -331,6 +352,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     tr = sub.add_parser("train", help="refit the region models from the journal's measurements")
     tr.add_argument("dir", type=_existing_dir)
+
+    ca = sub.add_parser("calibrate", help="calibrate the F/T payload, probe tip, scanner mount or object pose")
+    ca.add_argument("kind", choices=["ft", "tcp", "scanner", "object"])
+    ca.add_argument("--cell", help="cell file (default: the simulated cell)")
+    ca.add_argument("--seed", type=_seed, default=0)
+    ca.add_argument("--out", help="calibration file to write (default: the cell's calibration_file)")
+    ca.add_argument("--json", action="store_true", help="one-line JSON")
+
+    sm = sub.add_parser("sim", help="the simulated cell served over the real protocols")
+    smsub = sm.add_subparsers(dest="sim_command", required=True, parser_class=_Parser)
+    sv = smsub.add_parser("serve", help="serve RTDE/dashboard/script (UR), Net F/T (UDP) and the serial scanner "
+                                        "on loopback, in real time, until SIGINT/SIGTERM")
+    sv.add_argument("--cell", help="cell file (default: config/cells/loopback.yaml's kind of cell: any cell)")
+    sv.add_argument("--seed", type=_seed, default=0)
+    sv.add_argument("--run-dir", help="write the servers' addresses (state file) here")
 
     d = sub.add_parser("diagram", help="write the state machine's Mermaid diagram")
     d.add_argument("--out", default=str(Path(__file__).resolve().parent.parent / "docs" / "state_machine.md"))
