@@ -364,7 +364,7 @@ def build_parser() -> argparse.ArgumentParser:
     smsub = sm.add_subparsers(dest="sim_command", required=True, parser_class=_Parser)
     sv = smsub.add_parser("serve", help="serve RTDE/dashboard/script (UR), Net F/T (UDP) and the serial scanner "
                                         "on loopback, in real time, until SIGINT/SIGTERM")
-    sv.add_argument("--cell", help="cell file (default: config/cells/loopback.yaml's kind of cell: any cell)")
+    sv.add_argument("--cell", help="cell file (default: the simulated cell)")
     sv.add_argument("--seed", type=_seed, default=0)
     sv.add_argument("--run-dir", help="write the servers' addresses (state file) here")
 
