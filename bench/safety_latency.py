@@ -378,7 +378,7 @@ def main(argv: list[str] | None = None) -> int:
         lb = run_loopback(args.loopback_trips, args.octet)
         out.update({"loopback_trips": len(lb["latencies_s"]), "loopback_p50_ms": _pct(lb["latencies_s"], 50),
                     "loopback_p99_ms": _pct(lb["latencies_s"], 99), "loopback_max_ms": _pct(lb["latencies_s"], 100),
-                    "loopback_block_to_stop_call_p99_ms": lb["hardware"]["p99_ms"]})
+                    "loopback_block_to_stop_acknowledged_p99_ms": lb["hardware"]["p99_ms"]})
     print(json.dumps(out, allow_nan=False))
     return 0
 

@@ -1,0 +1,53 @@
+"""The "Done when" run: `elastoprobe run config/plans/loopback.yaml --cell config/cells/loopback.yaml`
+with nothing else running — the cell starts the served world itself and the real drivers
+connect to it. Real time (about a minute), so marked slow. The cell is copied onto its own
+127.0.0.x so the test never collides with someone serving the shipped cell.
+
+Until controller/cellfactory.py routes kinds 'ur'/'loopback' to build_real_cell, the test
+routes them itself (the same two lines the factory needs)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from elastoprobe.controller import cellfactory
+from elastoprobe.controller.drivers.real_cell import build_real_cell
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _copy_configs(tmp_path: Path, host: str) -> tuple[Path, Path]:
+    cell = (ROOT / "config" / "cells" / "loopback.yaml").read_text()
+    cell = cell.replace("127.0.0.2", host).replace("file: ../objects/", f"file: {ROOT / 'config' / 'objects'}/")
+    plan = (ROOT / "config" / "plans" / "loopback.yaml").read_text()
+    plan = plan.replace("simulated_object: ../objects/", f"simulated_object: {ROOT / 'config' / 'objects'}/")
+    (tmp_path / "cell.yaml").write_text(cell)
+    (tmp_path / "plan.yaml").write_text(plan)
+    return tmp_path / "plan.yaml", tmp_path / "cell.yaml"
+
+
+@pytest.mark.slow
+@pytest.mark.loopback
+@pytest.mark.timeout(600)
+def test_loopback_plan_runs_end_to_end_on_the_real_drivers(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    original = cellfactory.build_cell
+
+    def build(inputs, seed, dry_run=False):
+        if inputs.cell.kind in ("ur", "loopback") and not dry_run:
+            return build_real_cell(inputs, seed)
+        return original(inputs, seed, dry_run)
+
+    monkeypatch.setattr(cellfactory, "build_cell", build)
+    from elastoprobe.controller.cli import main
+
+    plan, cell = _copy_configs(tmp_path, "127.0.0.191")
+    out = tmp_path / "session"
+    code = main(["run", str(plan), "--cell", str(cell), "--seed", "1", "--out", str(out), "--quiet"])
+    assert code == 0
+    events = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    kinds = [e["event"] for e in events]
+    assert "session_done" in kinds
+    assert sum(k == "step_done" for k in kinds) >= 4
+    assert (out / "report" / "index.html").exists()
