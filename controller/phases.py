@@ -8,6 +8,9 @@ together; the session runs the planned steps between them.
 """
 from __future__ import annotations
 
+import os
+import signal
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -32,6 +35,34 @@ FEATURE_HALF_WINDOW_MM = 15.0
 # from 0), below the simulator's own "outside any step" key (2**32 - 1).
 SWEEP_STEP_KEY = 2**32 - 2
 CHARACTERIZE = "regions"
+
+
+_crash_counts: dict[str, int] = {}
+
+
+def crash_point(name: str) -> None:
+    """Test hook beside the journal's: ``ELASTOPROBE_JOURNAL_CRASH_AT=name[@n][+delay_s]``
+    SIGKILLs this process the n-th time (default first) it passes ``name`` — at once, or
+    ``delay_s`` later from a timer (to land inside long work such as the report). Points:
+    ``models:before_save``, ``models:after_save``, ``models:before_commit``,
+    ``final:before_report``, ``report:begin`` (use a delay), ``final:after_report``.
+    Costs one dict lookup when unset."""
+    spec = os.environ.get("ELASTOPROBE_JOURNAL_CRASH_AT")
+    if not spec:
+        return
+    head, _, delay_text = spec.partition("+")
+    point, _, nth_text = head.partition("@")
+    if point != name:
+        return
+    _crash_counts[name] = _crash_counts.get(name, 0) + 1
+    if _crash_counts[name] != (int(nth_text) if nth_text else 1):
+        return
+    if delay_text:
+        timer = threading.Timer(float(delay_text), os.kill, (os.getpid(), signal.SIGKILL))
+        timer.daemon = True
+        timer.start()
+    else:
+        os.kill(os.getpid(), signal.SIGKILL)
 
 
 def canonical(values: np.ndarray, decimals: int) -> np.ndarray:
@@ -479,11 +510,14 @@ def phase_models(ctx: PhaseContext, round_: int) -> None:
                               epochs_per_stage=max(10, m.max_epochs // 5), seed=s.seed * 1000 + region)
             model = fit_region_model(data["force_n"], data["angle_deg"], data["depth_mm"], ctx.grid.x_mm,
                                      point_ids=data["point_ids"], config=cfg, noise_mm=noise)
+            crash_point("models:before_save")
             path = model.save(model_dir / f"region{region}.npz")
+            crash_point("models:after_save")
             digest = j.record_model(region, 0, path, {"round": round_, "n_profiles": int(len(data["force_n"]))})
             outputs["regions"][str(region)] = {"path": str(Path(path).relative_to(s.dir)), "sha256": digest,
                                                "model_hash": model.model_hash(),
                                                "n_profiles": int(len(data["force_n"]))}
+        crash_point("models:before_commit")
         j.commit_phase("models", round_, outputs)
         s._log("phase", name="models", round=round_, regions=list(outputs["regions"]))
         if s.machine.can("plan"):
@@ -594,7 +628,10 @@ def phase_final(ctx: PhaseContext) -> None:
         j.commit_phase("final", 0, {"n_regions": ctx.n_regions, "model_round": ctx.model_round,
                                     "robot_hours": j.robot_time_s()["total"] / 3600.0},
                        {"cloud_labels": cloud_labels.astype(np.int64)})
+    crash_point("final:before_report")
+    crash_point("report:begin")
     write_report(s.dir)
+    crash_point("final:after_report")
 
 
 def run_all(ctx: PhaseContext) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import os
+import sqlite3
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,7 +24,7 @@ from .config import SessionInputs, effective_motion_limits
 from .devices import Cell
 from .errors import ElastoprobeError, InputError, MotionRefused
 from .geometry import Pose
-from .journal import Journal, SessionMeta, StepPlan, StepRecord, StepResult
+from .journal import Journal, JournalError, SessionMeta, StepPlan, StepRecord, StepResult
 from .locking import CellLock
 from .machine import SessionMachine
 from .probe import ForceLevel, ProbeExecutor, ProbeFault, ProbeSettings, ProbeTarget, StepData
@@ -209,6 +210,20 @@ class Session:
             j.set_status("aborted", str(exc))
             self._log("session_aborted", reason=str(exc))
             return EXIT_FAULT
+        except (JournalError, sqlite3.OperationalError) as exc:
+            # The journal could not write (disk full, I/O error): nothing half-written
+            # survives (each write is one transaction), so stop, park and pause; the
+            # session resumes once the disk is fixed. Recording the pause may fail too.
+            self.cell.arm.stop()
+            self._park()
+            reason = f"journal write failed: {type(exc).__name__}: {exc}"
+            if self.log is not None:
+                self.log.write("session_paused", reason=reason, disk_error=True)
+            try:
+                j.set_status("paused", reason)
+            except (JournalError, sqlite3.Error):
+                pass
+            return EXIT_PAUSED
         except Exception as exc:
             # A bug or an unplanned device error: stop and park the arm first, keep the
             # journal consistent (the session stays resumable), and leave the traceback
@@ -326,6 +341,7 @@ class Session:
             attempt = j.begin_step(data.step_id)
             profile, x = phases.step_profile(self, target, data)
             result = StepResult.from_step_data(data, profile, x)
+            self._inject_disk_error(data.step_id, retry)
             j.commit_step(data.step_id, attempt, result)
             step_time += data.robot_time_s
             self._current_step = None
@@ -347,11 +363,42 @@ class Session:
                 j.add_robot_time("travel_and_contact", overhead)
             self.progress.robot_s = j.robot_time_s()["total"]
 
+    def _inject_disk_error(self, step_id: int, retry: int) -> None:
+        """Simulated cells: a ``disk_error`` fault at a step fails that step's journal write
+        (first attempt only, like every injected fault). The simulator cannot reach the
+        disk, so the controller plays it: the fault is journaled (so a resume does not
+        inject it again) and the write raises as a full disk would."""
+        if retry != 0 or (self.inputs.cell.kind != "simulated" and not self.dry_run):
+            return
+        if not any(f.kind == "disk_error" and f.step == step_id for f in self.inputs.cell.simulation.faults):
+            return
+        assert self.journal is not None and self.cell is not None
+        self.journal.record_fault("disk_error", "injected disk error: the step's write failed",
+                                  t_robot_s=self.cell.clock.now_s(), step_id=step_id, policy_action="pause")
+        self._log("fault", kind="disk_error", step=step_id, action="pause")
+        raise JournalError(f"journal: disk error while writing step {step_id} (injected by the simulated cell)")
+
+    def _wait_stopped(self, max_s: float = 2.0) -> dict[str, Any]:
+        """Let the arm come to rest after stop() (bounded), and say how it stands."""
+        assert self.cell is not None
+        arm, clock = self.cell.arm, self.cell.clock
+        status = arm.status()
+        waited = 0.0
+        while status.is_moving and waited < max_s:
+            clock.sleep_s(0.01)
+            waited += 0.01
+            self.cell.ft.read_block()
+            status = arm.status()
+        return {"is_moving": bool(status.is_moving), "tcp_speed_mm_s": float(status.tcp_speed_mm_s),
+                "protective_stop": bool(status.protective_stop), "emergency_stop": bool(status.emergency_stop),
+                "connected": bool(status.connected), "t_robot_s": float(status.t_s), "waited_s": round(waited, 3)}
+
     def _handle_fault(self, fault: ProbeFault, group: list[StepRecord]) -> None:
         """Stop first (the device already did), journal, retract, then follow the policy."""
         assert self.journal is not None and self.cell is not None
         j = self.journal
         self.cell.arm.stop()
+        arm_state = self._wait_stopped()
         open_steps = [r for r in group if j.step(r.step_id).status not in ("done", "skipped")]
         step_id = open_steps[0].step_id if open_steps else None
         if fault.kind == "operator_stop":
@@ -366,7 +413,8 @@ class Session:
         raw = fault.trip.raw if fault.trip is not None else None
         fault_id = j.record_fault(fault.kind, fault.message, t_robot_s=self.cell.clock.now_s(),
                                   step_id=step_id, policy_action=action, raw=raw)
-        self._log("fault", kind=fault.kind, message=fault.message, step=step_id, action=action)
+        self._log("fault", kind=fault.kind, message=fault.message, step=step_id, action=action,
+                  fault_id=fault_id, arm=arm_state)
         if self.machine.can("fault"):
             self.machine.fire("fault")
         self.machine.fire("recover")
