@@ -327,6 +327,11 @@ def curve_json(curve: list[Point]) -> list[dict]:
              "n_regions": p.n_regions, **p.extra} for p in curve]
 
 
+def _relative(path: Path) -> str:
+    p = path.resolve()
+    return str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else str(p)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--plan", default=str(ROOT / "config" / "plans" / "demo.yaml"))
@@ -436,8 +441,7 @@ def main(argv: list[str] | None = None) -> int:
                        "features; arm and F/T dynamics not run",
         "scored_on": "reachable surface seen from above (normal within max_tilt_deg), equal area per point, "
                      "nearest-target labels",
-        "object": str(Path(inputs.object_file()).relative_to(ROOT)) if str(inputs.object_file()).startswith(str(ROOT))
-        else str(inputs.object_file()),
+        "object": _relative(Path(inputs.object_file())),
         "plan": plan.name,
         "contacts_simulated": contacts_simulated,
         "wall_s": round(time.perf_counter() - wall0, 1),
