@@ -143,8 +143,9 @@ def test_async_move_progress_then_stop_mid_move(cell) -> None:
     assert move.is_running(mid) and 0.2 < move.fraction_done(mid) < 1.0
     link.stop_linear(5.0)
     assert wait_for(lambda: not emu.is_moving(), 2.0)
+    # The receive stream lags the arm by up to a few periods (more on a loaded machine).
+    assert wait_for(lambda: not move.is_running(link.state()), 2.0)
     end = link.state()
-    assert not move.is_running(end)
     assert 0.2 < move.fraction_done(end) < 1.0
     assert end.tcp_speed_m_s == pytest.approx(0.0, abs=1e-9)
     # What ur_rtde reports is the emulator's ground truth.
