@@ -20,7 +20,7 @@ import numpy as np
 from .geometry import scan_direction
 from .journal import StepPlan
 from .learning import profiles as prof
-from .probe import ProbeTarget, StepData, standoff_pose
+from .probe import ProbeFault, ProbeTarget, StepData, standoff_pose
 
 if TYPE_CHECKING:
     from .learning.models import RegionModel
@@ -226,14 +226,23 @@ def phase_cloud(ctx: PhaseContext) -> None:
         robot_s = 0.0
     else:
         s.machine.fire("sweep")
-        # Key the sweep's simulator noise here: a resumed session reaches this point
-        # after other motions (the resume retract) than an uninterrupted one.
-        cell.begin_step((s.seed, SWEEP_STEP_KEY, 0))
         mesh = s.world.object_mesh
         verts = cell.base_to_object.apply(np.asarray(mesh.vertices))
-        pts, robot_s, skipped = acquire_cloud(s.executor, verts.min(axis=0), verts.max(axis=0),
-                                              plan.cloud.sweep_spacing_mm, plan.cloud.sweep_height_mm,
-                                              max_points=plan.cloud.max_points, seed=s.seed)
+        attempt = 0
+        while True:
+            # Key the sweep's simulator noise here: a resumed session reaches this point
+            # after other motions (the resume retract) than an uninterrupted one.
+            cell.begin_step((s.seed, SWEEP_STEP_KEY, attempt))
+            try:
+                pts, robot_s, skipped = acquire_cloud(s.executor, verts.min(axis=0), verts.max(axis=0),
+                                                      plan.cloud.sweep_spacing_mm, plan.cloud.sweep_height_mm,
+                                                      max_points=plan.cloud.max_points, seed=s.seed)
+                break
+            except ProbeFault as fault:
+                # A trip during the sweep: stop, journal, recover, and sweep again under
+                # the plan's fault policy (a partial sweep is never used).
+                s.handle_sweep_fault(fault, attempt)
+                attempt += 1
         for why in skipped:
             s._log("sweep_line_skipped", reason=why)
         normals = None

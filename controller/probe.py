@@ -236,10 +236,10 @@ class ProbeExecutor:
     def safe_retract(self) -> None:
         """After a fault: unload along the normal if in contact, then move up to travel height."""
         arm = self.cell.arm
-        arm.stop()
         status = arm.status()
         if status.emergency_stop or not status.connected:
             return
+        arm.stop()
         pose = status.tcp_pose
         up = np.array([0.0, 0.0, 1.0])
         # Unload: straight up along +z of the base (the surface normal is not known here)

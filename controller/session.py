@@ -22,7 +22,7 @@ import numpy as np
 
 from .config import SessionInputs, effective_motion_limits
 from .devices import Cell
-from .errors import ElastoprobeError, InputError, MotionRefused
+from .errors import DeviceError, ElastoprobeError, InputError, MotionRefused
 from .geometry import Pose
 from .journal import Journal, JournalError, SessionMeta, StepPlan, StepRecord, StepResult
 from .locking import CellLock
@@ -214,7 +214,7 @@ class Session:
             # The journal could not write (disk full, I/O error): nothing half-written
             # survives (each write is one transaction), so stop, park and pause; the
             # session resumes once the disk is fixed. Recording the pause may fail too.
-            self.cell.arm.stop()
+            self._stop_arm()
             self._park()
             reason = f"journal write failed: {type(exc).__name__}: {exc}"
             if self.log is not None:
@@ -230,7 +230,7 @@ class Session:
             # in the log for the developers.
             import traceback
 
-            self.cell.arm.stop()
+            self._stop_arm()
             self._park()
             j.set_status("fault", f"{type(exc).__name__}: {exc}")
             self._log("internal_error", error=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc())
@@ -378,6 +378,15 @@ class Session:
         self._log("fault", kind="disk_error", step=step_id, action="pause")
         raise JournalError(f"journal: disk error while writing step {step_id} (injected by the simulated cell)")
 
+    def _stop_arm(self) -> None:
+        """Stop the arm; with the link down the command cannot reach it (the robot's own
+        watchdog stops it when the control link dies), which is said in the log."""
+        assert self.cell is not None
+        try:
+            self.cell.arm.stop()
+        except DeviceError as exc:
+            self._log("stop_not_sent", message=str(exc))
+
     def _wait_stopped(self, max_s: float = 2.0) -> dict[str, Any]:
         """Let the arm come to rest after stop() (bounded), and say how it stands."""
         assert self.cell is not None
@@ -397,7 +406,7 @@ class Session:
         """Stop first (the device already did), journal, retract, then follow the policy."""
         assert self.journal is not None and self.cell is not None
         j = self.journal
-        self.cell.arm.stop()
+        self._stop_arm()
         arm_state = self._wait_stopped()
         open_steps = [r for r in group if j.step(r.step_id).status not in ("done", "skipped")]
         step_id = open_steps[0].step_id if open_steps else None
@@ -432,11 +441,58 @@ class Session:
         # Back to a known place before the next contact.
         self.machine.fire("retract")
 
+    def _await_connection(self, max_s: float = 10.0) -> Any:
+        """The arm's status once it is connected again (bounded wait), else None."""
+        assert self.cell is not None
+        waited = 0.0
+        while True:
+            status = self.cell.arm.status()
+            if status.connected:
+                return status
+            if waited >= max_s:
+                self._log("connection_not_back", waited_s=waited)
+                return None
+            self.cell.clock.sleep_s(0.1)
+            waited += 0.1
+            try:
+                self.cell.ft.read_block()
+            except DeviceError:
+                pass
+
+    def handle_sweep_fault(self, fault: ProbeFault, attempt: int) -> None:
+        """A fault during the cloud sweep (no step is open): stop, journal, recover; the
+        caller sweeps again while the policy allows a retry, else the session pauses."""
+        assert self.journal is not None and self.cell is not None
+        self._stop_arm()
+        arm_state = self._wait_stopped()
+        policy = self.inputs.plan.fault_policy.for_kind(fault.kind)
+        action = policy.action
+        if action in ("retry", "skip_target"):
+            action = "retry" if attempt < policy.retries else "pause"
+        raw = fault.trip.raw if fault.trip is not None else None
+        fault_id = self.journal.record_fault(fault.kind, f"during the cloud sweep: {fault.message}",
+                                             t_robot_s=self.cell.clock.now_s(), policy_action=action, raw=raw)
+        self._log("fault", kind=fault.kind, message=fault.message, step=None, action=action,
+                  fault_id=fault_id, arm=arm_state, phase="cloud")
+        if self.machine.can("fault"):
+            self.machine.fire("fault")
+        self.machine.fire("recover")
+        if not self._recover(fault) and action == "retry":
+            action = "pause"
+        if action == "pause":
+            raise SessionPaused(f"{fault.kind} during the cloud sweep: {fault.message}")
+        if action == "abort":
+            raise SessionAborted(f"{fault.kind} during the cloud sweep: {fault.message}")
+        # The machine has no "sweep" from retracting: the sweep runs again from there.
+        self.machine.fire("retract")
+
     def _recover(self, fault: ProbeFault) -> bool:
         """Make the arm movable again: protective-stop recovery, re-arm, retract. Never clears an e-stop."""
         assert self.cell is not None
         arm = self.cell.arm
-        status = arm.status()
+        status = self._await_connection()
+        if status is None:
+            return False
         if status.emergency_stop:
             return False
         if status.protective_stop and not arm.recover_protective_stop():

@@ -1,0 +1,231 @@
+"""Every fault the simulated cell can inject, in a session: the arm stops, the plan's fault
+policy is followed, and no step is committed done with incomplete data (DESIGN §5, §6).
+
+Sessions run in this process (``Session.run`` returns the CLI's exit codes) on a tiny plan
+whose survey has eleven contacts (two angles per target), with faults placed at contacts'
+first steps through the cell file's ``simulation.faults`` (steps fixed by the committed
+survey plan). One session carries the nine device faults under the default retry policy;
+another walks the pausing ones (emergency stop, disk error, a fault the plan says to
+pause on) through resumes to the end. Abort and skip policies are checked in short
+sessions. The fault a device shows is what the controller journals; the simulator's own
+list of what it injected is the ground truth it is judged against.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from test_session_util import copy_cell, done_step_facts, outcome, plan_for
+
+from elastoprobe.controller.config import load_session_inputs
+from elastoprobe.controller.journal import Journal
+from elastoprobe.controller.session import EXIT_DONE, EXIT_FAULT, EXIT_PAUSED, Session
+
+SEED = 2
+REPO = Path(__file__).resolve().parent.parent
+SIM_CELL = REPO / "config" / "cells" / "sim.yaml"
+SCANS_PER_STEP = 5
+FORCE_TOLERANCE_N = 0.5
+
+# The survey: 6 targets x angles [90, 80] x forces [4, 12]. With seed 2 these contacts
+# (first step ids) are reachable; 4 is refused by motion validation (a target too close
+# to the box wall for the scanner).
+SURVEY_EDITS = {
+    "    angles_deg: [90]\n    forces_n: [4.0, 12.0]": "    angles_deg: [90, 80]\n    forces_n: [4.0, 12.0]",
+    "    angles_deg: [75, 90, 105]": "    angles_deg: [90]",
+    "    rounds: 1": "    rounds: 0",
+}
+# Device faults -> the fault kind the controller sees (its policy key).
+RETRY_FAULTS = {
+    "force_spike": (0, {"force", "force_rate"}),
+    "ft_stall": (2, {"stale"}),
+    "ft_frozen": (6, {"frozen"}),
+    "scanner_timeout": (8, {"scanner"}),
+    "scanner_short_burst": (10, {"scanner"}),
+    "protective_stop": (12, {"protective_stop"}),
+    "connection_loss": (14, {"connection", "device"}),
+    "slip": (16, {"slip"}),
+    "object_moved": (22, {"no_contact", "force", "slip", "lateral_force"}),
+}
+
+
+def _setup(tmp: Path, name: str, faults: list[dict[str, Any]], policy: str | None = None) -> Path:
+    cell = copy_cell(SIM_CELL, tmp, name)
+    text = cell.read_text()
+    items = "".join(f"    - {json.dumps(f)}\n" for f in faults)
+    cell.write_text(text.rstrip("\n") + "\n  faults:\n" + items)
+    edits = dict(SURVEY_EDITS)
+    if policy is not None:
+        edits["fault_policy:\n  default: {action: retry, retries: 2}\n  kinds:\n    no_contact: {action: skip_target}\n"] = policy
+    return plan_for(cell, tmp, edits=edits)
+
+
+def _run(plan: Path, out: Path, resume: bool = False) -> tuple[int, Session]:
+    session = Session(load_session_inputs(plan), out, SEED)
+    return session.run(resume=resume), session
+
+
+def _fault_events(out: Path) -> list[dict[str, Any]]:
+    events = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    return [e for e in events if e["event"] == "fault"]
+
+
+def _assert_complete_data(out: Path) -> None:
+    """No step is done with incomplete data: full scans, valid checksums, force at its level."""
+    facts = done_step_facts(out)
+    assert facts, "no step was done"
+    for f in facts:
+        assert f["n_scans"] == SCANS_PER_STEP, f
+        assert f["finite"], f
+        allowed = max(3 * FORCE_TOLERANCE_N, 0.15 * f["force_target_n"])
+        assert f["force_target_n"] - allowed <= f["force_min_n"] <= f["force_max_n"] <= f["force_target_n"] + allowed, f
+    got = outcome(out)
+    assert got.integrity == ["ok"] and got.problems == []
+
+
+def _assert_stopped_at_faults(out: Path) -> None:
+    for e in _fault_events(out):
+        if "arm" in e:
+            assert e["arm"]["is_moving"] is False, e
+            assert e["arm"]["tcp_speed_mm_s"] < 1.0, e
+
+
+@pytest.fixture(scope="module")
+def retry_session(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    tmp = tmp_path_factory.mktemp("faults_retry")
+    faults = [{"kind": k, "step": s} for k, (s, _) in RETRY_FAULTS.items()]
+    plan = _setup(tmp, "faults-retry-cell", faults)
+    out = tmp / "session"
+    code, session = _run(plan, out)
+    injected = [k for k, _ in session.cell.faults.injected]   # type: ignore[union-attr]
+    return {"code": code, "out": out, "injected": injected}
+
+
+def test_every_device_fault_is_injected_and_the_session_ends_done(retry_session: dict[str, Any]) -> None:
+    assert retry_session["code"] == EXIT_DONE
+    assert set(retry_session["injected"]) == set(RETRY_FAULTS)
+
+
+@pytest.mark.parametrize("kind", list(RETRY_FAULTS))
+def test_fault_is_journaled_retried_and_the_contact_completes(retry_session: dict[str, Any], kind: str) -> None:
+    out = retry_session["out"]
+    step, seen_as = RETRY_FAULTS[kind]
+    j = Journal.open_readonly(out)
+    try:
+        group = [r for r in j.steps() if r.phase == "sampling" and r.step_id in (step, step + 1)]
+        faults = [f for f in j.faults() if f.step_id in (step, step + 1)]
+        assert faults, f"{kind} at step {step} was not journaled (faults: {[(f.kind, f.step_id) for f in j.faults()]})"
+        assert faults[0].kind in seen_as, (kind, faults[0].kind, faults[0].message)
+        if faults[0].kind in ("no_contact",):
+            assert faults[0].policy_action == "skip_target"
+            assert all(r.status == "skipped" for r in group if r.step_id >= faults[0].step_id)
+        else:
+            assert faults[0].policy_action == "retry"
+            # The retry finished the contact: both levels done, each once.
+            assert [r.status for r in group] == ["done", "done"], [(r.step_id, r.status) for r in group]
+        if faults[0].kind in ("force", "force_rate", "stale", "frozen", "slip"):
+            assert faults[0].raw is not None and len(faults[0].raw) > 0   # the last seconds of F/T data
+    finally:
+        j.close()
+
+
+def test_arm_stopped_at_every_fault_and_no_incomplete_step_is_done(retry_session: dict[str, Any]) -> None:
+    _assert_stopped_at_faults(retry_session["out"])
+    _assert_complete_data(retry_session["out"])
+
+
+def test_pausing_faults_emergency_stop_disk_error_and_pause_policy_resume_to_the_end(tmp_path: Path) -> None:
+    policy = ("fault_policy:\n  default: {action: retry, retries: 2}\n  kinds:\n    no_contact: {action: skip_target}\n"
+              "    scanner: {action: pause}\n")
+    plan = _setup(tmp_path, "faults-pause-cell",
+                  [{"kind": "emergency_stop", "step": 2}, {"kind": "disk_error", "step": 9},
+                   {"kind": "scanner_timeout", "step": 14}], policy)
+    out = tmp_path / "session"
+
+    # 1. Emergency stop: pause (exit 3); the controller never clears it.
+    code, session = _run(plan, out)
+    assert code == EXIT_PAUSED
+    assert session.cell.arm.status().emergency_stop, "the controller cleared the emergency stop"  # type: ignore[union-attr]
+    j = Journal.open_readonly(out)
+    try:
+        assert j.session()["status"] == "paused"
+        f = j.faults()[-1]
+        assert (f.kind, f.step_id, f.policy_action) == ("emergency_stop", 2, "pause")
+        assert j.step(2).status != "done" and j.step(0).status == "done"
+    finally:
+        j.close()
+    session.cell.operator_clear_estop()   # type: ignore[union-attr]   # the operator, not the controller
+
+    # 2. Resume: the contact is done now; a disk error on step 9's write pauses cleanly.
+    code, _ = _run(plan, out, resume=True)
+    assert code == EXIT_PAUSED
+    j = Journal.open_readonly(out)
+    try:
+        assert j.step(2).status == "done" and j.step(3).status == "done"
+        assert j.step(8).status == "done" and j.step(9).status != "done"
+        assert [f.kind for f in j.faults()][-1] == "disk_error"
+        assert j.verify() == []
+    finally:
+        j.close()
+
+    # 3. Resume: a scanner timeout at step 14, whose policy is pause.
+    code, _ = _run(plan, out, resume=True)
+    assert code == EXIT_PAUSED
+    j = Journal.open_readonly(out)
+    try:
+        assert j.step(9).status == "done"
+        f = j.faults()[-1]
+        assert (f.kind, f.step_id, f.policy_action) == ("scanner", 14, "pause")
+    finally:
+        j.close()
+
+    # 4. Resume to the end: every planned step done or skipped, data complete.
+    code, _ = _run(plan, out, resume=True)
+    assert code == EXIT_DONE
+    got = outcome(out)
+    assert set(got.step_status.values()) <= {"done", "skipped"}
+    assert all(got.step_status[s] == "done" for s in (2, 3, 9, 14, 15))
+    _assert_stopped_at_faults(out)
+    _assert_complete_data(out)
+
+
+def test_abort_policy_ends_the_session_with_exit_1(tmp_path: Path) -> None:
+    policy = "fault_policy:\n  default: {action: abort}\n"
+    plan = _setup(tmp_path, "faults-abort-cell", [{"kind": "protective_stop", "step": 2}], policy)
+    out = tmp_path / "session"
+    code, session = _run(plan, out)
+    assert code == EXIT_FAULT
+    j = Journal.open_readonly(out)
+    try:
+        assert j.session()["status"] == "aborted"
+        f = j.faults()[-1]
+        assert (f.kind, f.step_id, f.policy_action) == ("protective_stop", 2, "abort")
+        assert j.step(2).status != "done"
+        assert j.step(0).status == "done"
+    finally:
+        j.close()
+    assert not session.cell.arm.status().is_moving   # type: ignore[union-attr]
+    _assert_stopped_at_faults(out)
+
+
+@pytest.mark.slow
+def test_no_retries_left_skips_the_target(tmp_path: Path) -> None:
+    policy = "fault_policy:\n  default: {action: retry, retries: 0}\n"
+    plan = _setup(tmp_path, "faults-skip-cell", [{"kind": "ft_stall", "step": 6}, {"kind": "force_spike", "step": 12}],
+                  policy)
+    out = tmp_path / "session"
+    code, _ = _run(plan, out)
+    assert code == EXIT_DONE
+    j = Journal.open_readonly(out)
+    try:
+        for step, kinds in ((6, {"stale"}), (12, {"force", "force_rate"})):
+            f = [x for x in j.faults() if x.step_id == step]
+            assert f and f[0].kind in kinds and f[0].policy_action == "skip_target"
+            assert j.step(step).status == "skipped" and j.step(step + 1).status == "skipped"
+    finally:
+        j.close()
+    _assert_complete_data(out)
