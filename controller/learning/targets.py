@@ -88,11 +88,20 @@ class _Surface:
         self.tree = cKDTree(self.points)
         edge = np.asarray(curvature) > rules.edge_curvature
         self.edge_tree = cKDTree(self.points[edge]) if edge.any() else None
+        # The edge is known only to within the point spacing: keep that much more clearance.
+        self.guard_mm = rules.clearance_mm + self._spacing_mm()
+
+    def _spacing_mm(self, n_probe: int = 20_000) -> float:
+        """Median nearest-neighbour distance of the cloud (on a fixed subsample)."""
+        rng = np.random.default_rng(0)
+        probe = self.points[rng.choice(self.points.shape[0], min(n_probe, self.points.shape[0]), replace=False)]
+        dist, _ = self.tree.query(probe, k=2)
+        return float(np.median(dist[:, 1]))
 
     def near_edge(self, idx: np.ndarray) -> np.ndarray:
         if self.edge_tree is None:
             return np.zeros(len(idx), dtype=bool)
-        dist, _ = self.edge_tree.query(self.points[idx], distance_upper_bound=self.rules.clearance_mm)
+        dist, _ = self.edge_tree.query(self.points[idx], distance_upper_bound=self.guard_mm)
         return np.isfinite(dist)
 
     def tilt_ok(self, idx: np.ndarray) -> np.ndarray:
@@ -126,7 +135,8 @@ def make_targets(units_mm: np.ndarray, cloud_mm: np.ndarray, normals: np.ndarray
     """Units (M,3) mm -> Targets on the cloud (with its outward normals and curvature).
 
     Each unit goes to its nearest cloud point. If that point is within the edge
-    clearance of a sharp edge, the target moves to the nearest cloud point (at most
+    clearance (plus the cloud's median point spacing, the uncertainty of where the
+    edge is) of a sharp edge, the target moves to the nearest cloud point (at most
     ``rules.shift_mm`` away) that is clear of every edge, tilted less than
     ``max_tilt_deg`` and supported — along the surface, onto the face beside the edge.
     A unit whose point fails for any other reason is dropped. The target is the unit
