@@ -69,23 +69,12 @@ def ground_truth_for(inputs: SessionInputs, seed: int) -> Any:
 
 
 def check_real_cell_ready(inputs: SessionInputs, allow_stale_calibration: bool = False) -> None:
-    """A real cell refuses to run without a current calibration, unless overridden."""
-    import datetime as dt
+    """A real cell refuses to run without a current calibration (every section present, none
+    older than the cell allows), unless the operator explicitly overrides it."""
+    from elastoprobe.calibration.calfile import check_calibration
 
-    cal = inputs.cell.calibration_file
-    if cal is None:
-        if not allow_stale_calibration:
-            raise InputError("this real cell names no calibration_file; calibrate it (elastoprobe calibrate ...) "
-                             "or pass --allow-stale-calibration", path=str(inputs.cell_path))
-        return
-    path = inputs.resolve(inputs.cell_path, cal)
-    if not path.exists():
-        if not allow_stale_calibration:
-            raise InputError(f"calibration file {str(path)!r} is missing; calibrate the cell or pass "
-                             f"--allow-stale-calibration", path=str(inputs.cell_path))
-        return
-    age_days = (dt.datetime.now().timestamp() - path.stat().st_mtime) / 86400.0
-    if age_days > inputs.cell.calibration_max_age_days and not allow_stale_calibration:
-        raise InputError(f"calibration is {age_days:.0f} days old (the cell allows "
-                         f"{inputs.cell.calibration_max_age_days:g}); recalibrate or pass --allow-stale-calibration",
-                         path=str(path))
+    problems = check_calibration(inputs.cell, inputs.cell_path)
+    if problems and not allow_stale_calibration:
+        raise InputError("calibration is not current: " + "; ".join(problems)
+                         + " (run elastoprobe calibrate ..., or pass --allow-stale-calibration)",
+                         path=str(inputs.cell_path))
