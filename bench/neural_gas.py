@@ -3,9 +3,9 @@
 Prints ONE JSON object. The cloud is 1,000,000 points sampled (seed 0) on the synthetic
 box-on-pillow surface, plain xyz features (geometry awareness off). Every figure is
 measured in this run on the same points:
-  ours_*              train_neural_gas (minibatch, top-K neighbourhood, Lloyd finish) as shipped:
-                      torch on one intra-op thread, k-d tree passes on both cores;
-                      ours_torch2_* the same with torch on 2 threads (same units, same qe)
+  ours_*              train_neural_gas (minibatch, top-K neighbourhood, Lloyd finish), torch on
+                      2 threads; ours_1thread_* the same on one torch thread (same units, same
+                      qe): on a shared machine its CPU seconds are the work itself
   reference_*         exact online NG (reference_online_ng), timed on a prefix of the same
                       sample order and scaled by its per-sample cost to ours' sample count
   kmeans_*            scikit-learn KMeans (k-means++, one init, Lloyd)
@@ -89,8 +89,8 @@ def main() -> None:
                  "load_average_1min": os.getloadavg()[0],
                  "n_steps": N_STEPS, "batch_size": BATCH, "lloyd_iters": LLOYD_ITERS}
     with threadpool_limits(THREADS):
-        row.update(run_ours(points, args.units, 1, "ours"))
-        row.update(run_ours(points, args.units, THREADS, "ours_torch2"))
+        row.update(run_ours(points, args.units, THREADS, "ours"))
+        row.update(run_ours(points, args.units, 1, "ours_1thread"))
         row["ours_samples"] = N_STEPS * BATCH + LLOYD_ITERS * points.shape[0]
         row.update(run_reference(points, args.units, row["ours_samples"]))
         row.update(run_kmeans(points, args.units) if not args.no_kmeans else

@@ -90,7 +90,7 @@ def initial_units(features: np.ndarray, n_units: int, seed: int) -> np.ndarray:
 def train_neural_gas(features: np.ndarray, n_units: int, n_steps: int, batch_size: int = 4096, seed: int = 0,
                      schedule: Schedule = Schedule(), sample_weights: np.ndarray | None = None,
                      init_units: np.ndarray | None = None, cutoff: float | None = 1e-4, lloyd_iters: int = 0,
-                     n_threads: int | None = 1, history_points: int = 20_000, history_every: int = 0
+                     n_threads: int | None = None, history_points: int = 20_000, history_every: int = 0
                      ) -> NeuralGasResult:
     """Minibatch neural gas -> NeuralGasResult (units in the features' dtype).
 
@@ -101,10 +101,10 @@ def train_neural_gas(features: np.ndarray, n_units: int, n_steps: int, batch_siz
     neighbourhood (exact NG). ``lloyd_iters`` full passes at lam -> 0 and eps = 1
     finish (each unit to the mean of its points; the limit of the schedule).
     ``n_threads`` sets torch's intra-op threads for this call only (restored after; None
-    leaves torch's setting). One is the default: the per-step tensors are small; on the
-    2-core machine two threads gained ~15% when it was quiet (bench: 5.4 s vs 6.3 s) and
-    were 2-5x slower when other processes shared the cores. The k-d tree passes use every
-    core regardless.
+    leaves torch's setting). On the 2-core machine, quiet, two threads ran the bench in
+    3.0 s against 5.6 s for one; with other processes busy on the cores they were 2-5x
+    SLOWER than one (the per-step tensors are small and threads wait on each other), so
+    pass 1 where the cores are shared. The k-d tree passes use every core regardless.
     """
     import torch
 
