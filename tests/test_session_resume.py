@@ -33,19 +33,6 @@ AIMED = [
     ("commit_phase:half_steps@2", "inside the second phase commit of a run, half its steps planned"),
     ("report:begin+1.0", "one second into the report"),
 ]
-AIMED_SLOW = AIMED + [
-    ("models:after_save@1", "after a model file is written, before it is recorded"),
-    ("commit_step:before_commit@1", "a step commit about to COMMIT"),
-    ("commit_step:after_arrays@2", "a step's arrays written, status not yet done"),
-    ("begin_step:before_commit@2", "a step being marked in progress"),
-    ("commit_phase:after_phase_row@1", "the cloud phase row written"),
-    ("commit_phase:before_commit@3", "a regions phase commit about to COMMIT"),
-    ("models:before_save@1", "before a model file is written"),
-    ("models:before_commit@1", "models saved and recorded, phase not committed"),
-    ("final:before_report", "final map committed, report not started"),
-    ("final:after_report", "report written, session not yet marked done"),
-    ("record_fault:before_commit@1", "a fault being journaled"),
-]
 
 
 @pytest.fixture(scope="module")
@@ -139,19 +126,28 @@ def test_kill_at_aimed_and_random_moments_then_resume_equals_uninterrupted(setup
     _assert_equal_to_reference(out, reference)
 
 
+STEP_POINTS = ["commit_step:half_arrays", "commit_step:after_arrays", "commit_step:before_commit",
+               "begin_step:before_commit"]
+LATE_POINTS = ["commit_phase:half_steps@1", "models:before_save@1", "models:after_save@1", "models:before_commit@1",
+               "final:before_report", "report:begin+1.0", "final:after_report"]
+
+
 @pytest.mark.slow
 def test_twenty_kills_then_resume_equals_uninterrupted(setup: dict, reference: Outcome) -> None:
+    """A fault being journaled, then step commits (aimed at the 1st or 2nd commit of a run)
+    alternating with random delays, then phase commits, model saves and the report."""
     rnd = random.Random(7)
-    kills: list[tuple[str, object]] = []
-    aimed = [("crash", spec) for spec, _ in AIMED_SLOW]
-    for spec in aimed:
-        kills.append(("delay", rnd.uniform(3.0, 12.0)))
-        kills.append(spec)
-    # Random kills first fall where the aimed ones fit; aimed ones that the session has
-    # passed already (e.g. the sweep's phase row) are skipped below by the guard.
+    # Wall-clock delays depend on the machine's load: a few short ones (they land in the
+    # start-up, the sweep or the first steps); the rest are aimed, each run making at
+    # most one step of progress, so twenty kills fit in the tiny session.
+    kills: list[tuple[str, object]] = [("delay", rnd.uniform(1.5, 3.0)), ("crash", "record_fault:before_commit@1")]
+    for k in range(16):
+        # Mostly the first commit of a run (no progress), every third the second.
+        kills.append(("crash", f"{rnd.choice(STEP_POINTS)}@{2 if k % 3 == 2 else 1}"))
+    kills.append(("delay", rnd.uniform(1.5, 3.0)))
+    kills += [("crash", spec) for spec in LATE_POINTS]
     out = setup["tmp"] / "killed20"
     codes: list[int] = []
-    landed = 0
     for kind, value in kills:
         if kind == "delay":
             child = start_or_resume(setup["plan"], out, SEED, setup["env"], kill_after_s=float(value))  # type: ignore[arg-type]
@@ -160,7 +156,6 @@ def test_twenty_kills_then_resume_equals_uninterrupted(setup: dict, reference: O
             child = start_or_resume(setup["plan"], out, SEED, env)
         codes.append(child.returncode)
         assert child.returncode in (-9, 0), child.stderr[-3000:]
-        landed += child.returncode == -9
         _check_sound(out)
         if child.returncode == 0:
             break
@@ -170,5 +165,7 @@ def test_twenty_kills_then_resume_equals_uninterrupted(setup: dict, reference: O
         child = start_or_resume(setup["plan"], out, SEED, setup["env"])
         codes.append(child.returncode)
     assert codes[-1] == 0, codes
+    landed = codes.count(-9)
+    print(f"kills landed: {landed}; runs: {len(codes)}; exit codes: {codes}")
     assert landed >= 20, f"only {landed} kills landed: {codes}"
     _assert_equal_to_reference(out, reference)
