@@ -27,7 +27,7 @@ _ACTIVE = ["preflight", "sweeping", "planning", "moving_to_standoff", "reference
 #  trigger              source(s)                                        dest
 TRANSITIONS: list[dict[str, Any]] = [
     {"trigger": "start",        "source": "idle",                        "dest": "preflight"},
-    {"trigger": "sweep",        "source": "preflight",                   "dest": "sweeping"},
+    {"trigger": "sweep",        "source": ["preflight", "retracting"],   "dest": "sweeping"},
     {"trigger": "plan",         "source": ["preflight", "sweeping", "learning", "retracting"], "dest": "planning"},
     {"trigger": "go_to_target", "source": ["planning", "retracting", "preflight", "recovering"],
                                                                           "dest": "moving_to_standoff"},

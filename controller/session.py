@@ -195,6 +195,7 @@ class Session:
             machine.fire("finish")
             j.set_status("done")
             self._log("session_done")
+            self._epilogue("finish", "session done")
             return EXIT_DONE
         except SessionPaused as exc:
             self._park()
@@ -202,6 +203,7 @@ class Session:
                 machine.fire("pause")
             j.set_status("paused", str(exc))
             self._log("session_paused", reason=str(exc))
+            self._epilogue("finish_by" if "finish_by" in str(exc) else "pause", str(exc))
             return EXIT_PAUSED
         except SessionAborted as exc:
             self._park()
@@ -209,6 +211,7 @@ class Session:
                 machine.fire("abort")
             j.set_status("aborted", str(exc))
             self._log("session_aborted", reason=str(exc))
+            self._epilogue("fault", f"aborted: {exc}")
             return EXIT_FAULT
         except (JournalError, sqlite3.OperationalError) as exc:
             # The journal could not write (disk full, I/O error): nothing half-written
@@ -280,6 +283,7 @@ class Session:
         while True:
             self._check_operator()
             self._check_budget()
+            self._check_disk()
             pending = j.pending_steps(phase=phase, round=round_)
             if not pending:
                 break
@@ -424,6 +428,7 @@ class Session:
                                   step_id=step_id, policy_action=action, raw=raw)
         self._log("fault", kind=fault.kind, message=fault.message, step=step_id, action=action,
                   fault_id=fault_id, arm=arm_state)
+        self._notify("fault", f"{fault.kind} at step {step_id}: {fault.message} -> {action}")
         if self.machine.can("fault"):
             self.machine.fire("fault")
         self.machine.fire("recover")
@@ -520,6 +525,42 @@ class Session:
         finish_by = self.inputs.plan.finish_by
         if finish_by is not None and _dt.datetime.now(_dt.timezone.utc) >= finish_by:
             raise SessionPaused(f"finish_by {finish_by.isoformat()} reached")
+
+    def _check_disk(self) -> None:
+        """Pause before the disk fills (a step of raw scans is a few hundred kB)."""
+        from .notify import DiskWatch
+
+        status = DiskWatch(self.dir).check(next_write_bytes=2_000_000)
+        if status.level == "pause":
+            raise SessionPaused(f"disk nearly full: {status.message}")
+        if status.level == "warn" and not getattr(self, "_disk_warned", False):
+            self._disk_warned = True
+            self._log("disk_low", message=status.message)
+
+    def _notifier(self) -> object:
+        from .notify import Notifier
+
+        spec = self.inputs.plan.notify or self.inputs.cell.notify
+        return Notifier(spec, log=(self.journal.log_event if self.journal is not None else None))
+
+    def _notify(self, event: str, message: str) -> None:
+        """Run the operator's notify command (never raises, bounded in time)."""
+        counts = self.journal.status_counts() if self.journal is not None else None
+        self._notifier().notify(event, self.dir, plan=self.inputs.plan.name,   # type: ignore[attr-defined]
+                                counts=counts, message=message,
+                                t_robot_s=self.cell.clock.now_s() if self.cell is not None else None)
+
+    def _epilogue(self, event: str, message: str) -> None:
+        """The report with the final status, then the notification. Best effort: the
+        session's outcome is already journaled."""
+        try:
+            from .report import write_report
+
+            write_report(self.dir)
+        except Exception as exc:   # a report problem must not change the exit code
+            if self.log is not None:
+                self.log.write("report_failed", error=f"{type(exc).__name__}: {exc}")
+        self._notify(event, message)
 
     def _check_budget(self) -> None:
         assert self.journal is not None and self.cell is not None
