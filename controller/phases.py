@@ -419,6 +419,16 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
         # also follows the local geometry (a pillow's rounded rim), which is not material.
         elastic = [k for k, name in enumerate(names) if not name.startswith("width")]
         feats, names = feats[:, elastic], [names[k] for k in elastic]
+        # A target the scanner never saw (e.g. in the box's shadow) has no features:
+        # leave it out of the clustering instead of filling it with the mean, which
+        # makes a spurious region of its own.
+        seen = np.all(np.isfinite(feats), axis=1)
+        if not seen.all():
+            s._log("targets_unseen", round=round_, targets=[int(i) for i, ok in zip(ids, seen) if not ok])
+        ids = [i for i, ok in zip(ids, seen) if ok]
+        depth, feats = depth[seen], feats[seen]
+        if len(ids) == 0:
+            raise RuntimeError("the scanner saw none of the surveyed targets: cannot find regions")
         pts = np.array([ctx.targets[i].point_mm for i in ids])
         nrm = np.array([ctx.targets[i].normal for i in ids])
         edges = tg.surface_graph(pts, nrm)
