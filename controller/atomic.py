@@ -13,6 +13,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import errno
+import dataclasses
 import json
 import os
 import shutil
@@ -71,15 +72,18 @@ def atomic_write_text(path: str | os.PathLike[str], text: str, encoding: str = "
     return atomic_write_bytes(path, text.encode(encoding), mode=mode)
 
 
-def _json_default(obj: Any) -> Any:
-    # numpy scalars and arrays are common in reports and metrics; NaN/inf inside them
-    # still fail below (allow_nan=False): the contract is null, never NaN/Infinity.
+def json_default(obj: Any) -> Any:
+    """``json.dumps(default=...)`` for the project's values: numpy scalars and arrays,
+    paths, dataclasses. NaN/inf inside them still fail where ``allow_nan=False``: the
+    contract is null, never NaN/Infinity."""
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, np.ndarray):
         return obj.tolist()
     if isinstance(obj, Path):
         return str(obj)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return dataclasses.asdict(obj)
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
@@ -88,7 +92,7 @@ def atomic_write_json(path: str | os.PathLike[str], obj: Any, indent: int | None
     """Atomic JSON file (UTF-8, trailing newline). NaN/Infinity are refused (ValueError):
     write ``None`` for "not reached"."""
     text = json.dumps(obj, indent=indent, sort_keys=sort_keys, allow_nan=False,
-                      default=_json_default, ensure_ascii=False)
+                      default=json_default, ensure_ascii=False)
     return atomic_write_text(path, text + "\n")
 
 

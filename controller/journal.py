@@ -20,7 +20,6 @@ clock of the current run; ``runs`` tells runs apart), wall times ISO 8601 UTC.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import datetime as _dt
 import hashlib
 import json
@@ -36,6 +35,7 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
+from .atomic import json_default
 from .errors import ElastoprobeError, InputError
 from .locking import SessionLock
 
@@ -105,21 +105,9 @@ def _utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="microseconds")
 
 
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return dataclasses.asdict(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
-
-
 def to_json(obj: Any) -> str:
     """Canonical JSON (sorted keys, no NaN/Infinity: use None) — hashes depend on it."""
-    return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False, default=_json_default)
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False, default=json_default)
 
 
 def _sha256(data: bytes) -> str:

@@ -20,6 +20,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .atomic import json_default
 from .config import SessionInputs, effective_motion_limits
 from .devices import Cell
 from .errors import DeviceError, ElastoprobeError, InputError, MotionRefused
@@ -80,11 +81,11 @@ class JsonlLog:
 
 
 def _json_default(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    return str(o)
+    """Log lines never fail on a value: what JSON cannot hold is written as text."""
+    try:
+        return json_default(o)
+    except TypeError:
+        return str(o)
 
 
 class Session:
