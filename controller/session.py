@@ -436,14 +436,13 @@ class Session:
         recovered = self._recover(fault)
         if not recovered and action in ("retry", "skip_target"):
             action = "pause"
-        for rec in open_steps:
-            if action == "skip_target":
+        if action == "skip_target":
+            for rec in open_steps:
                 j.skip_step(rec.step_id, f"{fault.kind}: {fault.message}")
         if action == "pause":
             raise SessionPaused(f"{fault.kind}: {fault.message}")
         if action == "abort":
             raise SessionAborted(f"{fault.kind}: {fault.message}")
-        del fault_id
         # Back to a known place before the next contact.
         self.machine.fire("retract")
 
