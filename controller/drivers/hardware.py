@@ -65,6 +65,7 @@ import numpy as np
 from ..clock import Clock, RealClock
 from ..devices import ArmStatus, DeviceIdentity, MotionState, Trip, WrenchBlock
 from ..errors import DeviceError, DeviceTimeout, MotionRefused
+from .supervised import await_ready, kill_child
 from ..geometry import Pose
 from ..safety import SafetyGuard, SafetyLimits
 from .ur_link import URLinkConfig, URState
@@ -795,34 +796,14 @@ class HardwareProcess:
         proc.start()
         child_conn.close()
         self._proc, self._conn = proc, parent_conn
-        deadline = time.monotonic() + self.cfg.start_timeout_s
-        while time.monotonic() < deadline:
-            if parent_conn.poll(0.05):
-                try:
-                    msg = parent_conn.recv()
-                except EOFError:
-                    break
-                if msg[0] == "ready":
-                    self.identity_info = dict(msg[1])
-                    return
-                if msg[0] == "fatal":
-                    self._kill()
-                    raise DeviceError(f"hardware process failed to start: {msg[1]}")
-            elif not proc.is_alive():
-                break
-        code = proc.exitcode
-        self._kill()
-        raise DeviceError(f"hardware process did not become ready (exit code {code})")
+        try:
+            self.identity_info = await_ready(proc, parent_conn, self.cfg.start_timeout_s, "hardware process")
+        except DeviceError:
+            self._kill()
+            raise
 
     def _kill(self) -> None:
-        if self._proc is not None and self._proc.is_alive():
-            self._proc.kill()
-            self._proc.join(3.0)
-        if self._conn is not None:
-            try:
-                self._conn.close()
-            except OSError:
-                pass
+        kill_child(self._proc, self._conn, 3.0)
         self._conn = None
 
     def _restart(self, why: str) -> None:

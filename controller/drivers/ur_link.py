@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import DeviceError, DeviceTimeout
+from .supervised import await_ready, kill_child
 
 UR_RTDE_VERSION = "1.6.5"
 PR_SET_PDEATHSIG = 1
@@ -567,34 +568,14 @@ class URLink:
         proc.start()
         child_conn.close()
         self._proc, self._conn = proc, parent_conn
-        deadline = time.monotonic() + self.cfg.start_timeout_s
-        while time.monotonic() < deadline:
-            if parent_conn.poll(0.05):
-                try:
-                    msg = parent_conn.recv()
-                except EOFError:
-                    break
-                if msg[0] == "ready":
-                    self.identity_info = dict(msg[1])
-                    return
-                if msg[0] == "fatal":
-                    self._kill_child()
-                    raise DeviceError(f"UR link to {self.host} failed to start: {msg[1]}")
-            elif not proc.is_alive():
-                break
-        code = proc.exitcode
-        self._kill_child()
-        raise DeviceError(f"UR link child for {self.host} did not become ready (exit code {code})")
+        try:
+            self.identity_info = await_ready(proc, parent_conn, self.cfg.start_timeout_s, f"UR link to {self.host}")
+        except DeviceError:
+            self._kill_child()
+            raise
 
     def _kill_child(self) -> None:
-        if self._proc is not None and self._proc.is_alive():
-            self._proc.kill()
-            self._proc.join(2.0)
-        if self._conn is not None:
-            try:
-                self._conn.close()
-            except OSError:
-                pass
+        kill_child(self._proc, self._conn, 2.0)
         self._conn = None
 
     def _fault(self, kind: str, message: str, reported: bool) -> LinkFault:
