@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-import pydantic
 from pydantic import Field, field_validator, model_validator
 
 from .errors import InputError, InputErrors

@@ -490,7 +490,7 @@ def region_dataset(ctx: PhaseContext, region: int) -> dict[str, np.ndarray]:
     s = ctx.session
     j = s.journal
     assert j is not None
-    forces, angles, depths, pids, noise = [], [], [], [], []
+    forces, angles, depths, pids = [], [], [], []
     recs = [r for r in j.steps(statuses=["done"]) if ctx.labels.get(r.plan.target_index) == region]
     for r in recs:
         res = j.step_result(r.step_id)

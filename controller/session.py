@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
-import os
 import sqlite3
 import time
 from dataclasses import dataclass, field
@@ -23,9 +22,8 @@ import numpy as np
 from .atomic import json_default
 from .config import SessionInputs, effective_motion_limits
 from .devices import Cell
-from .errors import DeviceError, ElastoprobeError, InputError, MotionRefused
-from .geometry import Pose
-from .journal import Journal, JournalError, SessionMeta, StepPlan, StepRecord, StepResult
+from .errors import DeviceError, ElastoprobeError, MotionRefused
+from .journal import Journal, JournalError, SessionMeta, StepRecord, StepResult
 from .locking import CellLock
 from .machine import SessionMachine
 from .probe import ForceLevel, ProbeExecutor, ProbeFault, ProbeSettings, ProbeTarget, StepData

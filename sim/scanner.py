@@ -198,7 +198,6 @@ class SimLineScanner:
 
         ``noise=False`` gives the noise-free, dropout-free profile (geometric losses stay)."""
         s = self._s
-        w = self._world
         b2o = snap.base_to_object
         base_scanner = snap.tcp_pose.compose(self._tcp_to_scanner)
         obj_scanner = b2o.inverse().compose(base_scanner)

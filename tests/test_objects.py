@@ -17,21 +17,6 @@ X_MM = np.linspace(-40.0, 40.0, 257)
 UP = np.array([0.0, 0.0, 1.0])
 
 
-@pytest.fixture(scope="module")
-def ball():
-    return load_object(OBJECTS / "rubber_ball.yaml")
-
-
-@pytest.fixture(scope="module")
-def composite():
-    return load_object(OBJECTS / "composite.yaml")
-
-
-@pytest.fixture(scope="module")
-def user_object():
-    return load_object(OBJECTS / "user_object.yaml")
-
-
 def test_shipped_objects_rest_on_the_table_and_name_their_regions(ball, composite, user_object):
     assert ball.region_names == ["rubber"]
     assert composite.region_names == ["cardboard", "foam"]

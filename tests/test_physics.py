@@ -9,7 +9,6 @@ import pytest
 from scipy import integrate, special
 
 from elastoprobe.sim.materials import Material
-from elastoprobe.sim.objects import load_object
 from elastoprobe.sim.physics import (Component, ContactModel, FoamResponse, HertzResponse, bounded_tip_shift_mm,
                                      hertz_contact_radius_mm, hertz_surface_depth_mm, solve_foam_obstacle)
 
@@ -18,21 +17,6 @@ NINE = (10.0, 25.0, 45.0, 75.0, 90.0, 105.0, 135.0, 155.0, 170.0)
 X_MM = np.linspace(-40.0, 40.0, 257)
 UP, ALONG = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
 RUBBER = Material(name="rubber", kind="elastic", E_mpa=10.0, nu=0.49, friction_mu=0.8)
-
-
-@pytest.fixture(scope="module")
-def ball():
-    return load_object(OBJECTS / "rubber_ball.yaml")
-
-
-@pytest.fixture(scope="module")
-def composite():
-    return load_object(OBJECTS / "composite.yaml")
-
-
-@pytest.fixture(scope="module")
-def user_object():
-    return load_object(OBJECTS / "user_object.yaml")
 
 
 def homogeneous_models(ball, composite, user_object):
