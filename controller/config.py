@@ -303,6 +303,10 @@ class ProbingSpec(Spec):
     standoff_mm: float = Field(15.0, gt=0, le=200)
     force_rate_n_s: float = Field(10.0, gt=0, le=200)
     force_tolerance_n: float = Field(0.5, gt=0, le=20)
+    # The scans see the object this far (horizontally) from where it is registered: it
+    # moved (an object_moved fault, then re-registration). Above the calibration's
+    # tolerance, under the shifts that matter for a region map; null turns the check off.
+    object_moved_mm: float | None = Field(6.0, gt=0, le=100)
 
 
 class BudgetSpec(Spec):
@@ -334,7 +338,7 @@ class FaultPolicySpec(Spec):
     def _known(cls, v: dict[str, FaultActionSpec]) -> dict[str, FaultActionSpec]:
         known = {"force", "torque", "lateral_force", "force_rate", "frozen", "ft_status", "stale", "slip",
                  "workspace", "protective_stop", "emergency_stop", "connection", "no_contact",
-                 "scanner", "motion_refused", "device"}
+                 "object_moved", "scanner", "motion_refused", "device"}
         for k in v:
             if k not in known:
                 raise ValueError(f"unknown fault kind {k!r} (known: {', '.join(sorted(known))})")
