@@ -23,9 +23,11 @@ from .atomic import json_default
 from .config import SessionInputs, effective_motion_limits
 from .devices import Cell
 from .errors import DeviceError, ElastoprobeError, MotionRefused
+from .geometry import Pose
 from .journal import Journal, JournalError, SessionMeta, StepRecord, StepResult
 from .locking import CellLock
 from .machine import SessionMachine
+from .placement import PlacementMonitor
 from .probe import ForceLevel, ProbeExecutor, ProbeFault, ProbeSettings, ProbeTarget, StepData
 from .signals import OperatorFlags
 
@@ -124,6 +126,7 @@ class Session:
             self._record_identities()
             if resume:
                 self._restore_object_history()
+                self._restore_registration()
             code = self._run_phases(resume)
             return code
         finally:
@@ -167,6 +170,63 @@ class Session:
             f = max(peak.get(p.target_index, (None, None, 0.0))[2], float(p.force_n))
             peak[p.target_index] = (np.asarray(p.point_mm), np.asarray(p.normal), f)
         self.world.restore_history(list(peak.values()))
+
+    def _restore_registration(self) -> None:
+        """Where the object was last registered (after it moved): the journal's latest word."""
+        assert self.journal is not None and self.cell is not None
+        events = self.journal.events(kind="object_registered")
+        if events:
+            pose = Pose.from_list(events[-1]["record"]["base_to_object"])
+            self.cell.base_to_object = pose
+            self._log("registration_restored", base_to_object=events[-1]["record"]["base_to_object"])
+
+    def _reregister(self) -> None:
+        """The object moved: sweep it again, register the mesh to the new cloud, plan from there.
+
+        Targets live in the object frame, so once the placement is updated every planned
+        step maps onto the same material again. A poor fit pauses the session: a person
+        has to look at a cell where something moved.
+        """
+        from .acquire import acquire_cloud
+        from .phases import SWEEP_STEP_KEY, remove_table_below
+        from .placement import reregister
+        from .validation import build_validator
+
+        assert self.journal is not None and self.cell is not None
+        j, cell, plan = self.journal, self.cell, self.inputs.plan
+        mesh = self.world.object_mesh
+        before = cell.base_to_object
+        n_before = len(j.events(kind="object_registered"))
+        self.machine.fire("sweep")
+        verts = before.apply(np.asarray(mesh.vertices))
+        attempt = 0
+        while True:
+            # Keyed like the cloud sweep (below every planned step id's range is taken),
+            # so a resumed session re-draws the same simulator noise.
+            cell.begin_step((self.seed, SWEEP_STEP_KEY - 1 - n_before, attempt))
+            try:
+                pts_obj, robot_s, _ = acquire_cloud(self.executor, verts.min(axis=0), verts.max(axis=0),
+                                                    plan.cloud.sweep_spacing_mm, plan.cloud.sweep_height_mm,
+                                                    max_points=plan.cloud.max_points, seed=self.seed)
+                break
+            except ProbeFault as fault:
+                self.handle_sweep_fault(fault, attempt)
+                attempt += 1
+                self.machine.fire("sweep")
+        j.add_robot_time("sweep", robot_s)
+        cloud_base, _ = remove_table_below(before.apply(pts_obj), seed=self.seed)
+        try:
+            after, rms = reregister(mesh, cloud_base, before, seed=self.seed)
+        except ValueError as exc:
+            raise SessionPaused(f"the object moved and could not be registered again: {exc}") from exc
+        cell.base_to_object = after
+        self.executor.validator = build_validator(self.inputs, cell, mesh)
+        record = {"base_to_object": after.to_list(), "previous": before.to_list(), "rms_mm": round(rms, 3),
+                  "shift_mm": np.round(after.position_mm - before.position_mm, 2).tolist(),
+                  "robot_s": round(float(robot_s), 3)}
+        j.log_event("object_registered", record, t_robot_s=cell.clock.now_s())
+        self._log("object_registered", **record)
+        self.machine.fire("plan")
 
     def _record_identities(self) -> None:
         assert self.journal is not None and self.cell is not None
@@ -254,8 +314,19 @@ class Session:
         assert self.cell is not None
         validator = build_validator(inputs, self.cell, self.world.object_mesh)
         top_z = float(self.cell.base_to_object.apply(self.world.object_mesh.vertices)[:, 2].max())
-        return ProbeExecutor(self.cell, machine, settings, validator, top_z,
-                             should_stop=lambda: self.flags.stop_now)
+        placement = None
+        if pr.object_moved_mm is not None:
+            placement = PlacementMonitor(self.world.object_mesh, pr.object_moved_mm, seed=self.seed)
+        executor = ProbeExecutor(self.cell, machine, settings, validator, top_z,
+                                 should_stop=lambda: self.flags.stop_now, placement=placement)
+        executor.on_placement = self._on_placement
+        return executor
+
+    def _on_placement(self, what: str, estimate: dict[str, Any]) -> None:
+        """Log placement checks that come anywhere near the threshold (the rest is noise)."""
+        limit = self.inputs.plan.probing.object_moved_mm
+        if limit is not None and estimate["horizontal_mm"] > 0.5 * limit:
+            self._log("placement_check", what=what, step=self._current_step, **estimate)
 
     def _recover_pose(self) -> None:
         """Resume starts by reading |F| and the pose, and unloads/retracts before anything else."""
@@ -367,19 +438,19 @@ class Session:
             self.progress.robot_s = j.robot_time_s()["total"]
 
     def _inject_disk_error(self, step_id: int, retry: int) -> None:
-        """Simulated cells: a ``disk_error`` fault at a step fails that step's journal write
-        (first attempt only, like every injected fault). The simulator cannot reach the
-        disk, so the controller plays it: the fault is journaled (so a resume does not
-        inject it again) and the write raises as a full disk would."""
-        if retry != 0 or (self.inputs.cell.kind != "simulated" and not self.dry_run):
-            return
-        if not any(f.kind == "disk_error" and f.step == step_id for f in self.inputs.cell.simulation.faults):
+        """Simulated cells: a ``disk_error`` fault (at a step, first attempt only, or at a
+        rate per 100 steps) fails this step's journal write. The simulator schedules it
+        like every fault (keyed by step and retry) but cannot reach the disk, so the
+        controller plays it: the fault is journaled (a resume then draws a new key and
+        does not meet it again) and the write raises what SQLite raises on a failing disk."""
+        take = getattr(getattr(self.cell, "faults", None), "take_disk_error", None)
+        if take is None or not take(step_id, retry):    # real cells have no injector
             return
         assert self.journal is not None and self.cell is not None
         self.journal.record_fault("disk_error", "injected disk error: the step's write failed",
                                   t_robot_s=self.cell.clock.now_s(), step_id=step_id, policy_action="pause")
         self._log("fault", kind="disk_error", step=step_id, action="pause")
-        raise JournalError(f"journal: disk error while writing step {step_id} (injected by the simulated cell)")
+        raise sqlite3.OperationalError(f"disk I/O error (injected by the simulated cell at step {step_id})")
 
     def _stop_arm(self) -> None:
         """Stop the arm; with the link down the command cannot reach it (the robot's own
@@ -443,6 +514,8 @@ class Session:
             raise SessionAborted(f"{fault.kind}: {fault.message}")
         # Back to a known place before the next contact.
         self.machine.fire("retract")
+        if fault.kind == "object_moved":
+            self._reregister()
 
     def _await_connection(self, max_s: float = 10.0) -> Any:
         """The arm's status once it is connected again (bounded wait), else None."""
