@@ -10,11 +10,26 @@ spike, repeated values, missing samples), status bits (protective stop, emergenc
 stop, connected), missing scans, exceptions from commands (DeviceError while the
 connection is lost), and the physics (object moved: contact early, late or never;
 slip: the tip slides and the slip monitor trips). The controller-facing devices have
-no attribute that tells. Disk errors are injected by the controller's journal, not here.
+no attribute that tells. Disk errors are decided here (same schedule as every fault)
+but played by the controller's journal write: the session asks
+:meth:`FaultInjector.take_disk_error` before committing a step.
+
+Rate faults are drawn only under real step keys (a probe step or the sweep), never
+under the start-up key: a process's start is not a step, and a resumed process would
+otherwise meet the same start-up fault every time.
+
+Ground truth that survives a kill: with ``ELASTOPROBE_SIM_FAULT_LOG=path`` set, every
+fault that fires appends one JSON line (pid, kind, virtual time, step key, plan index)
+to ``path``, and faults whose effect depends on what the controller does (a scanner
+fault needs a scan request, a slip needs a contact) append an ``effect`` line the first
+time they change what a device shows. The soak reads it (bench/soak.py); the in-memory
+:attr:`FaultInjector.injected` dies with a killed process.
 """
 from __future__ import annotations
 
+import json
 import math
+import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -22,7 +37,7 @@ import numpy as np
 
 from elastoprobe.controller.errors import DeviceError
 
-from .world import US_PER_S, Stream
+from .world import PRE_STEP, US_PER_S, Stream
 
 if TYPE_CHECKING:   # pragma: no cover
     from .world import Contact, SimWorld
@@ -45,6 +60,10 @@ _DEFAULTS = {
     "slip": (math.inf, 20.0),
     "disk_error": (0.0, 0.0),
 }
+
+FAULT_LOG_ENV = "ELASTOPROBE_SIM_FAULT_LOG"
+# Kinds that may fire without changing anything a device shows (no scan, no contact).
+_CONDITIONAL = ("scanner_timeout", "scanner_short_burst", "slip")
 
 
 @dataclass(frozen=True)
@@ -77,6 +96,21 @@ class _Active:
     clear_us: float = math.inf
     fired: bool = False
     vector: np.ndarray | None = None
+    key: tuple[int, int, int] | None = None     # the step key it was drawn under (None: on demand)
+    plan_index: int | None = None
+    effective: bool = False
+
+
+def _append_record(record: dict) -> None:
+    """One line of the durable fault record (``ELASTOPROBE_SIM_FAULT_LOG``), if asked for.
+
+    Written and closed per line: a SIGKILL after the write loses nothing (the page
+    cache keeps it); faults are rare, so the cost does not matter."""
+    path = os.environ.get(FAULT_LOG_ENV)
+    if not path:
+        return
+    with open(path, "a", encoding="utf-8") as f:
+        f.write(json.dumps({"pid": os.getpid(), **record}) + "\n")
 
 
 class FaultInjector:
@@ -88,6 +122,8 @@ class FaultInjector:
         self._active: list[_Active] = []
         self._at_time_done: set[int] = set()
         self._connected = True
+        self._disk_due: set[tuple[int, int, int]] = set()   # step keys whose journal write fails
+        self._disk_plan_index: dict[tuple[int, int, int], int | None] = {}
         self.injected: list[tuple[str, float]] = []   # (kind, virtual time s): for tests and reports
 
     # ------------------------------------------------------------------ operator and schedule
@@ -102,14 +138,33 @@ class FaultInjector:
         self._active = [a for a in self._active if a.kind != "emergency_stop"]
         self._world.arm._sim_clear_estop()
 
+    def take_disk_error(self, step_id: int, attempt: int) -> bool:
+        """Whether the journal write of ``step_id`` (at retry ``attempt``) fails now; True
+        once per scheduled disk error, which is then recorded as injected."""
+        key = (self._world.step_key[0], int(step_id), int(attempt))
+        if key not in self._disk_due:
+            return False
+        self._disk_due.discard(key)
+        t_s = self._world.now_us / US_PER_S
+        self.injected.append(("disk_error", t_s))
+        _append_record({"event": "injected", "kind": "disk_error", "t_s": t_s, "key": list(key),
+                        "plan": self._disk_plan_index.get(key)})
+        return True
+
     def _schedule(self, kind: str, start_us: int, duration_s: float | None, magnitude: float | None,
-                  clear_after_s: float | None, rng: np.random.Generator) -> None:
+                  clear_after_s: float | None, rng: np.random.Generator,
+                  key: tuple[int, int, int] | None = None, plan_index: int | None = None) -> None:
         if kind == "disk_error":
-            return                      # the controller's journal injects those
+            # The controller's journal plays it, at this step's write (see take_disk_error).
+            if key is not None:
+                self._disk_due.add(key)
+                self._disk_plan_index[key] = plan_index
+            return
         d_default, m_default = _DEFAULTS[kind]
         duration = d_default if duration_s is None else duration_s
         end = math.inf if math.isinf(duration) else start_us + int(round(duration * US_PER_S))
-        act = _Active(kind, start_us, end, m_default if magnitude is None else magnitude)
+        act = _Active(kind, start_us, end, m_default if magnitude is None else magnitude,
+                      key=key, plan_index=plan_index)
         if clear_after_s is not None:
             act.clear_us = start_us + int(round(clear_after_s * US_PER_S))
         if kind == "object_moved":
@@ -125,18 +180,19 @@ class FaultInjector:
         # Faults scoped to a step (scanner, slip) end with it.
         self._active = [a for a in self._active if a.kind not in ("scanner_timeout", "scanner_short_burst", "slip")
                         or a.start_us > w.now_us]
-        for plan in self._plans:
+        for i, plan in enumerate(self._plans):
             draw = rng.random()          # always drawn, so one plan never shifts another's numbers
             delay = rng.uniform(0.2, 2.0)
             if plan.step is not None:
                 due = plan.step == step and attempt == 0
             elif plan.rate_per_100_steps is not None:
-                due = draw < plan.rate_per_100_steps / 100.0
+                due = step != PRE_STEP and draw < plan.rate_per_100_steps / 100.0
             else:
                 continue
             if due:
                 start = w.now_us + int(round((plan.delay_s if plan.delay_s is not None else delay) * US_PER_S))
-                self._schedule(plan.kind, start, plan.duration_s, plan.magnitude, plan.clear_after_s, rng)
+                self._schedule(plan.kind, start, plan.duration_s, plan.magnitude, plan.clear_after_s, rng,
+                               key=(seed, step, attempt), plan_index=i)
 
     def _sim_bound_end(self, now_us: int, end_us: int) -> int:
         """Cut sub-chunks where a fault starts or ends."""
@@ -160,11 +216,14 @@ class FaultInjector:
             if plan.at_t_s is not None and i not in self._at_time_done and now_us >= int(round(plan.at_t_s * US_PER_S)):
                 self._at_time_done.add(i)
                 self._schedule(plan.kind, now_us, plan.duration_s, plan.magnitude, plan.clear_after_s,
-                               w.rng(Stream.FAULTS))
+                               w.rng(Stream.FAULTS), plan_index=i)
         for a in list(self._active):
             if not a.fired and now_us >= a.start_us:
                 a.fired = True
+                a.effective = a.kind not in _CONDITIONAL
                 self.injected.append((a.kind, now_us / US_PER_S))
+                _append_record({"event": "injected", "kind": a.kind, "t_s": now_us / US_PER_S,
+                                "key": None if a.key is None else list(a.key), "plan": a.plan_index})
                 self._fire(a, now_us)
             if a.fired and now_us >= a.end_us:
                 self._expire(a)
@@ -236,8 +295,18 @@ class FaultInjector:
         for a in self._active:
             if a.kind == "slip" and a.fired:
                 since = max(a.start_us, contact.started_us)
-                extra += a.magnitude * np.maximum(ts_us - since, 0) / US_PER_S
+                add = a.magnitude * np.maximum(ts_us - since, 0) / US_PER_S
+                if add.any():
+                    self._mark_effective(a)
+                extra += add
         return extra
+
+    def _mark_effective(self, a: _Active) -> None:
+        """The first time a conditional fault changes what a device shows."""
+        if not a.effective:
+            a.effective = True
+            _append_record({"event": "effect", "kind": a.kind, "t_s": self._world.now_us / US_PER_S,
+                            "key": None if a.key is None else list(a.key), "plan": a.plan_index})
 
     def _sim_scanner_limit(self, requested: int) -> int:
         """How many profiles of a burst the scanner will actually deliver now."""
@@ -247,8 +316,11 @@ class FaultInjector:
             if a.start_us <= now < a.end_us:
                 if a.kind == "scanner_timeout":
                     count = 0
+                    self._mark_effective(a)
                 elif a.kind == "scanner_short_burst":
                     count = min(count, int(requested * a.magnitude))
+                    if count < requested:
+                        self._mark_effective(a)
         return count
 
     def _sim_connected(self) -> bool:
