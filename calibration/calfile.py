@@ -258,3 +258,64 @@ def check_calibration(cell_spec, cell_path: str | Path, now: dt.datetime | None 
         elif age_days < -1.0 / 24.0:
             problems.append(f"{path}: the {kind} calibration is stamped {t.isoformat()}, in the future")
     return problems
+
+
+@dataclass(frozen=True)
+class CalibrationState:
+    """What a cell's controller believes and why: the calibration file used and its problems.
+
+    ``applied``: the sections whose corrections are in the believed cell (empty: the cell
+    file's nominal values). ``problems``: why the calibration is missing, partial, stale or
+    unusable (empty: current). ``sha256``: of the file's bytes when it was read.
+    """
+
+    path: Path | None
+    applied: tuple[str, ...] = ()
+    problems: tuple[str, ...] = ()
+    sha256: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"path": None if self.path is None else str(self.path.resolve()), "sha256": self.sha256,
+                "applied_sections": list(self.applied), "problems": list(self.problems)}
+
+
+def believed_cell(cell_spec, cell_path: str | Path,  # noqa: ANN001, ANN201 — config.CellSpec in and out
+                  now: dt.datetime | None = None) -> tuple[Any, CalibrationState]:
+    """The cell as the controller believes it: the cell file with its calibration file's corrections.
+
+    A readable calibration file of this cell is applied section by section (whatever it
+    holds), even when some section is older than the cell allows: a stale calibration
+    is still nearer the truth than the nominal drawing, and real cells refuse to run on
+    one anyway unless the operator overrides that (``check_calibration``). Never raises:
+    a missing, unreadable or foreign file leaves the nominal values and says why in
+    ``problems``. A simulated cell that enables a miscalibration but names no
+    calibration file is reported too (its controller believes the nominal values).
+    """
+    import hashlib
+
+    path = calibration_path(cell_spec, cell_path)
+    problems = list(check_calibration(cell_spec, cell_path, now=now))
+    sim = getattr(cell_spec, "simulation", None)
+    if path is None:
+        if cell_spec.kind == "simulated" and sim is not None and sim.miscalibration.enabled:
+            problems.append(f"simulated cell {cell_spec.name!r} is miscalibrated but names no calibration_file: "
+                            f"the controller believes the cell file's nominal geometry")
+        return cell_spec, CalibrationState(None, (), tuple(problems), None)
+    if not path.exists():          # check_calibration said so already
+        problems.append("the controller believes the cell file's nominal geometry")
+        return cell_spec, CalibrationState(path, (), tuple(problems), None)
+    try:
+        data = path.read_bytes()
+        doc = read_document(path)
+        if doc.get("cell") != cell_spec.name:
+            raise CalibrationError(f"{path}: calibrated for cell {doc.get('cell')!r}, not {cell_spec.name!r}")
+        corrections = load_calibration(path)
+    except (OSError, CalibrationError) as exc:
+        msg = str(exc) if isinstance(exc, CalibrationError) else f"{path}: {exc.strerror or exc}"
+        if msg not in problems:
+            problems.append(msg)
+        problems.append("the controller believes the cell file's nominal geometry")
+        return cell_spec, CalibrationState(path, (), tuple(problems), None)
+    applied = tuple(k for k in KINDS if k in doc["sections"])
+    return corrections.apply_to(cell_spec), CalibrationState(path, applied, tuple(problems),
+                                                             hashlib.sha256(data).hexdigest())

@@ -186,6 +186,10 @@ class MiscalibrationSpec(Spec):
     tip_mm: float = Field(2.0, ge=0, le=20)
     scanner_deg: float = Field(2.0, ge=0, le=20)
     scanner_mm: float = Field(3.0, ge=0, le=30)
+    object_mm: float = Field(0.0, ge=0, le=30)      # the object set down off its placement (horizontal)
+    # The miscalibration belongs to the physical cell, not to a run: drawn from this
+    # cell-level seed, so calibrating and running (with any --seed) meet the same cell.
+    seed: int = Field(0, ge=0, lt=2**31)
 
 
 class SimulationSpec(Spec):
@@ -411,6 +415,10 @@ class SessionInputs:
     plan_doc: YamlDoc
     cell_doc: YamlDoc
     limits: SafetyLimits
+    # ``cell`` is what the controller believes: the cell file with its calibration file's
+    # corrections applied (calibration.calfile.believed_cell); ``cell_file`` is the file as
+    # written (a simulated cell's true tool is built from it). None: same as ``cell``.
+    cell_file: CellSpec | None = None
 
     def resolve(self, relative_to: Path, name: str) -> Path:
         p = Path(name)
@@ -439,7 +447,10 @@ def load_session_inputs(plan_path: str | Path, cell_path: str | Path | None = No
     plan, plan_doc = load_plan(plan_path)
     if cell_path is None:
         cell_path = (Path(plan_path).parent / plan.cell) if plan.cell else DEFAULT_CELL
-    cell, cell_doc = load_cell(cell_path)
+    cell_file, cell_doc = load_cell(cell_path)
+    from elastoprobe.calibration.calfile import believed_cell   # lazy: calibration imports controller
+
+    cell, _ = believed_cell(cell_file, cell_path)
     errors: list[InputError] = []
     lim = cell.limits
     # A plan may only tighten the cell's limits.
@@ -482,7 +493,7 @@ def load_session_inputs(plan_path: str | Path, cell_path: str | Path | None = No
     limits = lim.safety().tightened(**{k: v for k, v in overrides.items()
                                        if k in SafetyLimits.__dataclass_fields__})
     inputs = SessionInputs(plan=plan, cell=cell, plan_path=Path(plan_path), cell_path=Path(cell_path),
-                           plan_doc=plan_doc, cell_doc=cell_doc, limits=limits)
+                           plan_doc=plan_doc, cell_doc=cell_doc, limits=limits, cell_file=cell_file)
     obj = inputs.object_file()
     if not obj.exists():
         where = (plan_doc, ("simulated_object",)) if plan.simulated_object else (cell_doc, ("object", "file"))
