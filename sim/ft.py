@@ -104,6 +104,7 @@ class SimForceTorque:
         self._bias = np.concatenate([rng.normal(0.0, settings.bias_n, 3), rng.normal(0.0, settings.bias_nm, 3)])
         self._sigma = np.array([settings.noise_n] * 3 + [settings.noise_nm] * 3)
         self._range = np.array([settings.range_n] * 3 + [settings.range_nm] * 3)
+        self._range_min = float(self._range.min())
         self._noise = PagedNormal(6)
         self._drift_per_us = np.zeros(6)
         self._tare = np.zeros(6)
@@ -114,7 +115,7 @@ class SimForceTorque:
         # Torque of a force applied at the tip / at the payload's centre of mass: r x F = F @ K(r)^T.
         self._k_tip_t = _skew(self._tip_in_sensor_mm * 1e-3).T
         self._k_com_t = _skew(self._com_sensor_mm * 1e-3).T
-        self._gravity_cache: tuple[bytes, np.ndarray] | None = None
+        self._gravity_cache: tuple[bytes, np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ ForceTorqueSensor
     def identity(self) -> DeviceIdentity:
@@ -160,34 +161,44 @@ class SimForceTorque:
         self._drift_per_us = per_h / (3600.0 * US_PER_S)
 
     def _gravity_wrench(self, r_bs: np.ndarray) -> np.ndarray:
-        """Payload gravity (6,) in the sensor frame for one sensor orientation (cached)."""
-        key = r_bs.tobytes()
-        if self._gravity_cache is not None and self._gravity_cache[0] == key:
-            return self._gravity_cache[1]
+        """Payload gravity (6,) in the sensor frame for one sensor orientation."""
         g = (self._mass_kg * GRAVITY_MM_S2) @ r_bs
-        wrench = np.concatenate([g, g @ self._k_com_t])
-        self._gravity_cache = (key, wrench)
-        return wrench
+        return np.concatenate([g, g @ self._k_com_t])
+
+    def _static_terms(self, rot_base_tcp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(R_bs, gravity + bias (6,)) for one TCP orientation, cached: the arm holds its
+        orientation for whole motions, so this is the same for thousands of sub-chunks."""
+        key = rot_base_tcp.tobytes()
+        cache = self._gravity_cache
+        if cache is not None and cache[0] == key:
+            return cache[1], cache[2]
+        r_bs = rot_base_tcp @ self._r_ts
+        static = self._gravity_wrench(r_bs) + self._bias
+        self._gravity_cache = (key, r_bs, static)
+        return r_bs, static
 
     def _sim_synthesize(self, ts_us: np.ndarray, force_base: np.ndarray, rot_base_tcp: np.ndarray,
                         now_us: int) -> FTSamples:
         w = self._world
         n = ts_us.shape[0]
         raw = np.empty((n, 6))
-        r_bs = rot_base_tcp @ self._r_ts
         if rot_base_tcp.ndim == 2:
+            r_bs, static = self._static_terms(rot_base_tcp)
             f_contact = force_base @ r_bs                       # R_bs^T F for each row
             raw[:, :3] = f_contact
             raw[:, 3:] = f_contact @ self._k_tip_t
-            raw += self._gravity_wrench(r_bs) + self._bias
+            raw += static
         else:
+            r_bs = rot_base_tcp @ self._r_ts
             f_contact = np.einsum("nij,ni->nj", r_bs, force_base)
             g = np.einsum("nij,i->nj", r_bs, self._mass_kg * GRAVITY_MM_S2)
             raw[:, :3] = f_contact + g
             raw[:, 3:] = f_contact @ self._k_tip_t + g @ self._k_com_t
             raw += self._bias
-        first = (int(ts_us[0]) - w.step_start_us) // self._period_us - 1
-        raw += np.outer((ts_us - w.step_start_us).astype(float), self._drift_per_us)
+        step_start = w.step_start_us
+        first = (int(ts_us[0]) - step_start) // self._period_us - 1
+        # Drift: the outer product of elapsed time and the per-µs rate (np.outer, unrolled).
+        raw += (ts_us - step_start).astype(float)[:, None] * self._drift_per_us[None, :]
         raw += self._noise.take(first, n) * self._sigma
         faults = w.faults
         active = faults._sim_any_active()
@@ -195,12 +206,16 @@ class SimForceTorque:
             spike = faults._sim_ft_spike(ts_us)
             if spike is not None:
                 raw[:, :3] += spike
-        clipped = np.abs(raw) > self._range
-        if clipped.any():
+        # Saturation: one bound check of the whole block first (the common case is far inside).
+        if float(np.abs(raw).max()) > self._range_min:
+            clipped = np.abs(raw) > self._range
+        else:
+            clipped = None
+        if clipped is not None and clipped.any():
             status = np.where(clipped.any(axis=1), STATUS_SATURATED, 0).astype(np.uint32)
             raw = np.clip(raw, -self._range, self._range)
         else:
-            status = np.zeros(n, dtype=np.uint32)
+            status = _ZEROS_U32[:n] if n <= _ZEROS_U32.shape[0] else np.zeros(n, dtype=np.uint32)
         out = raw - self._tare
         delivered = _ALL_TRUE[:n] if n <= _ALL_TRUE.shape[0] else np.ones(n, dtype=bool)
         all_delivered = True
@@ -249,6 +264,8 @@ class SimForceTorque:
 
 _ALL_TRUE = np.ones(4096, dtype=bool)
 _ALL_TRUE.setflags(write=False)
+_ZEROS_U32 = np.zeros(4096, dtype=np.uint32)
+_ZEROS_U32.setflags(write=False)
 
 
 class _Recent:
