@@ -23,6 +23,8 @@ import argparse
 import collections
 import json
 import math
+import socket
+import struct
 import sys
 import threading
 import time
@@ -34,6 +36,7 @@ from elastoprobe.controller.devices import Trip, WrenchBlock
 from elastoprobe.controller.drivers.hardware import SafetyLoop, StopFirstGuard
 from elastoprobe.controller.safety import SafetyLimits
 
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)     # Linux
 LIMITS = SafetyLimits(max_force_n=45.0, max_torque_nm=4.0, max_lateral_force_n=45.0, max_force_rate_n_s=1500.0,
                       ft_stale_ms=30.0, ft_frozen_ms=60.0, slip_mm=6.0)
 
@@ -243,11 +246,43 @@ def run_loopback(trips: int, octet: int) -> dict[str, Any]:
     from elastoprobe.sim.servers.ur_rtde_protocol import CMD_DATA_PACKAGE
 
     class TimedEmulator(UREmulator):
-        """Records when a stop command (stopL / speedStop) arrives in input_int_register_0."""
+        """Records when a stop command (stopL / speedStop) arrives in input_int_register_0:
+        ``wire`` when its bytes were read off the socket, ``receipts`` once it is in the
+        controller's inputs (what the next controller cycle acts on)."""
 
         receipts: list[float]
+        wire: list[float]
+        kernel: list[float]
+        _kernel_last = 0.0
+
+        def _serve_rtde(self, conn: Any, peer: str) -> None:
+            # The kernel's receive time of each packet (SO_TIMESTAMPNS, CLOCK_REALTIME mapped
+            # onto the monotonic clock): splits "ur_rtde sent" from "the emulator's thread ran".
+            conn.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+            real_minus_mono = time.time() - time.monotonic()
+            orig = conn.recv
+
+            def recv(n: int) -> bytes:
+                data, anc, _, _ = conn.recvmsg(n, 256)
+                for level, kind, raw in anc:
+                    if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(raw) >= 16:
+                        sec, nsec = struct.unpack("qq", raw[:16])
+                        self._kernel_last = sec + nsec * 1e-9 - real_minus_mono
+                return data
+
+            class _Wrapped:
+                def __init__(self, sock: Any) -> None:
+                    self._sock = sock
+
+                def __getattr__(self, name: str) -> Any:
+                    return recv if name == "recv" else getattr(self._sock, name)
+
+            del orig
+            super()._serve_rtde(_Wrapped(conn), peer)       # type: ignore[arg-type]
 
         def _handle_rtde(self, s: Any, command: int, payload: bytes) -> None:
+            t_wire = time.monotonic()
+            t_kernel = self._kernel_last
             key = f"input_int_register_{self._reg_offset}"
             before = self._inputs.get(key)
             super()._handle_rtde(s, command, payload)
@@ -255,6 +290,8 @@ def run_loopback(trips: int, octet: int) -> dict[str, Any]:
                 after = self._inputs.get(key)
                 if after in (33, 15) and after != before:
                     self.receipts.append(time.monotonic())
+                    self.wire.append(t_wire)
+                    self.kernel.append(t_kernel)
 
     cpf = 1_000_000
     limit = LIMITS.max_force_n
@@ -293,7 +330,7 @@ def run_loopback(trips: int, octet: int) -> dict[str, Any]:
         try:
             emu = TimedEmulator(host, KinematicBackend((0.4, -0.1, 0.3, 0.0, math.pi, 0.0), t0_s=time.monotonic()),
                                 lifetime_s=trips * 0.5 + 120.0)
-            emu.receipts = []
+            emu.receipts, emu.wire, emu.kernel = [], [], []
             emu.start()
             break
         except OSError:
@@ -310,6 +347,8 @@ def run_loopback(trips: int, octet: int) -> dict[str, Any]:
         hw = HardwareProcess(cfg).start()
         time.sleep(0.5)
         latencies: list[float] = []
+        hops: list[dict[str, float]] = []
+        multi_record_blocks = 0
         for _ in range(trips):
             n_cross = len(state["cross_k"])
             n_rec = len(emu.receipts)
@@ -321,21 +360,67 @@ def run_loopback(trips: int, octet: int) -> dict[str, Any]:
                 break
             k = state["cross_k"][n_cross]
             sent = server.sent.get(server.first_rdt_sequence + k)
-            if sent is not None:
-                latencies.append(emu.receipts[n_rec] - sent)
             deadline = time.monotonic() + 5.0
             while not state["hold"] and time.monotonic() < deadline:
                 time.sleep(0.001)
+            if sent is not None:
+                latencies.append(emu.receipts[n_rec] - sent)
+                # The hardware process files a stop's stamps once ur_rtde has acknowledged it
+                # (~10 ms after the emulator's receipt): fetch them after the ramp is down.
+                mine = [t for t in hw.call("stop_timings") if t["decided_s"] >= sent]
+                if mine:
+                    hop = _hops(sent, mine[0], emu.kernel[n_rec], emu.wire[n_rec], emu.receipts[n_rec])
+                    if hop is not None:
+                        hops.append(hop)
+                        multi_record_blocks += int(mine[0]["block_len"] > 1)
             time.sleep(0.005)
             while not hw.arm.rearm() and time.monotonic() < deadline:
                 time.sleep(0.002)
-        return {"latencies_s": latencies, "hardware": hw.stats()["latency"]}
+        return {"latencies_s": latencies, "hardware": hw.stats()["latency"], "hops": hops,
+                "multi_record_blocks": multi_record_blocks}
     finally:
         if hw is not None:
             hw.close()
         if server is not None:
             server.stop()
         emu.stop()
+
+
+# Hops of the stop path, in order: (name, stamp it starts at, stamp it ends at). Every stamp
+# is time.monotonic() (CLOCK_MONOTONIC: one clock for the bench, the hardware process and
+# the ur_rtde child).
+HOPS = (
+    ("udp", "sent_s", "arrival_s"),                       # Net F/T server sendto -> client recv returned
+    ("wake", "arrival_s", "woke_s"),                      # client thread -> safety thread running
+    ("read", "woke_s", "read_s"),                         # read_block + retime
+    ("check", "read_s", "decided_s"),                     # guard.check_block
+    ("trip", "decided_s", "stop_s"),                      # on_trip bookkeeping before the stop
+    ("gate", "stop_s", "gate_s"),                         # the gate lock (control thread's speedL)
+    ("link_lock", "gate_s", "t_locked_s"),                # URLink's call lock (control thread's state())
+    ("pipe", "t_locked_s", "t_sent_s"),                   # pickling + pipe write
+    ("child_wake", "t_sent_s", "child_recv_s"),           # ur_rtde child wakes and reads the request
+    ("child_pre", "child_recv_s", "child_lib_call_s"),    # isProgramRunning() before the stop
+    ("ur_rtde_send", "child_lib_call_s", "kernel_s"),     # ur_rtde sendCommand -> the emulator's kernel
+    ("emulator_recv", "kernel_s", "wire_s"),              # kernel -> the emulator's RTDE thread read it
+    ("emulator_handle", "wire_s", "receipt_s"),           # emulator writes it into its inputs
+)
+
+
+def _hops(sent_s: float, timing: dict[str, Any], kernel_s: float, wire_s: float,
+          receipt_s: float) -> dict[str, float] | None:
+    stamps = dict(timing, sent_s=sent_s, kernel_s=kernel_s, wire_s=wire_s, receipt_s=receipt_s)
+    if any(stamps.get(a) is None or stamps.get(b) is None for _, a, b in HOPS):
+        return None
+    return {name: stamps[b] - stamps[a] for name, a, b in HOPS}
+
+
+def _breakdown(hops: list[dict[str, float]]) -> dict[str, dict[str, float]]:
+    out: dict[str, dict[str, float]] = {}
+    for name, _, _ in HOPS:
+        a = np.array([h[name] for h in hops]) * 1e3
+        out[name] = {"p50_ms": round(float(np.percentile(a, 50)), 4), "p99_ms": round(float(np.percentile(a, 99)), 4),
+                     "max_ms": round(float(a.max()), 4)}
+    return out
 
 
 # ----------------------------------------------------------------------------- main
@@ -378,7 +463,9 @@ def main(argv: list[str] | None = None) -> int:
         lb = run_loopback(args.loopback_trips, args.octet)
         out.update({"loopback_trips": len(lb["latencies_s"]), "loopback_p50_ms": _pct(lb["latencies_s"], 50),
                     "loopback_p99_ms": _pct(lb["latencies_s"], 99), "loopback_max_ms": _pct(lb["latencies_s"], 100),
-                    "loopback_block_to_stop_acknowledged_p99_ms": lb["hardware"]["p99_ms"]})
+                    "loopback_block_to_stop_acknowledged_p99_ms": lb["hardware"]["p99_ms"],
+                    "loopback_multi_record_blocks": lb["multi_record_blocks"],
+                    "loopback_breakdown": _breakdown(lb["hops"]) if lb["hops"] else None})
     print(json.dumps(out, allow_nan=False))
     return 0
 

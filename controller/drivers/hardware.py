@@ -222,6 +222,10 @@ class SafetyLoop:
         self._recent_n = 0
         self.iterations = 0
         self.blocks = 0
+        # Monotonic stamps of the current iteration (woke, block read, guard decided) and the
+        # length of its block: the trip callback reads them for the latency breakdown.
+        self.t_woke_s = self.t_read_s = self.t_decided_s = 0.0
+        self.block_len = 0
 
     def recent_force_n(self, count: int) -> np.ndarray:
         """The latest ``count`` force samples (sensor frame, tared), oldest first."""
@@ -232,10 +236,13 @@ class SafetyLoop:
     def step(self) -> None:
         """One iteration: wait for data (bounded), check it, act on a crossing."""
         got = self.wait_data(self.period_s)
+        self.t_woke_s = time.monotonic()
         self.heartbeat()
         self.iterations += 1
         with self.lock:
             block = self.read_block() if got else WrenchBlock.empty()
+            self.t_read_s = time.monotonic()
+            self.block_len = len(block)
             if not len(block):
                 trip = self.guard.check_stale(time.monotonic())
                 arrival = time.monotonic()
@@ -252,6 +259,7 @@ class SafetyLoop:
                     if hit.size and (trip is None or block.t_s[hit[0]] < trip.t_s):
                         contact_t = float(block.t_s[hit[0]])
                 self._remember(block.force_n)
+        self.t_decided_s = time.monotonic()
         # Act first, then report: the stop goes out before anything else happens.
         if trip is not None:
             self.on_trip(trip, arrival)
@@ -370,6 +378,7 @@ class _HardwareServer:
         self.state: URState | None = None
         self.pending_errors: list[str] = []
         self.latency = LatencyStats()
+        self.stop_timings: collections.deque[dict[str, Any]] = collections.deque(maxlen=10_000)
         self.outbox: collections.deque[WrenchBlock] = collections.deque()
         self.outbox_n = 0
         self.outbox_lock = threading.Lock()
@@ -457,9 +466,17 @@ class _HardwareServer:
                 m.finish(MotionState.TRIPPED, trip.message)
             self.regulation = None
             self.safety.contact_threshold_n = None
+            t_stop_s = time.monotonic()
             with self.gate:
+                t_gate_s = time.monotonic()
                 self._send_stop(m)
-            self.latency.add(time.monotonic() - arrival_s)
+            now = time.monotonic()
+            self.latency.add(now - arrival_s)
+            sl = self.safety
+            self.stop_timings.append({
+                "arrival_s": arrival_s, "woke_s": sl.t_woke_s, "read_s": sl.t_read_s, "decided_s": sl.t_decided_s,
+                "block_len": sl.block_len, "stop_s": t_stop_s, "gate_s": t_gate_s, "acknowledged_s": now,
+                **self.link.last_stop_timing})
 
     def _on_contact(self, t_s: float, arrival_s: float) -> None:
         m = self.motion
@@ -664,6 +681,14 @@ class _HardwareServer:
         ft = self.ft.identity()
         return {"arm": dict(self.link.identity()), "ft": {"model": ft.model, "serial": ft.serial,
                                                           "firmware": ft.firmware, "extra": dict(ft.extra)}}
+
+    def op_stop_timings(self) -> list[dict[str, Any]]:
+        """Monotonic stamps of every trip's stop (oldest first; then forgotten): F/T arrival,
+        safety thread woke / read / decided, gate taken, link lock taken, pipe sent, the
+        child's receipt and ur_rtde call, the answer."""
+        out = list(self.stop_timings)
+        self.stop_timings.clear()
+        return out
 
     def op_stats(self) -> dict[str, Any]:
         c = self.ft.counters()

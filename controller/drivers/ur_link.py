@@ -59,6 +59,10 @@ UNEXPLAINED_STOP_GRACE_S = 0.2
 _REGISTER_WRITING_OPS = frozenset({"move_linear", "stop_linear", "speed_linear", "speed_stop", "force_mode",
                                    "force_mode_stop", "zero_ft_sensor", "recover"})
 
+# Child operations on the stop path: their answers carry the child's timestamps (a latency
+# breakdown for bench/safety_latency.py; the same monotonic clock in every process).
+_STOP_OPS = frozenset({"stop_linear", "speed_stop"})
+
 # What the receive interface streams (few variables keep the 500 Hz stream cheap).
 RECEIVE_VARIABLES = ["timestamp", "actual_q", "actual_TCP_pose", "actual_TCP_speed", "actual_TCP_force",
                      "robot_status_bits", "safety_status_bits", "runtime_state", "robot_mode", "safety_mode"]
@@ -191,6 +195,7 @@ class _ChildLink:
         self.unexplained_since_s: float | None = None
         self.kicking = False
         self.last_write_s = 0.0
+        self.t_lib_call_s = 0.0          # when the last stop op entered ur_rtde
 
     # -- setup
     def connect(self) -> None:
@@ -286,17 +291,23 @@ class _ChildLink:
                     msg = self.conn.recv()
                 except EOFError:
                     return 0
+                t_recv = time.monotonic()
                 if msg[0] == "close":
                     self.close()
                     return 0
                 if msg[0] == "call":
-                    self._answer(msg[1], msg[2], msg[3])
+                    self._answer(msg[1], msg[2], msg[3], t_recv)
         return 0
 
-    def _answer(self, rid: int, name: str, args: tuple[Any, ...]) -> None:
+    def _answer(self, rid: int, name: str, args: tuple[Any, ...], t_recv_s: float = 0.0) -> None:
         try:
             result = getattr(self, "op_" + name)(*args)
-            self.conn.send(("ok", rid, result))
+            if name in _STOP_OPS:
+                stamps = {"child_recv_s": t_recv_s, "child_lib_call_s": self.t_lib_call_s,
+                          "child_lib_return_s": time.monotonic()}
+                self.conn.send(("ok", rid, result, stamps))
+            else:
+                self.conn.send(("ok", rid, result))
         except Exception as exc:  # noqa: BLE001 — every failure goes back to the parent
             self.conn.send(("err", rid, f"{type(exc).__name__}: {exc}"))
         finally:
@@ -341,6 +352,7 @@ class _ChildLink:
 
     def op_stop_linear(self, decel_m_s2: float) -> bool:
         if self.ctl.isProgramRunning():
+            self.t_lib_call_s = time.monotonic()
             self.ctl.stopL(float(decel_m_s2), True)
         return True
 
@@ -350,6 +362,7 @@ class _ChildLink:
 
     def op_speed_stop(self, decel_m_s2: float) -> bool:
         if self.ctl.isProgramRunning():
+            self.t_lib_call_s = time.monotonic()
             self.ctl.speedStop(float(decel_m_s2))
         return True
 
@@ -463,6 +476,8 @@ class URLink:
         self.identity_info: dict[str, str] = {}
         self._supervisor: threading.Thread | None = None
         self._stop_supervisor = threading.Event()
+        # Monotonic stamps of the last stop call (lock taken, sent, answered, the child's).
+        self.last_stop_timing: dict[str, Any] = {}
 
     # -- lifecycle
     def start(self) -> "URLink":
@@ -613,7 +628,11 @@ class URLink:
             raise DeviceError("UR link fault: " + "; ".join(f"{f.kind}: {f.message}" for f in faults))
 
     def _call(self, name: str, *args: Any, timeout_s: float | None = None) -> Any:
+        t_call = time.monotonic()
         with self._lock:
+            timing: dict[str, Any] = {"t_call_s": t_call, "t_locked_s": time.monotonic()}
+            if name in _STOP_OPS:
+                self.last_stop_timing = timing
             self._raise_unreported()
             if self._dead_reason is not None:
                 raise DeviceError(f"UR link to {self.host} is down: {self._dead_reason}")
@@ -623,6 +642,7 @@ class URLink:
             rid = self._rid
             try:
                 self._conn.send(("call", rid, name, args))
+                timing["t_sent_s"] = time.monotonic()
             except OSError as exc:
                 self._fault("child_died", f"pipe to the child broke: {exc}", reported=True)
                 raise DeviceError(f"UR link child died during {name}; restarted, arm stopped") from exc
@@ -646,6 +666,9 @@ class URLink:
                         raise DeviceError(f"UR link child died during {name} (code {code}); restarted, arm stopped")
                     continue
                 if msg[0] == "ok" and msg[1] == rid:
+                    timing["t_answer_s"] = time.monotonic()
+                    if len(msg) > 3:
+                        timing.update(msg[3])
                     return msg[2]
                 if msg[0] == "err" and msg[1] == rid:
                     raise DeviceError(f"UR {name} failed: {msg[2]}")
