@@ -7,7 +7,7 @@ geometry and object placement, with simulated devices behind them.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from .config import SessionInputs
@@ -21,6 +21,9 @@ class BuiltCell:
 
     cell: Cell
     object_mesh: Any                 # trimesh.Trimesh: the nominal surface for planning and collision checks
+    # Why the controller's geometry may not be the cell's (calibration missing, partial,
+    # stale or unusable): for the session's log and report. Empty: nothing to say.
+    warnings: list[str] = field(default_factory=list)
 
     def restore_history(self, presses: list[tuple[Any, Any, float]]) -> None:
         """Simulated cells rebuild object state (permanent dents) on resume; real cells have it."""
@@ -49,13 +52,27 @@ def _simulated(inputs: SessionInputs, seed: int) -> BuiltCell:
     if obj.suffix.lower() not in (".yaml", ".yml"):
         raise InputError("a dry run needs a simulated object (an objects/*.yaml with materials): set the plan's "
                          "simulated_object", path=str(inputs.plan_path))
-    cell = SimCell(params_from_cell(inputs.cell, obj, seed=seed))
+    # The world is built from the cell FILE (its miscalibration, drawn from the cell's own
+    # seed, included); the controller's side from ``inputs.cell``, the file corrected by
+    # its calibration file (config.load_session_inputs).
+    cell_file = inputs.cell_file if inputs.cell_file is not None else inputs.cell
+    cell = SimCell(params_from_cell(cell_file, obj, seed=seed, believed=inputs.cell))
     problems = cell.validity_report(max(max(inputs.plan.phases.survey.forces_n),
                                         max(inputs.plan.phases.characterize.forces_n)))
     if problems:
         raise InputError("the simulated object's physics is not valid at this plan's largest force: "
                          + "; ".join(problems), path=str(inputs.plan_path))
-    return BuiltCell(cell=cell, object_mesh=cell.world.obj.mesh)
+    return BuiltCell(cell=cell, object_mesh=cell.world.obj.mesh, warnings=calibration_warnings(inputs))
+
+
+def calibration_warnings(inputs: SessionInputs) -> list[str]:
+    """Why the controller's believed geometry may be off (empty when the calibration is
+    current, or when a simulated cell is calibrated by construction)."""
+    from elastoprobe.calibration.calfile import believed_cell
+
+    cell_file = inputs.cell_file if inputs.cell_file is not None else inputs.cell
+    _, state = believed_cell(cell_file, inputs.cell_path)
+    return list(state.problems)
 
 
 def ground_truth_for(inputs: SessionInputs, seed: int) -> Any:
