@@ -106,12 +106,38 @@ def python_info() -> dict[str, Any]:
             "executable": sys.executable}
 
 
+def calibration_entry(cell_path: str | os.PathLike[str],
+                      calibration_path: str | os.PathLike[str] | None) -> dict[str, Any] | None:
+    """The calibration file a session used: ``{path, sha256, size_bytes, applied_sections,
+    problems}``, or None when the cell names none and needs none (a calibrated simulated
+    cell). ``problems`` says why the controller's geometry may be off (missing, partial,
+    stale or unreadable file; a miscalibrated simulated cell without one). Never raises."""
+    entry = _optional_file(calibration_path)
+    try:
+        from elastoprobe.calibration.calfile import believed_cell
+
+        from .config import load_cell
+
+        spec, _ = load_cell(cell_path)
+        _, state = believed_cell(spec, cell_path)
+    except Exception as exc:   # noqa: BLE001 - provenance must not stop a session
+        if entry is None:
+            return None
+        extra: dict[str, Any] = {"applied_sections": None, "problems": [f"calibration not checked: {exc}"]}
+    else:
+        extra = {"applied_sections": list(state.applied), "problems": list(state.problems)}
+    if entry is None and not extra["problems"]:
+        return None
+    return {**(entry or {"path": None, "sha256": None}), **extra}
+
+
 def collect_provenance(plan_path: str | os.PathLike[str], cell_path: str | os.PathLike[str],
                        calibration_path: str | os.PathLike[str] | None = None) -> dict[str, Any]:
     """Provenance of a session about to start.
 
     Returns ``{"plan": {path, text, sha256, size_bytes}, "cell": {...}, "calibration":
-    {path, sha256, size_bytes} | None, "packages": {dist: version|None}, "python": {...},
+    {path, sha256, size_bytes, applied_sections, problems} | None (:func:`calibration_entry`),
+    "packages": {dist: version|None}, "python": {...},
     "platform": {...}, "git": {revision, dirty} | None}``. The plan and cell must be
     readable UTF-8 (InputError otherwise: they were validated just before); the rest
     never raises.
@@ -119,7 +145,7 @@ def collect_provenance(plan_path: str | os.PathLike[str], cell_path: str | os.Pa
     return {
         "plan": _input_file(plan_path, "plan"),
         "cell": _input_file(cell_path, "cell"),
-        "calibration": _optional_file(calibration_path),
+        "calibration": calibration_entry(cell_path, calibration_path),
         "packages": package_versions(),
         "python": python_info(),
         "platform": {"system": platform.system(), "release": platform.release(),
