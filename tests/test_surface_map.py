@@ -1,0 +1,84 @@
+"""The region map over the cloud: distances along the surface, folds, cells (learning/surface_map.py)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from elastoprobe.controller.learning import evaluate as ev
+from elastoprobe.controller.learning import surface_map as sm
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def plane(nx: int, ny: int, spacing_mm: float, z_mm: float = 0.0, seed: int = 0, noise_mm: float = 0.0):
+    rng = np.random.default_rng(seed)
+    gx, gy = np.meshgrid(np.arange(nx) * spacing_mm, np.arange(ny) * spacing_mm, indexing="ij")
+    pts = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, z_mm)])
+    pts[:, 2] += rng.normal(0.0, noise_mm, len(pts)) if noise_mm else 0.0
+    return pts, np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+
+
+def test_two_seeds_on_a_flat_face_split_it_midway():
+    pts, nrm = plane(41, 11, 2.0, noise_mm=0.05)
+    g = sm.build_graph(pts, nrm)
+    assert not g.concave.any()
+    lab = sm.labels_from_seeds(g, np.array([[10.0, 10.0, 0.0], [70.0, 10.0, 0.0]]), np.array([3, 7]))
+    assert set(np.unique(lab)) == {3, 7}
+    assert np.all(lab[pts[:, 0] < 38.0] == 3) and np.all(lab[pts[:, 0] > 42.0] == 7)
+
+
+def test_scan_lines_and_an_unscanned_band_stay_one_face():
+    """A sweep samples densely along lines 4 mm apart and leaves a 12 mm band unseen: still one face."""
+    x = np.arange(0.0, 100.0, 0.5)
+    lines = [np.column_stack([x, np.full_like(x, y), np.zeros_like(x)]) for y in np.arange(0.0, 60.0, 4.0)]
+    pts = np.concatenate(lines)
+    pts = pts[(pts[:, 0] < 40.0) | (pts[:, 0] > 52.0)]
+    nrm = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+    g = sm.build_graph(pts, nrm)
+    c = sm.cells(g, np.array([[5.0, 30.0, 0.0]]))
+    assert np.all(c.source == 0)                     # every point reached from one seed
+
+
+@pytest.fixture(scope="module")
+def composite_surface():
+    from elastoprobe.controller.learning import strategies as st
+    from elastoprobe.controller.learning.cloud import sample_mesh
+    from elastoprobe.sim.objects import load_object
+
+    obj = load_object(ROOT / "config" / "objects" / "composite.yaml")
+    pts, nrm = sample_mesh(obj.mesh, 30_000, seed=5)
+    seen = st.seen_from_above(pts, nrm)
+    return obj, pts[seen], nrm[seen]
+
+
+def test_box_on_pillow_map_follows_the_fold_not_the_nearest_probe(composite_surface):
+    """Two probes per body, labelled with the truth: the box's walls go with the box, the
+    pillow up to the wall's foot with the pillow (the fold), against the truth."""
+    obj, pts, nrm = composite_surface
+    seeds = np.array([[0.0, 0.0, 140.0], [-40.0, 30.0, 140.0], [150.0, 0.0, 80.0], [-150.0, 60.0, 80.0]])
+    seed_labels = obj.region_of(seeds)
+    assert seed_labels.tolist() == [0, 0, 1, 1]
+    g = sm.build_graph(pts, nrm)
+    lab = sm.labels_from_seeds(g, seeds, seed_labels)
+    truth = obj.region_of(pts)
+    reach = nrm[:, 2] >= np.cos(np.radians(50.0))
+    scores = ev.region_map_scores(lab[reach], truth[reach], None, pts[reach])
+    assert scores["mislabelled_fraction"] < 0.005
+    assert scores["boundary_mm_p90"] is not None and scores["boundary_mm_p90"] < 5.0
+    assert np.mean(lab == truth) > 0.995              # walls included
+    # The nearest probe in space gets the pillow beside the box wrong.
+    from elastoprobe.controller.learning.regions import propagate_labels
+
+    near = propagate_labels(seeds, seed_labels, pts[reach])
+    assert np.mean(near != truth[reach]) > 10 * scores["mislabelled_fraction"]
+
+
+def test_cells_do_not_touch_across_the_fold(composite_surface):
+    obj, pts, nrm = composite_surface
+    seeds = np.array([[60.0, 0.0, 140.0], [100.0, 0.0, 80.0], [100.0, 60.0, 80.0], [0.0, 0.0, 140.0]])
+    g = sm.build_graph(pts, nrm)
+    pairs = sm.seed_neighbours(g, sm.cells(g, seeds))
+    assert (1, 2) in pairs and (0, 3) in pairs
+    assert (0, 1) not in pairs and (0, 2) not in pairs
