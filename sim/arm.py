@@ -112,6 +112,16 @@ def trapezoid_u(t_s: np.ndarray, u0: float, u1: float, rate: float, accel: float
         v_peak = rate
     total = dist / v_peak + t_ramp
     d_ramp = 0.5 * accel * t_ramp * t_ramp
+    if t.size:
+        # Most sub-chunks lie within one phase: evaluate that phase alone (the same
+        # expressions as the general case below, so the same numbers).
+        lo, hi = float(t.min()), float(t.max())
+        if hi < t_ramp:
+            return u0 + sign * (0.5 * accel * t * t), sign * (accel * t)
+        if lo >= t_ramp and hi <= total - t_ramp:
+            return u0 + sign * (d_ramp + v_peak * (t - t_ramp)), np.full(t.shape, sign * v_peak)
+        if lo >= total:
+            return np.full(t.shape, u0 + sign * dist), np.full(t.shape, sign * 0.0)
     pos = np.where(t < t_ramp, 0.5 * accel * t * t,
                    np.where(t <= total - t_ramp, d_ramp + v_peak * (t - t_ramp),
                             dist - 0.5 * accel * np.maximum(total - t, 0.0) ** 2))
@@ -473,7 +483,10 @@ class SimArm:
         recent = self._world.ft._sim_recent(samples)
         if recent is None or recent.shape[0] == 0:
             return 0.0
-        return float(np.linalg.norm(recent.mean(axis=0)))
+        # The mean and norm spelled out (numpy's mean is a sum then a division; norm is
+        # sqrt(x . x)): the same numbers without their Python-level overhead.
+        mean = np.add.reduce(recent, axis=0) / recent.shape[0]
+        return math.sqrt(float(mean.dot(mean)))
 
     # ------------------------------------------------------------------ world hooks (simulator internals)
     def _sim_motion_started_after(self, t_us: int) -> bool:
@@ -504,7 +517,7 @@ class SimArm:
             self._regulate_update(self._world.now_us)
         u, du = self._law.evaluate(ts_us)
         self._last_plan_u, self._last_plan_du = u, du
-        return ArmPlan(self._path.positions(u), self._path.rotations(u), np.abs(du) * self._path.speed_scale)
+        return ArmPlan(self._path.positions(u), self._path.rotations(u), du, self._path.speed_scale)
 
     def _sim_event(self, ts_us: np.ndarray, samples) -> int | None:
         """Index of the first sample that ends the current motion (seek threshold), or None."""

@@ -65,6 +65,7 @@ class FTSamples:
     all_delivered: bool = True
     fmag: np.ndarray | None = None      # |F| of ``out`` (N)
     tmag2: np.ndarray | None = None     # |T|^2 of ``out`` (N·m)^2
+    status_clear: bool = False          # True: every status word is 0 (nothing saturated)
 
     def block(self, cut: int) -> WrenchBlock:
         if self.all_delivered:
@@ -231,7 +232,8 @@ class SimForceTorque:
         f, t = out[:, :3], out[:, 3:]
         fmag = np.sqrt(np.einsum("ij,ij->i", f, f))
         tmag2 = np.einsum("ij,ij->i", t, t)
-        return FTSamples(ts_us, seq, raw, out, status, delivered, all_delivered, fmag, tmag2)
+        return FTSamples(ts_us, seq, raw, out, status, delivered, all_delivered, fmag, tmag2,
+                         status_clear=clipped is None or not clipped.any())
 
     def _sim_commit(self, samples: FTSamples, cut: int) -> None:
         if samples.all_delivered:

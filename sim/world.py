@@ -257,11 +257,18 @@ def _push_table(model) -> np.ndarray:
 
 @dataclass
 class ArmPlan:
-    """The arm's dry trajectory over a sub-chunk: TCP positions (n,3) mm, rotations (3,3) or (n,3,3)."""
+    """The arm's dry trajectory over a sub-chunk: TCP positions (n,3) mm, rotations (3,3) or (n,3,3),
+    the path rate du/dt (n,) and the path's mm per unit u."""
 
     position_mm: np.ndarray
     rotation: np.ndarray
-    speed_mm_s: np.ndarray
+    du: np.ndarray
+    speed_scale: float = 1.0
+
+    @property
+    def speed_mm_s(self) -> np.ndarray:
+        """TCP speed (n,) mm/s (computed on demand: the stepping itself never needs it)."""
+        return np.abs(self.du) * self.speed_scale
 
 
 @dataclass
@@ -289,6 +296,7 @@ class _Dry:
     creep_c: np.ndarray
     slip_mm: np.ndarray
     contact_ends_at: int | None = None
+    slip_const_mm: float | None = None     # slip_mm is this value at every sample (no slip fault)
 
 
 @dataclass
@@ -327,6 +335,7 @@ class SimWorld:
         # The true tip centre in the TCP frame (0 unless the cell is miscalibrated).
         self.tip_offset_tcp_mm = np.zeros(3) if tip_offset_tcp_mm is None else np.asarray(tip_offset_tcp_mm, float)
         self.ur_force_limit_n = float(ur_force_limit_n)
+        self._tip_offset_zero = not self.tip_offset_tcp_mm.any()
         self.limits = limits
         self.guard = SafetyGuard(limits, probe_axis_sensor, rate_hz=US_PER_S / sample_period_us)
         # The guard sees every sample. Blocks that a conservative screen proves cannot cross
@@ -334,7 +343,9 @@ class SimWorld:
         # any block the screen cannot clear is checked at once, so a crossing still stops
         # the arm at its sample's instant.
         self.guard_batch_us = int(guard_batch_us)
-        self._guard_pending: list[WrenchBlock] = []
+        # Pending screened samples: (ts_us, seq, out (n,6), status) slices, made into one
+        # WrenchBlock at the flush (one division and one concatenation per batch).
+        self._guard_pending: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         self._guard_pending_n = 0
         self._rate_window = max(1, int(round(limits.rate_window_ms * 1e-3 * US_PER_S / sample_period_us)))
         self._screen_prev = (0.0, 0.0)
@@ -430,7 +441,7 @@ class SimWorld:
         plan = self.arm._sim_plan(ts)
         rot = plan.rotation
         offset = self.tip_offset_tcp_mm
-        if not offset.any():
+        if self._tip_offset_zero:
             tips = plan.position_mm
         elif rot.ndim == 2:
             tips = plan.position_mm + (rot @ offset)
@@ -456,11 +467,13 @@ class SimWorld:
         if arm_event is not None and arm_event < cut:
             cut, event = arm_event + 1, "arm"
         slip_trip_at = None
+        fmax_cut = (cut, float(dry.force_mag_n[:cut].max())) if self.contact is not None else None
         if self.contact is not None:
-            if float(dry.force_mag_n[:cut].max()) > self.ur_force_limit_n:
+            if fmax_cut[1] > self.ur_force_limit_n:
                 over = np.flatnonzero(dry.force_mag_n[:cut] > self.ur_force_limit_n)
                 cut, event = int(over[0]) + 1, "ur_force"
-            if float(dry.slip_mm[:cut].max()) > self.limits.slip_mm:
+            slip_max = dry.slip_const_mm if dry.slip_const_mm is not None else float(dry.slip_mm[:cut].max())
+            if slip_max > self.limits.slip_mm:
                 slipping = np.flatnonzero(dry.slip_mm[:cut] > self.limits.slip_mm)
                 slip_trip_at = int(slipping[0])
                 cut, event = slip_trip_at + 1, "slip"
@@ -479,7 +492,7 @@ class SimWorld:
         if event == "slip" and trip is None:
             trip = self.guard.check_slip(float(dry.slip_mm[slip_trip_at]), float(dry.ts_us[slip_trip_at]) / US_PER_S)
         self.ft._sim_commit(samples, cut)
-        self._commit(dry, cut)
+        self._commit(dry, cut, fmax_cut[1] if fmax_cut is not None and fmax_cut[0] == cut else None)
         if trip is not None and self.trip is None:
             self.trip = _trip_truncated(trip, self.guard)
             self._latched_force_n = max(float(trip.value) if trip.kind == "force" else 0.0,
@@ -495,28 +508,42 @@ class SimWorld:
 
     # ------------------------------------------------------------------ the safety guard
     def _guard_check(self, samples, cut: int) -> Trip | None:
-        block = samples.block(cut)
         clear = self._screen(samples, cut)
         if clear and self.guard_batch_us > 0:
-            self._guard_pending.append(block)
-            self._guard_pending_n += len(block)
+            if samples.all_delivered:
+                part = (samples.ts_us[:cut], samples.seq[:cut], samples.out[:cut], samples.status[:cut])
+            else:
+                keep = samples.delivered[:cut]
+                part = (samples.ts_us[:cut][keep], samples.seq[:cut][keep], samples.out[:cut][keep],
+                        samples.status[:cut][keep])
+            self._guard_pending.append(part)
+            self._guard_pending_n += part[0].shape[0]
             if self._guard_pending_n * self.sample_period_us >= self.guard_batch_us:
                 return self.guard_flush()
             return None
         late = self.guard_flush()
         self.stats["guard_blocks"] += 1
-        trip = self.guard.check_block(block)
+        trip = self.guard.check_block(samples.block(cut))
         return trip if trip is not None else late
 
     def guard_flush(self) -> Trip | None:
         """Hand the screened, batched samples to the guard (before anything reads its state)."""
-        if not self._guard_pending:
+        pending = self._guard_pending
+        if not pending:
             return None
-        block = WrenchBlock.concat(self._guard_pending)
-        self._guard_pending.clear()
+        if len(pending) == 1:
+            ts_us, seq, out, status = pending[0]
+        else:
+            ts_us = np.concatenate([p[0] for p in pending])
+            seq = np.concatenate([p[1] for p in pending])
+            out = np.concatenate([p[2] for p in pending])
+            status = np.concatenate([p[3] for p in pending])
+        pending.clear()
         self._guard_pending_n = 0
         self.stats["guard_blocks"] += 1
-        return self.guard.check_block(block)
+        if not ts_us.shape[0]:
+            return None
+        return self.guard.check_block(WrenchBlock(ts_us / US_PER_S, seq, out[:, :3], out[:, 3:], status))
 
     def guard_restart(self) -> None:
         """A deliberate step in the stream (tare): flush, then let the guard forget its carry-over."""
@@ -549,7 +576,7 @@ class SimWorld:
         tmag2 = samples.tmag2[:cut]
         if float(tmag2.max()) > self._screen_torque2:
             return False
-        if samples.status[:cut].any():
+        if not samples.status_clear and samples.status[:cut].any():
             return False
         if not enough_history or fmag.shape[0] < self._rate_window:
             return False
@@ -583,7 +610,7 @@ class SimWorld:
             plan_n = plan
         else:
             plan_n = ArmPlan(plan.position_mm[:n], plan.rotation if plan.rotation.ndim == 2 else plan.rotation[:n],
-                             plan.speed_mm_s[:n])
+                             plan.du[:n], plan.speed_scale)
         c = self.contact
         if c is None:
             zeros = np.zeros(n)
@@ -606,14 +633,16 @@ class SimWorld:
         else:
             creep = _ONES[:n] if n <= _ONES.shape[0] else np.ones(n)
         force = c.forces_n(push, creep)
-        slip = np.full(n, c.slip_mm(float(force[-1])))
+        slip_const: float | None = c.slip_mm(float(force[-1]))
+        slip = np.full(n, slip_const)
         if self.faults._sim_any_active():
             slip = slip + self.faults._sim_slip_mm(ts, c)
+            slip_const = None
         ends = np.flatnonzero(push < -1e-9) if float(push.min()) < -1e-9 else ()
         return _Dry(ts, plan_n, tips, -force[:, None] * c.d_base[None, :], force, push, creep, slip,
-                    int(ends[0]) if len(ends) else None)
+                    int(ends[0]) if len(ends) else None, slip_const)
 
-    def _commit(self, dry: _Dry, cut: int) -> None:
+    def _commit(self, dry: _Dry, cut: int, force_max_n: float | None = None) -> None:
         last = cut - 1
         t_end = int(dry.ts_us[last])
         exposures = self.scanner._sim_due(self.now_us, t_end)
@@ -627,7 +656,8 @@ class SimWorld:
             c.push_max_mm = max(c.push_max_mm, c.push_mm)
             c.creep_c = float(dry.creep_c[last])
             c.force_n = float(dry.force_mag_n[last])
-            c.max_force_n = max(c.max_force_n, float(np.max(dry.force_mag_n[:cut])))
+            c.max_force_n = max(c.max_force_n, force_max_n if force_max_n is not None
+                                else float(np.max(dry.force_mag_n[:cut])))
         self.arm._sim_commit(dry.ts_us[:cut], last)
         self.now_us = t_end
         if c is not None and dry.contact_ends_at is not None and dry.contact_ends_at <= last:
