@@ -117,3 +117,26 @@ def test_propagate_labels_nearest_unit():
     units = np.array([[0.0, 0, 0], [10.0, 0, 0]])
     pts = np.array([[1.0, 0, 0], [9.0, 1, 0], [4.9, 0, 0]])
     assert propagate_labels(units, np.array([3, 7]), pts).tolist() == [3, 7, 3]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_geometry_shift_of_one_material_is_one_region(seed):
+    """Geometry shifts one material's visible dent: the rim of a pillow reads ~1.3x deeper
+    (the probe's shadow ends closer to the contact). The mixture finds two clusters;
+    they are not two elasticities."""
+    rim = POS[:, 0] >= 60.0                                      # the last two columns
+    feats, names = survey(seed, np.where(rim, 1.2 * 1.3 ** -1.5, 1.2), variability=0.02)
+    rm = cluster_regions(feats, EDGES, names, seed=0)
+    assert rm.n_regions == 1
+    split = cluster_regions(feats, EDGES, names, seed=0, min_contrast=1.0)
+    assert split.n_regions >= 2                                  # what the contrast rule prevents
+
+
+def test_peak_is_read_near_the_contact_not_at_an_occlusion_far_out():
+    d = np.stack([hertz_normal_mm(X_MM, f, 2.0) for f in FORCES_N])[None]
+    d[:, :, np.abs(X_MM) < 3.0] = np.nan                 # the tip hides the centre
+    clean, _ = survey_features(d, X_MM, FORCES_N)
+    d[:, :, (X_MM > 12.0) & (X_MM < 13.0)] = 1.5         # a wall seen in the scan line
+    spoiled, _ = survey_features(d, X_MM, FORCES_N)
+    assert np.allclose(spoiled[0, :2], clean[0, :2])
+    assert spoiled[0, 0] < 0.5

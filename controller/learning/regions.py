@@ -10,7 +10,11 @@ slope), and the surface graph (neighbour pairs of the neural-gas units).
 2. The number of regions comes from the data: Gaussian mixtures for k = 1..kmax,
    the one with the lowest BIC wins. Optionally, clusters whose centroids differ by
    less than ``merge_sigmas`` measurement noises in every feature are merged (the
-   mixture may split a material whose features are not Gaussian).
+   mixture may split a material whose features are not Gaussian). Then clusters whose
+   median peak depths differ by less than a factor ``min_contrast`` at every survey
+   force are merged: BIC finds any structure, including the smooth drift of one
+   material's visible dent with the local geometry (rims, slopes, tilt), which is not a
+   different elasticity. A homogeneous object gives one region.
 3. Spatial coherence on the surface graph: a few passes of iterated conditional
    modes (each point takes the region maximising its feature log-likelihood plus
    ``beta`` per neighbour already in that region: ambiguous points follow their
@@ -32,18 +36,32 @@ from scipy.sparse.csgraph import connected_components
 from scipy.special import logsumexp
 
 _MAX_ICM_PASSES = 20
+# Regions of different elasticity differ in survey depth by at least this factor (the
+# composite's box and foam: ~10x); geometry moves one material's visible dent by ~1.3x.
+MIN_CONTRAST = 1.5
 _MAX_ISLAND_PASSES = 10
 
 
 # -- features ----------------------------------------------------------------------------------
 
-def _half_max_width_mm(x_mm: np.ndarray, depth_mm: np.ndarray) -> tuple[float, float]:
-    """(peak depth, full width at half peak) of one profile; widths interpolated between samples."""
+NEAR_CONTACT_BAND_MM = 3.0
+
+
+def _half_max_width_mm(x_mm: np.ndarray, depth_mm: np.ndarray,
+                       band_mm: float = NEAR_CONTACT_BAND_MM) -> tuple[float, float]:
+    """(peak depth, full width at half peak) of one profile; widths interpolated between samples.
+
+    The peak is the deepest sample among those nearest the contact: within ``band_mm`` of
+    the seen sample closest to x = 0. The tip hides the dent's centre and the probe shadows
+    one side, so the deepest SEEN sample is the one nearest the contact; a deeper value far
+    out is an occlusion artefact (a box's edge or wall in the scan line), not the dent.
+    """
     ok = np.isfinite(depth_mm)
     if np.count_nonzero(ok) < 3:
         return np.nan, np.nan
     x, d = x_mm[ok], depth_mm[ok]
-    i = int(np.argmax(d))
+    near = np.abs(x) <= np.min(np.abs(x)) + band_mm
+    i = int(np.flatnonzero(near)[np.argmax(d[near])])
     peak = float(d[i])
     if peak <= 0.0:
         return peak, 0.0
@@ -288,6 +306,38 @@ def _merge_by_noise(features: np.ndarray, labels: np.ndarray, noise: np.ndarray,
         merges += 1
 
 
+def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: list[int],
+                       min_contrast: float) -> tuple[np.ndarray, int]:
+    """Merge clusters whose median depths differ by less than a factor ``min_contrast`` at
+    every survey force (``depth_columns``: the peak-depth features), closest pair first.
+
+    The mixture splits one material wherever geometry shifts the visible dent (the rim of
+    a pillow, a slope, a tilted ball surface: up to ~30 % deeper in the simulator, where
+    the probe's shadow ends closer to the contact); that is not a different elasticity.
+    """
+    merges = 0
+    if not depth_columns or min_contrast <= 1.0:
+        return _compact(labels)[0], 0
+    cols = features[:, depth_columns]
+    while True:
+        labels, k = _compact(labels)
+        if k < 2:
+            return labels, merges
+        with np.errstate(all="ignore"):
+            med = np.stack([np.nanmedian(cols[labels == j], axis=0) for j in range(k)])
+            logs = np.log(np.maximum(med, 1e-6))
+        best: tuple[float, int, int] | None = None
+        for i in range(k):
+            for j in range(i + 1, k):
+                gap = float(np.nanmax(np.abs(logs[i] - logs[j])))
+                if gap < np.log(min_contrast) and (best is None or gap < best[0]):
+                    best = (gap, i, j)
+        if best is None:
+            return labels, merges
+        labels = np.where(labels == best[2], best[1], labels)
+        merges += 1
+
+
 def _icm(loglik: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray], beta: float,
          free: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Iterated conditional modes of loglik + beta * (neighbours in the region); bounded passes."""
@@ -345,12 +395,15 @@ def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.n
 def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list[str] | None = None, *,
                     kmax: int = 6, beta: float = 1.5, min_island_points: int = 2,
                     feature_noise: np.ndarray | None = None, merge_sigmas: float = 4.0,
+                    min_contrast: float = MIN_CONTRAST,
                     max_dims: int = 3, order_feature: int = 0, seed: int = 0) -> RegionMap:
     """Cluster surveyed points (features (N,D), surface graph edges (E,2)) into regions.
 
     ``feature_noise`` (D,): measurement noise of each feature (e.g. the standard error of
     the peak depth); when given, clusters closer than ``merge_sigmas`` noises in every
-    feature are merged. See the module docstring for the steps.
+    feature are merged. Clusters whose peak depths (features named ``peak...``) differ
+    by less than a factor ``min_contrast`` at every force are merged. See the module
+    docstring for the steps.
     """
     x = np.asarray(features, dtype=float)
     if x.ndim != 2 or x.shape[0] == 0:
@@ -376,6 +429,11 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
         labels, merges = _merge_by_noise(x, labels, np.asarray(feature_noise, dtype=float), merge_sigmas)
         labels, k = _compact(labels)
     stats["merged"] = merges
+    depth_cols = [j for j, name in enumerate(names) if name.startswith("peak")]
+    if k > 1:
+        labels, contrast_merges = _merge_by_contrast(x, labels, depth_cols, min_contrast)
+        labels, k = _compact(labels)
+        stats["merged_by_contrast"] = contrast_merges
 
     reg = 1e-3
     icm_changes = 0
