@@ -17,6 +17,7 @@ from .devices import Cell, Motion, MotionState, Scan, Trip, WrenchBlock
 from .errors import DeviceError, DeviceTimeout, MotionRefused
 from .geometry import Pose, probe_tcp_pose, rotvec_to_matrix
 from .machine import SessionMachine
+from .placement import PlacementMonitor
 
 
 @dataclass(frozen=True)
@@ -128,7 +129,8 @@ class ProbeExecutor:
 
     def __init__(self, cell: Cell, machine: SessionMachine, settings: ProbeSettings,
                  validator: MotionValidator, object_top_z_mm: float,
-                 should_stop: Callable[[], bool] = lambda: False) -> None:
+                 should_stop: Callable[[], bool] = lambda: False,
+                 placement: PlacementMonitor | None = None) -> None:
         self.cell = cell
         self.machine = machine
         self.s = settings
@@ -142,6 +144,9 @@ class ProbeExecutor:
         self.acknowledged_trip: Trip | None = None
         # Where the arm was when the session began: a known-good place to route through.
         self.park_pose: Pose | None = cell.arm.status().tcp_pose
+        # Checks every reference and loaded scan burst against the registered object.
+        self.placement = placement
+        self.on_placement: Callable[[str, dict], None] = lambda what, est: None
 
     # ------------------------------------------------------------------ public
     def probe(self, target: ProbeTarget, angle_deg: float, levels: list[ForceLevel],
@@ -170,6 +175,7 @@ class ProbeExecutor:
         self.machine.fire("at_standoff")
         self._tare()
         ref_scans, ref_poses = self._scan_burst(s.reference_scans)
+        self._check_placement(ref_scans, ref_poses, "the reference scans")
         self.machine.fire("reference_ok")
         # Contact search: the path from standoff to the deepest allowed point is validated
         # with the tip allowed to touch the object.
@@ -198,6 +204,8 @@ class ProbeExecutor:
             scans, poses = self._scan_burst(s.scans_per_step)
             forces = self._forces_at([sc.exposure_t_s for sc in scans])
             self._check_force_held(forces, level.force_n)
+            tip_base = Pose.from_list(poses.mean(axis=0)).position_mm - n * s.tip_radius_mm
+            self._check_placement(scans, poses, f"the scans at {level.force_n:g} N", tip_base)
             on_step_done(StepData(
                 step_id=level.step_id, force_target_n=level.force_n, angle_deg=angle_deg,
                 scans_xz_mm=_stack_scans(scans), scan_t_s=np.array([sc.exposure_t_s for sc in scans]),
@@ -393,6 +401,29 @@ class ProbeExecutor:
                 raise ProbeFault("scanner", str(exc)) from exc
         scans = scans[:count]
         return scans, self._poses_at([sc.exposure_t_s for sc in scans])
+
+    def _check_placement(self, scans: list[Scan], poses: np.ndarray, what: str,
+                         loaded_at_mm: np.ndarray | None = None, dent_radius_mm: float = 45.0) -> None:
+        """Raise ProbeFault("object_moved") when the scans show the object shifted sideways.
+
+        Checked before contact (the reference scans) and before each force level is
+        committed (the loaded scans, the dent left out): a step measured on a moved
+        object must not be stored as done.
+        """
+        if self.placement is None:
+            return
+        from .acquire import scan_points_base
+
+        pts = scan_points_base(_stack_scans(scans), poses, self.cell.tcp_to_scanner)
+        est = self.placement.estimate(pts, self.cell.base_to_object, loaded_at_mm,
+                                      dent_radius_mm if loaded_at_mm is not None else 0.0)
+        self.on_placement(what, est.as_dict())
+        if self.placement.moved(est):
+            self.cell.arm.stop()
+            raise ProbeFault("object_moved", f"{what} show the object {est.horizontal_mm:.1f} mm from where it "
+                             f"is registered (shift {np.round(est.shift_mm, 1).tolist()} mm, fit RMS "
+                             f"{est.rms_before_mm:.2f} -> {est.rms_after_mm:.2f} mm): it moved, or the "
+                             f"scanner's calibration is off")
 
     def _tick(self) -> None:
         """One poll period: let time pass, collect F/T and pose, check for trips and faults."""

@@ -224,8 +224,7 @@ class Session:
         record = {"base_to_object": after.to_list(), "previous": before.to_list(), "rms_mm": round(rms, 3),
                   "shift_mm": np.round(after.position_mm - before.position_mm, 2).tolist(),
                   "robot_s": round(float(robot_s), 3)}
-        j.log_event("object_registered", record, t_robot_s=cell.clock.now_s())
-        self._log("object_registered", **record)
+        self._log("object_registered", **record)     # journal event too: resume starts from it
         self.machine.fire("plan")
 
     def _record_identities(self) -> None:

@@ -22,6 +22,7 @@ import pytest
 from test_session_util import copy_cell, done_step_facts, outcome, plan_for
 
 from elastoprobe.controller.config import load_session_inputs
+from elastoprobe.controller.geometry import Pose
 from elastoprobe.controller.journal import Journal
 from elastoprobe.controller.session import EXIT_DONE, EXIT_FAULT, EXIT_PAUSED, Session
 
@@ -49,7 +50,7 @@ RETRY_FAULTS = {
     "protective_stop": (12, {"protective_stop"}),
     "connection_loss": (14, {"connection", "device"}),
     "slip": (16, {"slip"}),
-    "object_moved": (22, {"no_contact", "force", "slip", "lateral_force"}),
+    "object_moved": (22, {"object_moved"}),
 }
 
 
@@ -102,7 +103,8 @@ def retry_session(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     out = tmp / "session"
     code, session = _run(plan, out)
     injected = [k for k, _ in session.cell.faults.injected]   # type: ignore[union-attr]
-    return {"code": code, "out": out, "injected": injected}
+    true_placement = session.cell.world.base_to_object       # type: ignore[union-attr]
+    return {"code": code, "out": out, "injected": injected, "true_placement": true_placement}
 
 
 def test_every_device_fault_is_injected_and_the_session_ends_done(retry_session: dict[str, Any]) -> None:
@@ -110,15 +112,7 @@ def test_every_device_fault_is_injected_and_the_session_ends_done(retry_session:
     assert set(retry_session["injected"]) == set(RETRY_FAULTS)
 
 
-# The controller cannot yet tell that the object moved: a shift on a flat face leaves
-# contact depth and the reference scan unchanged, and the reference scans cannot be
-# checked against the table-less cloud (they see the table and occluded sides). Needs
-# re-registration from the reference scans (DESIGN §7). Strict: this fails once fixed.
-_UNDETECTED = pytest.mark.xfail(reason="object_moved is not detected (no re-registration yet)", strict=True)
-
-
-@pytest.mark.parametrize("kind", [pytest.param(k, marks=_UNDETECTED) if k == "object_moved" else k
-                                  for k in RETRY_FAULTS])
+@pytest.mark.parametrize("kind", list(RETRY_FAULTS))
 def test_fault_is_journaled_retried_and_the_contact_completes(retry_session: dict[str, Any], kind: str) -> None:
     out = retry_session["out"]
     step, seen_as = RETRY_FAULTS[kind]
@@ -139,6 +133,24 @@ def test_fault_is_journaled_retried_and_the_contact_completes(retry_session: dic
             assert faults[0].raw is not None and len(faults[0].raw) > 0   # the last seconds of F/T data
     finally:
         j.close()
+
+
+def test_a_moved_object_is_registered_again_where_it_really_is(retry_session: dict[str, Any]) -> None:
+    """The re-registration after object_moved finds the simulator's true placement."""
+    j = Journal.open_readonly(retry_session["out"])
+    try:
+        events = j.events(kind="object_registered")
+    finally:
+        j.close()
+    assert len(events) == 1, events
+    rec = events[0]["record"]
+    believed = Pose.from_list(rec["base_to_object"])
+    true = retry_session["true_placement"]
+    moved_mm = float(np.linalg.norm(rec["shift_mm"]))
+    assert moved_mm > 6.0, rec                      # the 12 mm shift was found, not a sliver of it
+    error_mm = float(np.linalg.norm(believed.position_mm - true.position_mm))
+    assert error_mm < 1.0, (error_mm, rec, true.to_list())
+    assert rec["rms_mm"] < 0.5, rec
 
 
 def test_arm_stopped_at_every_fault_and_no_incomplete_step_is_done(retry_session: dict[str, Any]) -> None:
