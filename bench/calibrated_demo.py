@@ -1,0 +1,168 @@
+"""Benchmark: the demo on the miscalibrated cell, before and after calibration, against the calibrated cell.
+
+Three sessions of the same plan and seed (default config/plans/demo.yaml, seed 1):
+
+  (i)   ``calibrated``:        the default simulated cell (config/cells/sim.yaml: true = believed);
+  (ii)  ``uncalibrated``:      a copy of config/cells/sim_miscalibrated.yaml with no calibration file
+                               (the controller believes the nominal drawing; the world is off by
+                               the cell's miscalibration);
+  (iii) ``after_calibration``: another copy of it, after ``elastoprobe calibrate ft``, ``tcp``,
+                               ``scanner`` and ``object`` wrote its calibration file.
+
+Each is scored by ``elastoprobe evaluate DIR --json`` against the simulator's ground truth.
+The goal (issue #6): (iii)'s ``region_map_error`` (the mislabelled fraction of the reachable
+scanned surface) within 10 % of (i)'s, relative: |e_iii - e_i| / e_i <= 0.10.
+
+Prints ONE JSON object: the three evaluations (region_map_error, worst IoU, boundary
+distances, profile RMSE, ...), the calibration summaries, the relative difference, the
+goal and whether it is met, and wall times. Every run is a CLI subprocess (what a user
+types). ``--out DIR`` keeps the sessions (default: a new temporary folder); ``--reuse``
+skips a run whose session already finished in DIR. A demo run takes minutes.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+PLAN = ROOT / "config" / "plans" / "demo.yaml"
+CALIBRATED_CELL = ROOT / "config" / "cells" / "sim.yaml"
+MISCALIBRATED_CELL = ROOT / "config" / "cells" / "sim_miscalibrated.yaml"
+GOAL_REL_DIFF = 0.10
+KINDS = ("ft", "tcp", "scanner", "object")
+RUN_TIMEOUT_S = 3600.0           # a demo run takes minutes; this only bounds a hung one
+
+
+def cli(*args: str, timeout_s: float = RUN_TIMEOUT_S) -> subprocess.CompletedProcess:
+    """``elastoprobe ARGS`` in a subprocess (the installed entry point's module)."""
+    cmd = [sys.executable, "-m", "elastoprobe.controller.cli", *args]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, cwd=ROOT,
+                          stdin=subprocess.DEVNULL)
+
+
+def copy_cell(src: Path, dest_dir: Path) -> Path:
+    """The cell file copied into ``dest_dir``, its object path made absolute (the calibration
+    file it names then lives next to the copy, never next to the shipped cell)."""
+    from ruamel.yaml import YAML
+
+    yaml = YAML()
+    doc = yaml.load(src.read_text(encoding="utf-8"))
+    doc["object"]["file"] = str((src.parent / doc["object"]["file"]).resolve())
+    dest_dir.mkdir(parents=True, exist_ok=True)
+    dest = dest_dir / src.name
+    with dest.open("w", encoding="utf-8") as f:
+        yaml.dump(doc, f)
+    return dest
+
+
+def session_done(session_dir: Path) -> bool:
+    proc = cli("status", str(session_dir), "--json", timeout_s=60.0) if (session_dir / "journal.sqlite").exists() \
+        else None
+    if proc is None or proc.returncode != 0:
+        return False
+    try:
+        return json.loads(proc.stdout).get("status") == "done"
+    except json.JSONDecodeError:
+        return False
+
+
+def run_demo(plan: Path, cell: Path, out: Path, seed: int, reuse: bool) -> dict[str, Any]:
+    """Run the plan on the cell (unless ``reuse`` and it finished already); its evaluation."""
+    t0 = time.perf_counter()
+    ran = False
+    if not (reuse and session_done(out)):
+        if out.exists() and any(out.iterdir()):
+            raise SystemExit(f"{out} exists and is not a finished session: remove it or pick another --out")
+        proc = cli("run", str(plan), "--cell", str(cell), "--out", str(out), "--seed", str(seed), "--quiet")
+        if proc.returncode != 0:
+            raise SystemExit(f"run on {cell} exited {proc.returncode}: {proc.stderr.strip()[-2000:]}")
+        ran = True
+    ev = cli("evaluate", str(out), "--json", timeout_s=1800.0)
+    if ev.returncode != 0:
+        raise SystemExit(f"evaluate {out} exited {ev.returncode}: {ev.stderr.strip()[-2000:]}")
+    return {"session": str(out), "cell": str(cell), "ran_now": ran,
+            "wall_time_s": round(time.perf_counter() - t0, 1), "evaluation": json.loads(ev.stdout)}
+
+
+def calibrate(cell: Path, seed: int) -> dict[str, Any]:
+    """Run the four routines on the cell copy (tcp and scanner before object: the object sweep
+    is mapped with the calibrated scanner mount); their fit summaries."""
+    out: dict[str, Any] = {}
+    for kind in KINDS:
+        proc = cli("calibrate", kind, "--cell", str(cell), "--seed", str(seed), "--json", timeout_s=1800.0)
+        if proc.returncode != 0:
+            raise SystemExit(f"calibrate {kind} exited {proc.returncode}: {proc.stderr.strip()[-2000:]}")
+        summary = json.loads(proc.stdout)
+        out[kind] = {"written": summary.get("written"), "result": summary.get("result")}
+    return out
+
+
+def headline(ev: dict[str, Any]) -> dict[str, Any]:
+    keys = ("region_map_error", "worst_region_iou", "boundary_mm_mean", "boundary_mm_p90", "profile_rmse_mm",
+            "regions_found", "regions_true", "probes", "robot_hours")
+    return {k: ev.get(k) for k in keys}
+
+
+def compare(calibrated: float | None, after: float | None) -> dict[str, Any]:
+    """The goal: |after - calibrated| / calibrated <= 10 % (None when a figure is missing)."""
+    if calibrated is None or after is None or calibrated <= 0.0:
+        return {"rel_diff": None, "met": False}
+    rel = abs(after - calibrated) / calibrated
+    return {"rel_diff": round(rel, 4), "met": bool(rel <= GOAL_REL_DIFF)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--plan", type=Path, default=PLAN)
+    ap.add_argument("--seed", type=int, default=1, help="the runs' seed (noise); the miscalibration is the cell's")
+    ap.add_argument("--calibration-seed", type=int, default=0, help="seed of the calibration runs' noise")
+    ap.add_argument("--out", type=Path, default=None, help="folder for the cells and sessions (default: temporary)")
+    ap.add_argument("--reuse", action="store_true", help="keep sessions that already finished in --out")
+    ap.add_argument("--parallel", type=int, default=1, choices=(1, 2, 3), help="demo runs at once")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    out = args.out or Path(tempfile.mkdtemp(prefix="calibrated_demo_"))
+    out.mkdir(parents=True, exist_ok=True)
+    uncal_cell = copy_cell(MISCALIBRATED_CELL, out / "cells" / "uncalibrated")
+    cal_cell = copy_cell(MISCALIBRATED_CELL, out / "cells" / "calibrated")
+
+    def after_calibration() -> dict[str, Any]:
+        cal = calibrate(cal_cell, args.calibration_seed)
+        res = run_demo(args.plan, cal_cell, out / "after_calibration", args.seed, args.reuse)
+        res["calibration"] = cal
+        return res
+
+    with ThreadPoolExecutor(max_workers=args.parallel) as pool:
+        jobs = {"calibrated": pool.submit(run_demo, args.plan, CALIBRATED_CELL, out / "calibrated", args.seed,
+                                          args.reuse),
+                "uncalibrated": pool.submit(run_demo, args.plan, uncal_cell, out / "uncalibrated", args.seed,
+                                            args.reuse),
+                "after_calibration": pool.submit(after_calibration)}
+        runs = {name: job.result() for name, job in jobs.items()}
+    e = {name: headline(r["evaluation"]) for name, r in runs.items()}
+    result = {
+        "plan": str(args.plan), "seed": args.seed, "out": str(out),
+        "figure": "region_map_error (mislabelled fraction of the reachable scanned surface)",
+        "evaluations": e,
+        "after_vs_calibrated": compare(e["calibrated"]["region_map_error"], e["after_calibration"]["region_map_error"]),
+        "uncalibrated_vs_calibrated": compare(e["calibrated"]["region_map_error"],
+                                              e["uncalibrated"]["region_map_error"]),
+        "goal": f"|after - calibrated| / calibrated <= {GOAL_REL_DIFF}",
+        "calibration": runs["after_calibration"].get("calibration"),
+        "wall_time_s": {**{k: r["wall_time_s"] for k, r in runs.items()},
+                        "total": round(time.perf_counter() - t0, 1)},
+    }
+    result["goal_met"] = result["after_vs_calibrated"]["met"]
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
