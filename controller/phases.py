@@ -94,6 +94,23 @@ class PhaseContext:
     n_regions: int = 0
     models: dict[int, "RegionModel"] = field(default_factory=dict)
     model_round: int = -1
+    _surface: Any = None                                           # surface_map.SurfaceGraph, built once
+
+    def surface(self) -> Any:
+        """The committed cloud's surface graph (learning.surface_map), built on first use."""
+        from .learning import surface_map as sm
+
+        if self._surface is None:
+            assert self.cloud_mm is not None and self.cloud_normals is not None
+            self._surface = sm.build_graph(self.cloud_mm, self.cloud_normals)
+        return self._surface
+
+    def surface_neighbours(self, points_mm: np.ndarray) -> np.ndarray:
+        """(E,2) neighbour pairs of targets: their cells on the cloud touch without a fold between."""
+        from .learning import surface_map as sm
+
+        g = self.surface()
+        return np.asarray(sm.seed_neighbours(g, sm.cells(g, points_mm)), dtype=np.int64).reshape(-1, 2)
 
     @property
     def grid(self) -> prof.ProfileGrid:
@@ -401,7 +418,6 @@ def _survey_profiles(ctx: PhaseContext, target_ids: list[int]) -> tuple[list[int
 def phase_regions(ctx: PhaseContext, round_: int) -> None:
     """Cluster the surveyed targets into regions; plan characterization where a region lacks it."""
     from .learning import regions as rg
-    from .learning import targets as tg
 
     s = ctx.session
     j = s.journal
@@ -430,8 +446,8 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
         if len(ids) == 0:
             raise RuntimeError("the scanner saw none of the surveyed targets: cannot find regions")
         pts = np.array([ctx.targets[i].point_mm for i in ids])
-        nrm = np.array([ctx.targets[i].normal for i in ids])
-        edges = tg.surface_graph(pts, nrm)
+        # Neighbours along the scanned surface (cells on the cloud), never across a fold.
+        edges = ctx.surface_neighbours(pts)
         rmap = rg.cluster_regions(feats, edges, names, seed=s.seed)
         labels = {i: int(l) for i, l in zip(ids, rmap.labels)}
         chosen = _characterize_choice(ctx, labels, rmap.n_regions, pts, ids)
@@ -553,7 +569,6 @@ def phase_models(ctx: PhaseContext, round_: int) -> None:
 def phase_densify(ctx: PhaseContext, round_: int) -> bool:
     """Add survey targets where adjacent regions' models disagree; False when resolved or out of budget."""
     from .learning import densify as dn
-    from .learning import targets as tg
 
     s = ctx.session
     j = s.journal
@@ -564,9 +579,8 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
         dp = plan.phases.densify
         ids = sorted(ctx.labels)
         pts = np.array([ctx.targets[i].point_mm for i in ids])
-        nrm = np.array([ctx.targets[i].normal for i in ids])
         labels = np.array([ctx.labels[i] for i in ids])
-        edges = tg.surface_graph(pts, nrm)
+        edges = ctx.surface_neighbours(pts)
         sv = plan.phases.survey
         grid_forces = np.array(sv.forces_n, dtype=float)
         rnd = dn.plan_round(round_, pts, np.asarray(edges).reshape(-1, 2), labels, ctx.models,
@@ -633,7 +647,7 @@ def measured_noise_mm(ctx: PhaseContext, max_steps: int = 20) -> float:
 
 def phase_final(ctx: PhaseContext) -> None:
     """The region map over the whole cloud, and the report."""
-    from .learning.regions import propagate_labels
+    from .learning import surface_map as sm
     from .report import write_report
 
     s = ctx.session
@@ -643,7 +657,9 @@ def phase_final(ctx: PhaseContext) -> None:
     if rec is None:
         ids = sorted(ctx.labels)
         pts = np.array([ctx.targets[i].point_mm for i in ids])
-        cloud_labels = propagate_labels(pts, np.array([ctx.labels[i] for i in ids]), ctx.cloud_mm)
+        # Each cloud point: the region of the nearest labelled target along the surface,
+        # parts split at concave folds (learning/surface_map.py).
+        cloud_labels = sm.labels_from_seeds(ctx.surface(), pts, np.array([ctx.labels[i] for i in ids]))
         j.commit_phase("final", 0, {"n_regions": ctx.n_regions, "model_round": ctx.model_round,
                                     "robot_hours": j.robot_time_s()["total"] / 3600.0},
                        {"cloud_labels": cloud_labels.astype(np.int64)})
