@@ -1,0 +1,628 @@
+"""The simulated overnight soak: a night of probing with faults, kills and resumes (issue #7).
+
+A private copy of the simulated cell injects rate-based faults of every kind in
+``sim.faults.KINDS`` (about one per 100 force steps in total; the emergency stop with
+``clear_after_s``, a disk error on the journal's write among them). The real CLI runs
+``config/plans/soak.yaml`` (>= 8 h of robot time) in a child process; the driver SIGKILLs
+it at seeded random moments (a random wall-clock delay, or aimed inside a journal
+transaction), plays the operator when the session pauses (an e-stop: wait, release,
+resume; a disk error: the disk is fixed, resume) and resumes until the session is done
+or a bounded number of children is spent.
+
+Ground truth, not the controller's word:
+- injected faults come from the simulator's durable record (``ELASTOPROBE_SIM_FAULT_LOG``,
+  one line per fault that fired, with the process id, virtual time and step key); a
+  fault fired in a process that was then killed before journaling it is re-drawn under
+  the same key by the resumed process, so faults are counted once per (kind, key);
+- each is matched to the journaled fault of the same run (runs.pid) within a short
+  robot-time window, and judged: recovered (retried or skipped per policy, the step
+  later done or skipped), paused (the child exited 3 on it, then was resumed),
+  undetected (never journaled), without effect (a scanner fault with no scan asked,
+  a slip with no contact), lost to a kill, or unresolved;
+- a step counts as committed when its ``step_done`` line is in DIR/log.jsonl (written
+  after each commit) or a poll of the journal saw it done; steps_lost = committed once
+  but not done at the end, plus planned steps neither done nor skipped at the end;
+  steps_duplicated = steps with more than one ``step_done`` line.
+
+Memory: the child's RSS (/proc/PID/status VmRSS) every ``sample_s`` with the journal's
+robot time; peak_rss_mb is the largest ru_maxrss of the children (os.wait4).
+rss_growth_mb_per_h is the RSS slope against ROBOT hours over the probing stretches
+(samples where robot time advances; start-up and learning phases excluded): Theil-Sen
+per stretch, averaged weighted by each stretch's robot hours. baseline_rss_mb is the
+peak RSS of ``elastoprobe check`` on the same plan (the CLI with plan and cell loaded).
+
+    python bench/soak.py [--quick] [--seed N] [--keep DIR]
+
+Prints ONE JSON object.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import shutil
+import signal
+import sqlite3
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+SOAK_PLAN = ROOT / "config" / "plans" / "soak.yaml"
+SIM_CELL = ROOT / "config" / "cells" / "sim.yaml"
+COMPOSITE = ROOT / "config" / "objects" / "composite.yaml"
+CLI = [sys.executable, "-m", "elastoprobe.controller.cli"]
+FAULT_LOG_ENV = "ELASTOPROBE_SIM_FAULT_LOG"
+
+# What the controller journals for each injected kind (its fault-policy key).
+SEEN_AS: dict[str, set[str]] = {
+    "force_spike": {"force", "force_rate", "lateral_force", "torque"},
+    "ft_stall": {"stale", "ft_status", "device"},
+    "ft_frozen": {"frozen", "stale", "ft_status"},
+    "scanner_timeout": {"scanner"},
+    "scanner_short_burst": {"scanner"},
+    "protective_stop": {"protective_stop", "device"},
+    "connection_loss": {"connection", "device"},
+    "emergency_stop": {"emergency_stop", "device"},
+    "object_moved": {"object_moved", "no_contact", "force", "slip", "lateral_force"},
+    "slip": {"slip", "lateral_force", "force"},
+    "disk_error": {"disk_error"},
+}
+# A device shows an injected fault within milliseconds (F/T checks per block) to a few
+# seconds (a connection loss is seen at the next command; a scanner fault at the end of
+# the burst): the journaled fault follows the injection within this much robot time.
+MATCH_WINDOW_S = 20.0
+# Aimed kills: a SIGKILL inside these journal transactions (controller/journal.py).
+AIMED_POINTS = ("commit_step:half_arrays", "commit_step:before_commit", "begin_step:before_commit")
+
+
+@dataclass(frozen=True)
+class SoakConfig:
+    """One soak: the plan, the faults, the kills and the bounds (wall seconds unless named)."""
+
+    plan_overrides: dict[str, Any] = field(default_factory=dict)   # dotted keys over soak.yaml
+    seed: int = 1
+    fault_rate_per_100_steps: float = 1.0           # all kinds together
+    rates_per_100_steps: dict[str, float] | None = None   # per kind, overrides the even split
+    estop_clear_after_s: float = 60.0               # robot time: the operator walks over
+    operator_delay_s: float = 1.0                   # wall: before the operator resumes
+    kills: int = 6
+    kill_delay_s: tuple[float, float] = (20.0, 300.0)
+    aimed_kill_every: int = 2                       # every n-th kill lands inside a transaction
+    aimed_nth: tuple[int, int] = (5, 300)
+    max_children: int = 60
+    child_timeout_s: float = 3600.0
+    sample_s: float = 2.0
+    min_robot_hours: float = 8.0                    # what the full night must reach
+
+
+FULL = SoakConfig()
+QUICK = SoakConfig(
+    plan_overrides={
+        "name": "soak-quick", "cloud.sweep_spacing_mm": 5.0, "cloud.max_points": 20000,
+        "sampling.units": 30, "sampling.steps_per_unit": 40,
+        "probing.scans_per_step": 5, "probing.settle_s": 0.5, "probing.standoff_mm": 10.0,
+        "probing.force_rate_n_s": 20.0,
+        "phases.survey.forces_n": [4.0, 8.0, 12.0],
+        "phases.characterize.points_per_region": 1, "phases.characterize.angles_deg": [75, 90, 105],
+        "phases.characterize.forces_n": [5.0, 12.0],
+        "phases.densify.rounds": 0,
+        "budget.max_robot_hours": 2.0,
+        "model.ensemble": 1, "model.max_epochs": 60, "model.profile_samples": 64,
+    },
+    # A short run has ~40 steps: a fault every few steps, of the kinds that pause
+    # (e-stop, disk error) and of kinds that are retried.
+    rates_per_100_steps={"emergency_stop": 5.0, "disk_error": 5.0, "force_spike": 4.0,
+                         "protective_stop": 4.0, "scanner_timeout": 4.0, "connection_loss": 4.0},
+    operator_delay_s=0.2, kills=2, kill_delay_s=(6.0, 10.0), aimed_kill_every=2, aimed_nth=(3, 12),
+    max_children=14, child_timeout_s=300.0, sample_s=0.5, min_robot_hours=0.0,
+)
+
+
+# ----------------------------------------------------------------------------- set-up
+def fault_rates(cfg: SoakConfig) -> dict[str, float]:
+    """Per-kind rates (per 100 force steps): the even split of the total over every kind."""
+    from elastoprobe.sim.faults import KINDS
+
+    if cfg.rates_per_100_steps is not None:
+        return dict(cfg.rates_per_100_steps)
+    return {k: cfg.fault_rate_per_100_steps / len(KINDS) for k in KINDS}
+
+
+def write_cell(dst_dir: Path, name: str, rates: dict[str, float], estop_clear_after_s: float) -> Path:
+    """A private copy of the simulated cell (its own lock name) with rate-based faults."""
+    lines = SIM_CELL.read_text().splitlines()
+    lines = [f"name: {name}" if ln.startswith("name:") else ln for ln in lines]
+    lines = [ln.replace("../objects/composite.yaml", str(COMPOSITE)) for ln in lines]
+    assert lines[-1].startswith("  ") and any(ln.startswith("simulation:") for ln in lines), \
+        "config/cells/sim.yaml should end with its simulation section"
+    lines.append("  faults:")
+    for kind, rate in rates.items():
+        extra = f", clear_after_s: {estop_clear_after_s}" if kind == "emergency_stop" else ""
+        lines.append(f"    - {{kind: {kind}, rate_per_100_steps: {rate:.6g}{extra}}}")
+    out = dst_dir / f"{name}.yaml"
+    out.write_text("\n".join(lines) + "\n")
+    return out
+
+
+def write_plan(dst_dir: Path, cell: Path, overrides: dict[str, Any]) -> Path:
+    """config/plans/soak.yaml naming ``cell``, with dotted-key overrides."""
+    from ruamel.yaml import YAML
+
+    yaml = YAML()
+    doc = yaml.load(SOAK_PLAN.read_text())
+    doc["cell"] = str(cell)
+    doc["simulated_object"] = str(COMPOSITE)
+    for key, value in overrides.items():
+        node = doc
+        *parents, last = key.split(".")
+        for p in parents:
+            node = node[p]
+        if last not in node and key != "name":
+            node[last] = value      # a field the shipped plan leaves at its default
+        node[last] = value
+    out = dst_dir / "plan.yaml"
+    with open(out, "w", encoding="utf-8") as f:
+        yaml.dump(doc, f)
+    return out
+
+
+# ----------------------------------------------------------------------------- children
+@dataclass
+class ChildRun:
+    """One CLI child: how it ended, how it was killed, what it said, its memory."""
+
+    args: list[str]
+    pid: int
+    returncode: int
+    killed: str | None                 # "delay 12.3 s" / "aimed commit_step:half_arrays@7" / None
+    wall_s: float
+    max_rss_mb: float
+    samples: list[tuple[float, float, float]]   # (wall s since start, RSS MB, robot s)
+    pause_reason: str | None = None
+    stderr_tail: str = ""
+
+
+def _vm_rss_mb(pid: int) -> float | None:
+    try:
+        with open(f"/proc/{pid}/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError):
+        return None
+    return None
+
+
+def _journal_poll(session_dir: Path) -> tuple[float, set[int]] | None:
+    """Robot time (s) and done step ids, read-only (safe while the child writes)."""
+    from elastoprobe.controller.journal import Journal
+
+    if not (session_dir / "journal.sqlite").exists():
+        return None
+    try:
+        j = Journal.open_readonly(session_dir)
+    except Exception:   # noqa: BLE001 - being created, or locked for a moment: next poll
+        return None
+    try:
+        done = {r.step_id for r in j.steps(statuses=["done"])}
+        return j.robot_time_s()["total"], done
+    except (sqlite3.Error, Exception):   # noqa: BLE001
+        return None
+    finally:
+        j.close()
+
+
+def _save_state(work_dir: Path, state: dict[str, Any], children: list[ChildRun], ever_done: set[int]) -> None:
+    """What judging needs, kept beside the session after every child (see --judge)."""
+    data = {**state, "children": [asdict(c) for c in children], "ever_done": sorted(ever_done)}
+    (work_dir / "state.json").write_text(json.dumps(data))
+
+
+def run_child(args: list[str], env: dict[str, str], session_dir: Path, kill_after_s: float | None,
+              sample_s: float, timeout_s: float, ever_done: set[int], log_path: Path) -> ChildRun:
+    """Run the CLI, sampling RSS and the journal; SIGKILL after ``kill_after_s`` if given."""
+    with open(log_path, "ab") as err:
+        proc = subprocess.Popen(CLI + args, env=env, stdout=subprocess.DEVNULL, stderr=err)
+    t0 = time.monotonic()
+    samples: list[tuple[float, float, float]] = []
+    killed = None
+    robot_s = 0.0
+    while True:
+        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+        if pid != 0:
+            break
+        t = time.monotonic() - t0
+        if kill_after_s is not None and t >= kill_after_s:
+            os.kill(proc.pid, signal.SIGKILL)
+            killed = f"delay {kill_after_s:.1f} s"
+            kill_after_s = None
+            continue
+        if t > timeout_s:
+            os.kill(proc.pid, signal.SIGKILL)
+            killed = "timeout"
+            continue
+        polled = _journal_poll(session_dir)
+        if polled is not None:
+            robot_s = polled[0]
+            ever_done |= polled[1]
+        rss = _vm_rss_mb(proc.pid)
+        if rss is not None:
+            samples.append((t, rss, robot_s))
+        time.sleep(sample_s)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    tail = log_path.read_bytes()[-3000:].decode("utf-8", "replace") if log_path.exists() else ""
+    return ChildRun(args, proc.pid, proc.returncode, killed, time.monotonic() - t0, usage.ru_maxrss / 1024.0, samples,
+                    stderr_tail=tail)
+
+
+def _session_status(session_dir: Path) -> tuple[str | None, str | None]:
+    from elastoprobe.controller.journal import Journal
+
+    if not (session_dir / "journal.sqlite").exists():
+        return None, None
+    j = Journal.open_readonly(session_dir)
+    try:
+        s = j.session()
+        return s["status"], s.get("status_reason")
+    finally:
+        j.close()
+
+
+def journal_soundness(session_dir: Path) -> list[str]:
+    """PRAGMA integrity_check and Journal.verify(): empty when sound."""
+    from elastoprobe.controller.journal import Journal
+
+    if not (session_dir / "journal.sqlite").exists():
+        return []
+    j = Journal.open_readonly(session_dir)
+    try:
+        problems = [f"integrity_check: {r[0]}" for r in j._q("PRAGMA integrity_check") if r[0] != "ok"]
+        return problems + j.verify()
+    finally:
+        j.close()
+
+
+def baseline_rss_mb(plan: Path, env: dict[str, str]) -> float:
+    """Peak RSS of ``elastoprobe check PLAN`` (the CLI, plan and cell loaded, no session)."""
+    proc = subprocess.Popen(CLI + ["check", str(plan)], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    _, _, usage = os.wait4(proc.pid, 0)
+    return usage.ru_maxrss / 1024.0
+
+
+# ----------------------------------------------------------------------------- accounting
+def read_fault_record(path: Path) -> list[dict[str, Any]]:
+    if not path.exists():
+        return []
+    out = []
+    for line in path.read_text().splitlines():
+        if line.strip():
+            try:
+                out.append(json.loads(line))
+            except json.JSONDecodeError:     # a line cut by a kill mid-write
+                continue
+    return out
+
+
+def step_done_counts(session_dir: Path) -> dict[int, int]:
+    """``step_done`` lines per step in DIR/log.jsonl (one per commit, written after it)."""
+    counts: dict[int, int] = {}
+    path = session_dir / "log.jsonl"
+    if not path.exists():
+        return counts
+    for line in path.read_text().splitlines():
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:         # the last line of a killed child
+            continue
+        if rec.get("event") == "step_done":
+            counts[int(rec["step"])] = counts.get(int(rec["step"]), 0) + 1
+    return counts
+
+
+def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: list[ChildRun]) -> dict[str, Any]:
+    """Each injected fault (once per kind and step key) against the journal: its fate."""
+    from elastoprobe.controller.journal import Journal
+
+    j = Journal.open_readonly(session_dir)
+    try:
+        run_of_pid = {int(r[1]): int(r[0]) for r in j._q("SELECT run_id, pid FROM runs ORDER BY run_id")}
+        faults = j.faults(with_raw=False)
+        run_of_fault = {int(r[0]): r[1] for r in j._q("SELECT fault_id, run_id FROM faults")}
+        status = {r.step_id: r.status for r in j.steps()}
+    finally:
+        j.close()
+    paused_fault_ids = _paused_fault_ids(children, faults, run_of_fault, run_of_pid)
+    injected = [r for r in records if r.get("event") == "injected"]
+    effects = {(r["kind"], tuple(r["key"] or ()), r["plan"], r["pid"]) for r in records if r.get("event") == "effect"}
+    claimed: set[int] = set()
+    fates: dict[tuple, list[dict[str, Any]]] = {}    # identity (kind, step key, plan) -> its firings
+    for rec in sorted(injected, key=lambda r: (run_of_pid.get(r["pid"], 10**9), r["t_s"])):
+        ident = (rec["kind"], tuple(rec["key"] or ()), rec["plan"])
+        run_id = run_of_pid.get(rec["pid"])
+        match = None
+        for f in faults:
+            if (f.fault_id not in claimed and run_of_fault[f.fault_id] == run_id and f.t_robot_s is not None
+                    and rec["t_s"] - 1e-6 <= f.t_robot_s <= rec["t_s"] + MATCH_WINDOW_S
+                    and f.kind in SEEN_AS[rec["kind"]]):
+                match = f
+                break
+        fate: dict[str, Any] = {"kind": rec["kind"], "key": list(ident[1]), "run_id": run_id,
+                                "t_s": round(rec["t_s"], 3)}
+        if match is not None:
+            claimed.add(match.fault_id)
+            fate.update(fault_id=match.fault_id, seen_as=match.kind, step=match.step_id, action=match.policy_action)
+            if match.fault_id in paused_fault_ids:
+                fate["fate"] = "paused"
+            elif match.policy_action in ("retry", "skip_target") and (
+                    match.step_id is None or status.get(match.step_id) in ("done", "skipped")):
+                fate["fate"] = "recovered"     # retried or skipped per policy, and the session went on
+            else:
+                fate["fate"] = "unresolved"
+        elif rec["kind"] in ("scanner_timeout", "scanner_short_burst", "slip") and \
+                (rec["kind"], ident[1], rec["plan"], rec["pid"]) not in effects:
+            fate["fate"] = "no_effect"
+        elif (during := _paused_during_recovery(rec, run_id, faults, run_of_fault, paused_fault_ids)) is not None:
+            # It struck while the controller recovered from an earlier fault: recovery
+            # failed and the session paused cleanly, naming the earlier fault.
+            fate.update(fate="paused", journaled=False, paused_recovering_from=during)
+        elif _killed_run(run_id, children, run_of_pid):
+            fate["fate"] = "lost_to_kill"     # the process died before journaling it
+        else:
+            fate["fate"] = "undetected"
+        earlier = fates.get(ident, [])
+        if earlier and earlier[-1]["fate"] == "lost_to_kill":
+            # The same fault drawn again by the resumed process: one fault, judged by its last firing.
+            fate["after_kill"] = earlier[-1].get("after_kill", 0) + 1
+            earlier[-1] = fate
+        else:
+            if earlier:
+                # Journaled before, and met again by a resumed process under the same step key.
+                fate["repeat_of_fault_id"] = earlier[-1].get("fault_id")
+            earlier.append(fate)
+        fates[ident] = earlier
+    other = [f for f in faults if f.fault_id not in claimed]
+    return {"fates": [f for group in fates.values() for f in group], "raw_injections": len(injected),
+            "journaled_other": _histogram(f.kind for f in other)}
+
+
+def _paused_fault_ids(children: list[ChildRun], faults: list[Any], run_of_fault: dict[int, int],
+                      run_of_pid: dict[int, int]) -> set[int]:
+    """The last fault of each run whose child exited 3 on it (its pause reason names the
+    fault) and that a later child resumed."""
+    last_of_run: dict[int, Any] = {}
+    for f in faults:
+        last_of_run[run_of_fault[f.fault_id]] = f
+    paused: set[int] = set()
+    for i, child in enumerate(children[:-1]):
+        run_id = run_of_pid.get(child.pid)
+        last = last_of_run.get(run_id)
+        if child.returncode != 3 or not child.pause_reason or last is None:
+            continue
+        reason = child.pause_reason
+        if reason.startswith(last.kind) or (last.kind == "disk_error" and reason.startswith("journal write failed")):
+            paused.add(last.fault_id)
+    return paused
+
+
+def _paused_during_recovery(rec: dict[str, Any], run_id: int | None, faults: list[Any],
+                            run_of_fault: dict[int, int], paused_fault_ids: set[int]) -> int | None:
+    """The fault id a run paused on, if ``rec`` fired after it was journaled (within the
+    match window) and nothing was journaled after it in that run."""
+    of_run = [f for f in faults if run_of_fault[f.fault_id] == run_id]
+    if not of_run or of_run[-1].fault_id not in paused_fault_ids:
+        return None
+    last = of_run[-1]
+    if last.t_robot_s is not None and last.t_robot_s - 1e-6 <= rec["t_s"] <= last.t_robot_s + MATCH_WINDOW_S:
+        return int(last.fault_id)
+    return None
+
+
+def _killed_run(run_id: int | None, children: list[ChildRun], run_of_pid: dict[int, int]) -> bool:
+    """Whether the child that made journal run ``run_id`` was SIGKILLed."""
+    return any(run_of_pid.get(c.pid) == run_id and c.returncode == -9 for c in children)
+
+
+def _histogram(items: Any) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for k in items:
+        out[k] = out.get(k, 0) + 1
+    return dict(sorted(out.items()))
+
+
+def step_accounting(session_dir: Path, ever_done: set[int]) -> dict[str, Any]:
+    from elastoprobe.controller.journal import Journal
+
+    counts = step_done_counts(session_dir)
+    committed = set(counts) | ever_done
+    j = Journal.open_readonly(session_dir)
+    try:
+        steps = j.steps()
+        robot_h = j.robot_time_s()["total"] / 3600.0
+    finally:
+        j.close()
+    final = {r.step_id: r.status for r in steps}
+    lost_after_done = sorted(s for s in committed if final.get(s) != "done")
+    never_finished = sorted(s for s, st in final.items() if st not in ("done", "skipped"))
+    duplicated = sorted(s for s, n in counts.items() if n > 1)
+    return {"robot_hours": robot_h, "steps_planned": len(final),
+            "steps_done": sum(st == "done" for st in final.values()),
+            "steps_skipped": sum(st == "skipped" for st in final.values()),
+            "steps_lost": len(lost_after_done) + len(never_finished),
+            "steps_lost_ids": (lost_after_done + never_finished)[:50],
+            "steps_duplicated": len(duplicated), "steps_duplicated_ids": duplicated[:50]}
+
+
+def rss_growth_mb_per_h(children: list[ChildRun], min_span_h: float = 0.05) -> tuple[float | None, float]:
+    """RSS slope (MB per robot hour) over probing stretches; returns (slope, robot hours used)."""
+    from scipy.stats import theilslopes
+
+    slopes, weights = [], []
+    for c in children:
+        stretch: list[tuple[float, float]] = []
+        prev_robot, prev_rss = None, 0.0
+        for _, rss, robot_s in c.samples + [(0.0, 0.0, -1.0)]:     # a sentinel closes the last stretch
+            advancing = prev_robot is not None and robot_s > prev_robot
+            if advancing:
+                if not stretch:
+                    stretch.append((prev_robot / 3600.0, prev_rss))
+                stretch.append((robot_s / 3600.0, rss))
+            elif stretch:
+                span = stretch[-1][0] - stretch[0][0]
+                if span >= min_span_h and len(stretch) >= 5:
+                    h, m = np.array(stretch).T
+                    slopes.append(float(theilslopes(m, h)[0]))
+                    weights.append(span)
+                stretch = []
+            prev_robot, prev_rss = robot_s, rss
+    if not slopes:
+        return None, 0.0
+    w = np.array(weights)
+    return float(np.dot(slopes, w) / w.sum()), float(w.sum())
+
+
+# ----------------------------------------------------------------------------- the soak
+def run_soak(cfg: SoakConfig, work_dir: Path) -> dict[str, Any]:
+    """Run one soak in ``work_dir`` (created); returns the JSON-able result."""
+    t_start = time.monotonic()
+    work_dir = work_dir.resolve()
+    work_dir.mkdir(parents=True, exist_ok=True)
+    rng = random.Random(cfg.seed)
+    rates = fault_rates(cfg)
+    cell = write_cell(work_dir, f"soak-cell-{os.getpid()}", rates, cfg.estop_clear_after_s)
+    plan = write_plan(work_dir, cell, cfg.plan_overrides)
+    out = work_dir / "session"
+    fault_log = work_dir / "sim_faults.jsonl"
+    env = dict(os.environ)
+    env.pop("ELASTOPROBE_JOURNAL_CRASH_AT", None)
+    env.update({"ELASTOPROBE_LOCK_DIR": str(work_dir / "locks"), FAULT_LOG_ENV: str(fault_log)})
+    base_rss = baseline_rss_mb(plan, env)
+
+    children: list[ChildRun] = []
+    ever_done: set[int] = set()
+    state: dict[str, Any] = {"seed": cfg.seed, "rates": rates, "min_robot_hours": cfg.min_robot_hours,
+                             "baseline_rss_mb": base_rss, "kills": 0, "operator_clears": 0,
+                             "journal_problems": [], "wall_s": 0.0}
+    kills_left = cfg.kills
+    while len(children) < cfg.max_children:
+        resume = (out / "journal.sqlite").exists()
+        args = (["resume", str(out), "--quiet"] if resume else
+                ["run", str(plan), "--out", str(out), "--seed", str(cfg.seed), "--quiet"])
+        child_env, kill_after, aimed = dict(env), None, None
+        if kills_left > 0:
+            if cfg.aimed_kill_every and (cfg.kills - kills_left + 1) % cfg.aimed_kill_every == 0:
+                aimed = f"{rng.choice(AIMED_POINTS)}@{rng.randint(*cfg.aimed_nth)}"
+                child_env["ELASTOPROBE_JOURNAL_CRASH_AT"] = aimed
+            else:
+                kill_after = rng.uniform(*cfg.kill_delay_s)
+        child = run_child(args, child_env, out, kill_after, cfg.sample_s, cfg.child_timeout_s, ever_done,
+                          work_dir / "children.stderr")
+        if child.returncode == -9 and child.killed is None and aimed is not None:
+            child.killed = f"aimed {aimed}"
+        _, reason = _session_status(out)
+        child.pause_reason = reason if child.returncode == 3 else None
+        children.append(child)
+        state["journal_problems"] += [f"after child {len(children)}: {p}" for p in journal_soundness(out)]
+        stop = False
+        if child.returncode == -9 and child.killed not in (None, "timeout"):
+            state["kills"] += 1
+            kills_left -= 1
+        elif child.returncode == 3:
+            if reason and "emergency_stop" in reason:
+                time.sleep(cfg.operator_delay_s)     # the operator walks over and releases it
+                state["operator_clears"] += 1
+        else:
+            stop = True                              # done (0), or a fault/bad input (1, 2)
+        state["wall_s"] = time.monotonic() - t_start
+        _save_state(work_dir, state, children, ever_done)
+        if stop:
+            break
+    return summarize(work_dir)
+
+
+def summarize(work_dir: Path) -> dict[str, Any]:
+    """The soak's figures from a work directory (its session, fault record and state.json)."""
+    state = json.loads((work_dir / "state.json").read_text())
+    children = [ChildRun(**{**c, "samples": [tuple(x) for x in c["samples"]]}) for c in state["children"]]
+    ever_done = set(state["ever_done"])
+    out = work_dir / "session"
+    status, reason = _session_status(out)
+    facts = step_accounting(out, ever_done) if (out / "journal.sqlite").exists() else {}
+    judged = judge_faults(read_fault_record(work_dir / "sim_faults.jsonl"), out, children) if facts else {"fates": []}
+    fates = judged["fates"]
+    count = lambda what: sum(f["fate"] == what for f in fates)   # noqa: E731
+    growth, growth_h = rss_growth_mb_per_h(children)
+    return {
+        "robot_hours": round(facts.get("robot_hours", 0.0), 3),
+        "faults_injected": len(fates),
+        "faults_recovered": count("recovered"),
+        "faults_paused": count("paused"),
+        "kills": state["kills"],
+        "steps_lost": facts.get("steps_lost"),
+        "steps_duplicated": facts.get("steps_duplicated"),
+        "peak_rss_mb": round(max((c.max_rss_mb for c in children), default=0.0), 1),
+        "rss_growth_mb_per_h": None if growth is None else round(growth, 2),
+        "baseline_rss_mb": round(state["baseline_rss_mb"], 1),
+        "faults_undetected": count("undetected"),
+        "faults_no_effect": count("no_effect"),
+        "faults_lost_to_kill": count("lost_to_kill"),
+        "faults_unresolved": count("unresolved"),
+        "faults_neither": [f for f in fates if f["fate"] not in ("recovered", "paused")],
+        "faults_paused_unjournaled": [f for f in fates if f.get("journaled") is False],
+        "faults_repeated_after_resume": [f for f in fates if "repeat_of_fault_id" in f],
+        "faults_by_kind": {k: _histogram(f["fate"] for f in fates if f["kind"] == k)
+                           for k in sorted({f["kind"] for f in fates})},
+        "fault_injections_raw": judged.get("raw_injections", 0),
+        "faults_journaled_not_injected": judged.get("journaled_other", {}),
+        "fault_rates_per_100_steps": state["rates"],
+        "status": status, "status_reason": reason,
+        "children": len(children), "resumes": max(len(children) - 1, 0),
+        "operator_clears": state["operator_clears"],
+        "exit_codes": [c.returncode for c in children],
+        "kill_moments": [c.killed for c in children if c.killed],
+        "pauses": [c.pause_reason for c in children if c.returncode == 3],
+        "steps_planned": facts.get("steps_planned"), "steps_done": facts.get("steps_done"),
+        "steps_skipped": facts.get("steps_skipped"),
+        "steps_lost_ids": facts.get("steps_lost_ids"), "steps_duplicated_ids": facts.get("steps_duplicated_ids"),
+        "journal_problems": state["journal_problems"],
+        "rss_growth_robot_hours_used": round(growth_h, 3),
+        "min_robot_hours": state["min_robot_hours"],
+        "seed": state["seed"], "wall_s": round(state["wall_s"], 1),
+        "session_dir": str(out),
+        "last_stderr": children[-1].stderr_tail[-1500:] if children and children[-1].returncode not in (0, 3, -9) else "",
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="the short soak (about a minute) instead of the night")
+    ap.add_argument("--seed", type=int, default=None)
+    ap.add_argument("--keep", type=Path, default=None, help="work in this directory and keep it")
+    ap.add_argument("--judge", type=Path, default=None, help="only re-judge a kept work directory")
+    a = ap.parse_args(argv)
+    if a.judge is not None:
+        print(json.dumps(summarize(a.judge.resolve()), indent=1))
+        return 0
+    cfg = QUICK if a.quick else FULL
+    if a.seed is not None:
+        cfg = SoakConfig(**{**asdict(cfg), "seed": a.seed})
+    work = a.keep if a.keep is not None else Path(tempfile.mkdtemp(prefix="soak-"))
+    try:
+        result = run_soak(cfg, work)
+    finally:
+        if a.keep is None:
+            shutil.rmtree(work, ignore_errors=True)
+    print(json.dumps(result, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,84 @@
+"""The simulated overnight soak (issue #7): faults of many kinds, SIGKILLs and resumes, and
+nothing lost, nothing done twice, every fault recovered or cleanly paused, the journal sound.
+
+The driver is bench/soak.py (one place for the logic): it runs the real CLI in child
+processes on a private copy of the simulated cell with rate-based faults, kills and
+resumes it, plays the operator (an e-stop is released, then the session resumed), and
+judges the outcome against the simulator's own durable record of what it injected.
+
+The short soak runs by default (a small plan; e-stop, disk error, force spike, protective
+stop, scanner timeout and connection loss at a few per 100 steps; one kill at a random
+moment and one inside a journal transaction). The night (>= 8 h of robot time, every
+fault kind at about one per 100 steps in total, six kills) is marked soak.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
+import soak  # noqa: E402
+
+# Fates that are not a failure of the controller: a scanner fault with no scan asked for
+# or a slip with no contact changed nothing any device showed; a fault whose process was
+# SIGKILLed before it could journal it died with that process (the kill is the fault).
+HARMLESS = {"no_effect", "lost_to_kill"}
+# Known gap (tests/test_session_faults.py, strict xfail there): a moved object is not
+# detected yet. The soak counts it as undetected and says so; it is not hidden.
+KNOWN_UNDETECTED = {"object_moved"}
+# Memory: a real night is 8-12 h. 5 MB per robot hour is < 60 MB over 12 h (about 10 %
+# of the controller's ~0.5 GB, torch included), while keeping each step's raw scans
+# (~0.3 MB x ~300 steps per robot hour) would grow ~90 MB/h and fail this clearly.
+MAX_RSS_GROWTH_MB_PER_H = 5.0
+
+
+def _assert_sound(result: dict[str, Any]) -> None:
+    assert result["status"] == "done", (result["status"], result["status_reason"], result["exit_codes"],
+                                        result["last_stderr"])
+    assert result["journal_problems"] == []
+    assert result["steps_lost"] == 0, result["steps_lost_ids"]
+    assert result["steps_duplicated"] == 0, result["steps_duplicated_ids"]
+    assert result["steps_done"] > 0
+    bad = [f for f in result["faults_neither"]
+           if f["fate"] not in HARMLESS and not (f["fate"] == "undetected" and f["kind"] in KNOWN_UNDETECTED)]
+    assert bad == [], bad
+    assert result["faults_recovered"] + result["faults_paused"] + len(result["faults_neither"]) \
+        == result["faults_injected"]
+
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    return soak.run_soak(soak.QUICK, tmp_path_factory.mktemp("soak_quick"))
+
+
+def test_short_soak_loses_nothing_and_every_fault_is_recovered_or_paused(quick: dict[str, Any]) -> None:
+    _assert_sound(quick)
+    # The run must have exercised what it claims to: faults recovered by retry, a pause,
+    # the operator releasing an e-stop, a disk error on the journal's write, kills.
+    assert quick["faults_recovered"] >= 1
+    assert quick["faults_paused"] >= 1 and quick["operator_clears"] >= 1
+    assert quick["faults_by_kind"].get("emergency_stop", {}).get("paused", 0) >= 1
+    assert quick["faults_by_kind"].get("disk_error", {}).get("paused", 0) >= 1
+    assert quick["kills"] >= 1
+
+
+def test_short_soak_figures_are_reported(quick: dict[str, Any]) -> None:
+    for key in ("robot_hours", "faults_injected", "faults_recovered", "faults_paused", "kills", "steps_lost",
+                "steps_duplicated", "peak_rss_mb", "rss_growth_mb_per_h"):
+        assert key in quick
+    assert quick["peak_rss_mb"] > quick["baseline_rss_mb"] > 0
+
+
+@pytest.mark.soak
+def test_overnight_soak(tmp_path: Path) -> None:
+    result = soak.run_soak(soak.FULL, tmp_path)
+    print(result)
+    _assert_sound(result)
+    assert result["robot_hours"] >= 8.0
+    assert result["kills"] >= 3
+    assert result["faults_injected"] >= 15          # ~1 per 100 of ~3000 force steps
+    assert result["rss_growth_mb_per_h"] is not None
+    assert abs(result["rss_growth_mb_per_h"]) <= MAX_RSS_GROWTH_MB_PER_H
