@@ -17,8 +17,8 @@ profile path (profiles.step_scan_points, profile_from_scans, phases.plausible_de
 and its feature extraction (survey features on the dent window |x| <= 15 mm, clustering
 on the surface graph). The arm and F/T dynamics are not run (the force is exact).
 
-Score: the region map (nearest labelled target) over the reachable surface seen from
-above (normal within the plan's tilt limit), mislabelled area fraction after optimal
+Score: the region map (the session's: nearest labelled target along the surface, parts
+split at concave folds) over the reachable surface seen from above (normal within the plan's tilt limit), mislabelled area fraction after optimal
 label matching (evaluate.region_map_scores) against the simulator's true labels.
 Robot time: estimate.contact_time_s per contact with the mean leg of a 2-opt tour of
 each batch of targets (ordering.order_targets), as the session orders them.
@@ -174,7 +174,12 @@ class SeedRun:
         self.reference_dir = np.array(plan.sampling.reference_direction, dtype=float)
         reach = np.flatnonzero(self.surface.reachable)
         pick = np.random.default_rng([seed, 61]).choice(reach, size=min(eval_points, reach.size), replace=False)
+        self.eval_index = pick
         self.eval_points = self.surface.points_mm[pick]
+        # The session's map: labels spread along the surface, split at folds.
+        from elastoprobe.controller.learning import surface_map as sm
+
+        self.graph = sm.build_graph(self.surface.points_mm, self.surface.normals)
         self.true_labels = self.cell_truth().region_of(self.eval_points)
         self.noise_mm: float | None = None
 
@@ -204,8 +209,9 @@ class SeedRun:
         depth = np.array([m.depth_mm for m in measured])
         seen, labels, rmap, edges = st.region_labels(points, normals, depth, self.prober.grid.x_mm,
                                                      self.prober.forces_n, seed=self.seed,
-                                                     half_window_mm=FEATURE_HALF_WINDOW_MM)
-        scores = st.map_error(points[seen], labels, self.eval_points, self.true_labels)
+                                                     half_window_mm=FEATURE_HALF_WINDOW_MM, graph=self.graph)
+        scores = st.map_error(points[seen], labels, self.eval_points, self.true_labels, graph=self.graph,
+                              eval_index=self.eval_index)
         scores["n_regions_found"] = int(rmap.n_regions)
         scores["unseen_targets"] = int(np.sum(~seen))
         return scores, seen, labels, edges
@@ -440,7 +446,7 @@ def main(argv: list[str] | None = None) -> int:
                        "contact model's dent at the plan's forces after settle; session profile path and dent-window "
                        "features; arm and F/T dynamics not run",
         "scored_on": "reachable surface seen from above (normal within max_tilt_deg), equal area per point, "
-                     "nearest-target labels",
+                     "labels of the nearest target along the surface, parts split at folds (as the session)",
         "object": _relative(Path(inputs.object_file())),
         "plan": plan.name,
         "contacts_simulated": contacts_simulated,

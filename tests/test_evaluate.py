@@ -112,3 +112,20 @@ def test_depth_monotone_in_force():
         return d
     s = depth_monotone_in_force(bad, forces, angles, x_mm=X_MM)
     assert s["peak_fraction"] == 0.5 and s["sample_fraction"] < 0.6
+
+
+def test_unseen_force_between():
+    from elastoprobe.controller.learning.evaluate import unseen_force_between
+
+    forces, angles = [2.0, 5.0, 9.0], [45.0, 90.0, 135.0]
+    good = unseen_force_between(shifted_dent_model(True), forces, angles, x_mm=X_MM)
+    assert good["fraction"] == 1.0 and good["worst_mm"] == 0.0 and good["cases"] == 6
+
+    def wobbly(forces_n, angles_deg):
+        d = shifted_dent_model(True)(forces_n, angles_deg)
+        d[np.isclose(forces_n, 7.0)] *= 1.4             # 7 N (between 5 and 9) deeper than 9 N
+        return d
+
+    bad = unseen_force_between(wobbly, forces, angles, x_mm=X_MM)
+    assert bad["fraction"] < 0.9 and bad["worst_mm"] > 0.05
+    assert {(f, a) for f, a, _ in bad["failed_cases"]} == {(7.0, 45.0), (7.0, 90.0), (7.0, 135.0)}

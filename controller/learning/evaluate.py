@@ -119,6 +119,44 @@ def depth_monotone_in_force(model: Any, forces_n: np.ndarray, angles_deg: np.nda
             "sample_fraction": ok_samples / n_samples if n_samples else 1.0}
 
 
+def unseen_force_between(model: Any, trained_forces_n: np.ndarray, angles_deg: np.ndarray,
+                         roi: Callable[[float, float, np.ndarray], np.ndarray] | None = None,
+                         tol_mm: float = 0.0, x_mm: np.ndarray | None = None) -> dict[str, Any]:
+    """Does a profile predicted at an unseen force lie between the profiles at the two
+    trained forces around it, at every sample of the region of interest?
+
+    For each angle and each consecutive pair of ``trained_forces_n``, the midpoint force's
+    prediction is compared sample by sample with the lower and upper forces' predictions
+    over ``roi(force_mid, angle, upper_profile) -> (L,) bool`` (default: the upper
+    profile deeper than ``ROI_FRACTION`` of its peak). A sample is between when
+    min(lo, hi) − tol ≤ mid ≤ max(lo, hi) + tol. Returns ``fraction`` of ROI samples
+    between, ``worst_mm`` (largest excursion outside, mm), ``cases`` checked and
+    ``failed_cases`` [(force_mid, angle, samples outside)].
+    """
+    f = np.sort(np.asarray(trained_forces_n, dtype=float).reshape(-1))
+    inside = total = 0
+    worst = 0.0
+    failed: list[tuple[float, float, int]] = []
+    cases = 0
+    for ang in np.asarray(angles_deg, dtype=float).reshape(-1):
+        for lo_f, hi_f in zip(f, f[1:]):
+            mid_f = 0.5 * (lo_f + hi_f)
+            p = _predict(model, np.array([lo_f, mid_f, hi_f]), np.full(3, ang))
+            mask = (roi(mid_f, float(ang), p[2]) if roi is not None
+                    else roi_mask(p[2][None, :])[0])
+            low, high = np.minimum(p[0], p[2]), np.maximum(p[0], p[2])
+            excursion = np.maximum(low - p[1], p[1] - high)[mask]
+            out = int(np.sum(excursion > tol_mm))
+            inside += int(mask.sum()) - out
+            total += int(mask.sum())
+            worst = max(worst, float(excursion.max(initial=0.0)))
+            cases += 1
+            if out:
+                failed.append((float(mid_f), float(ang), out))
+    return {"fraction": inside / total if total else 1.0, "worst_mm": worst, "cases": cases,
+            "failed_cases": failed}
+
+
 # -- region maps ---------------------------------------------------------------------------------
 
 def boundary_points(labels: np.ndarray, positions_mm: np.ndarray, radius_mm: float) -> np.ndarray:

@@ -13,8 +13,10 @@ survey contacts by ``bench/sampling_efficiency.py``:
 Every strategy's points go through the same target rules as the session
 (:func:`targets.make_targets`: edge clearance, tilt limit, support), so they are valid
 probe targets. The region map is built as the session builds it (survey features from
-the dent window, :func:`regions.cluster_regions` on the surface graph) and spread over
-the surface by the nearest labelled target (:func:`regions.propagate_labels`).
+the dent window, :func:`regions.cluster_regions` with target neighbours from the
+surface graph) and spread over the surface as the session spreads it
+(:func:`surface_map.labels_from_seeds`: nearest labelled target along the surface,
+parts split at folds) when a surface graph is given, else by the nearest target in space.
 
 Densify here uses a survey-data proxy instead of fitted region models:
 :class:`SurveyMeanModel` predicts a region's mean survey profile (at the survey
@@ -35,6 +37,7 @@ from scipy.spatial import cKDTree
 from . import densify as dn
 from . import evaluate as ev
 from . import regions as rg
+from . import surface_map as sm
 from . import targets as tg
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -226,13 +229,15 @@ def dent_features(depth_mm: np.ndarray, x_mm: np.ndarray, forces_n: np.ndarray,
 
 
 def region_labels(points_mm: np.ndarray, normals: np.ndarray, depth_mm: np.ndarray, x_mm: np.ndarray,
-                  forces_n: np.ndarray, seed: int = 0, half_window_mm: float = 15.0
-                  ) -> tuple[np.ndarray, np.ndarray, rg.RegionMap, np.ndarray]:
+                  forces_n: np.ndarray, seed: int = 0, half_window_mm: float = 15.0,
+                  graph: sm.SurfaceGraph | None = None) -> tuple[np.ndarray, np.ndarray, rg.RegionMap, np.ndarray]:
     """Regions of surveyed points as the session's regions phase finds them, seen points only.
 
     ``depth_mm`` (N,F,L): averaged survey profiles. A point whose dent window the scanner
     never saw at some survey force (e.g. occluded by a taller part) has no features and is
     left out instead of entering the clustering with made-up (mean) features.
+    Neighbours: cells of the surface ``graph`` that touch (as the session), or without one
+    a k-NN chord graph (:func:`targets.surface_graph`).
     Returns (seen (N,) bool, labels (S,) of the seen points, the RegionMap, surface-graph
     edges (E,2) indexing the seen points).
     """
@@ -241,16 +246,26 @@ def region_labels(points_mm: np.ndarray, normals: np.ndarray, depth_mm: np.ndarr
     pts, nrm = np.asarray(points_mm)[seen], np.asarray(normals)[seen]
     if not seen.any():
         raise ValueError("no surveyed point has a measured dent: cannot find regions")
-    edges = np.asarray(tg.surface_graph(pts, nrm), dtype=np.int64).reshape(-1, 2)
+    if graph is not None:
+        edges = np.asarray(sm.seed_neighbours(graph, sm.cells(graph, pts)), dtype=np.int64).reshape(-1, 2)
+    else:
+        edges = np.asarray(tg.surface_graph(pts, nrm), dtype=np.int64).reshape(-1, 2)
     rmap = rg.cluster_regions(feats[seen], edges, names, seed=seed)
     return seen, rmap.labels, rmap, edges
 
 
 def map_error(target_points_mm: np.ndarray, target_labels: np.ndarray, eval_points_mm: np.ndarray,
-              true_labels: np.ndarray) -> dict:
+              true_labels: np.ndarray, graph: sm.SurfaceGraph | None = None,
+              eval_index: np.ndarray | None = None) -> dict:
     """Scores (``evaluate.region_map_scores``) of the map spread from labelled targets to the
-    evaluation points by nearest target, against their true labels (equal area per point)."""
-    pred = rg.propagate_labels(target_points_mm, target_labels, eval_points_mm)
+    evaluation points, against their true labels (equal area per point).
+
+    With ``graph`` (over the surface) and ``eval_index`` (the evaluation points' indices in
+    it): the session's map (:func:`surface_map.labels_from_seeds`); else the nearest target."""
+    if graph is not None and eval_index is not None:
+        pred = sm.labels_from_seeds(graph, target_points_mm, target_labels)[np.asarray(eval_index)]
+    else:
+        pred = rg.propagate_labels(target_points_mm, target_labels, eval_points_mm)
     return ev.region_map_scores(pred, true_labels, None, eval_points_mm)
 
 
