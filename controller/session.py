@@ -214,18 +214,28 @@ class Session:
                 attempt += 1
                 self.machine.fire("sweep")
         j.add_robot_time("sweep", robot_s)
+        self.machine.fire("plan")           # from here the session may also pause
         cloud_base, _ = remove_table_below(before.apply(pts_obj), seed=self.seed)
         try:
             after, rms = reregister(mesh, cloud_base, before, seed=self.seed)
         except ValueError as exc:
             raise SessionPaused(f"the object moved and could not be registered again: {exc}") from exc
+        change = after.position_mm - before.position_mm
+        record = {"base_to_object": after.to_list(), "previous": before.to_list(), "rms_mm": round(rms, 3),
+                  "shift_mm": np.round(change, 2).tolist(),
+                  "robot_s": round(float(robot_s), 3)}
+        limit_mm = float(plan.probing.object_moved_mm or 0.0)
+        if abs(change[2]) > 2.0 or np.linalg.norm(change[:2]) < 0.5 * limit_mm:
+            # An object resting on the table slides; it does not rise or sink. And if the
+            # sweep finds it where it was, the probing pose's scans disagree with the
+            # sweep's: the scanner's mount (or the tip) is not where the cell file says.
+            self._log("registration_rejected", **record)
+            raise SessionPaused(f"the probing scans and a fresh sweep disagree about where the object is (the "
+                                f"sweep moves it by {np.round(change, 1).tolist()} mm): check the scanner and "
+                                f"tip calibration (elastoprobe calibrate scanner|tcp), then resume")
         cell.base_to_object = after
         self.executor.validator = build_validator(self.inputs, cell, mesh)
-        record = {"base_to_object": after.to_list(), "previous": before.to_list(), "rms_mm": round(rms, 3),
-                  "shift_mm": np.round(after.position_mm - before.position_mm, 2).tolist(),
-                  "robot_s": round(float(robot_s), 3)}
         self._log("object_registered", **record)     # journal event too: resume starts from it
-        self.machine.fire("plan")
 
     def _record_identities(self) -> None:
         assert self.journal is not None and self.cell is not None
