@@ -38,7 +38,7 @@ class PlacementEstimate:
     def as_dict(self) -> dict[str, object]:
         return {"shift_mm": np.round(self.shift_mm, 2).tolist(), "horizontal_mm": round(self.horizontal_mm, 2),
                 "relief": round(self.relief, 3), "n_points": self.n_points,
-                "rms_before_mm": round(self.rms_before_mm, 3), "rms_after_mm": round(self.rms_after_mm, 3)}
+                "rms_before_mm": _finite_or_none(self.rms_before_mm), "rms_after_mm": _finite_or_none(self.rms_after_mm)}
 
 
 class PlacementMonitor:
@@ -130,6 +130,11 @@ class PlacementMonitor:
                 break
         r1, _ = self._residuals(q, shift)
         return shift, relief, rms0, _robust_rms(r1)
+
+
+def _finite_or_none(x: float, digits: int = 3) -> float | None:
+    """JSON has no NaN: a check with too few points has no RMS."""
+    return round(float(x), digits) if np.isfinite(x) else None
 
 
 def _tukey(r: np.ndarray, c: float) -> np.ndarray:
