@@ -9,6 +9,12 @@ Three sessions of the same plan and seed (default config/plans/demo.yaml, seed 1
   (iii) ``after_calibration``: another copy of it, after ``elastoprobe calibrate ft``, ``tcp``,
                                ``scanner`` and ``object`` wrote its calibration file.
 
+and with ``--oracle`` also
+
+  (iv)  ``perfect_calibration``: a third copy whose calibration file holds the simulator's
+                               truth (believed == true on the same physical cell as (ii)/(iii)):
+                               what (iii) would score if calibration were exact.
+
 Each is scored by ``elastoprobe evaluate DIR --json`` against the simulator's ground truth.
 The goal (issue #6): (iii)'s ``region_map_error`` (the mislabelled fraction of the reachable
 scanned surface) within 10 % of (i)'s, relative: |e_iii - e_i| / e_i <= 0.10.
@@ -104,6 +110,35 @@ def calibrate(cell: Path, seed: int) -> dict[str, Any]:
     return out
 
 
+def write_perfect_calibration(cell: Path) -> str:
+    """The simulator's truth written as the cell copy's calibration file (an exact calibration;
+    simulator internals, for the oracle run only). Returns the file's path."""
+    from elastoprobe.calibration.calfile import calibration_path, pose_list, write_section
+    from elastoprobe.controller.config import load_cell
+    from elastoprobe.controller.geometry import Pose
+    from elastoprobe.sim.cell import params_from_cell, true_geometry
+
+    import numpy as np
+
+    spec, _ = load_cell(cell)
+    p = params_from_cell(spec, Path(spec.object.file))
+    t = true_geometry(p)
+    f2t = p.flange_to_tcp
+    sections = {
+        "ft": {"payload_mass_kg": t.payload_mass_kg,
+               "payload_com_sensor_mm": t.tcp_to_sensor.inverse().apply(t.payload_com_mm).tolist(),
+               "flange_to_sensor": pose_list(f2t.compose(t.tcp_to_sensor))},
+        "tcp": {"tip_offset_mm": t.tip_offset_mm.tolist(),
+                "flange_to_tcp": pose_list(f2t.compose(Pose(t.tip_offset_mm, np.eye(3))))},
+        "scanner": {"flange_to_scanner": pose_list(f2t.compose(t.tcp_to_scanner))},
+        "object": {"base_to_object": pose_list(t.base_to_object)},
+    }
+    path = calibration_path(spec, cell)
+    for kind, result in sections.items():
+        write_section(path, spec.name, kind, result, {"oracle": "the simulator's truth"}, "", )
+    return str(path)
+
+
 def headline(ev: dict[str, Any]) -> dict[str, Any]:
     keys = ("region_map_error", "worst_region_iou", "boundary_mm_mean", "boundary_mm_p90", "profile_rmse_mm",
             "regions_found", "regions_true", "probes", "robot_hours")
@@ -125,7 +160,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--calibration-seed", type=int, default=0, help="seed of the calibration runs' noise")
     ap.add_argument("--out", type=Path, default=None, help="folder for the cells and sessions (default: temporary)")
     ap.add_argument("--reuse", action="store_true", help="keep sessions that already finished in --out")
-    ap.add_argument("--parallel", type=int, default=1, choices=(1, 2, 3), help="demo runs at once")
+    ap.add_argument("--parallel", type=int, default=1, choices=(1, 2, 3, 4), help="demo runs at once")
+    ap.add_argument("--oracle", action="store_true",
+                    help="also run the miscalibrated cell with its exact calibration (the simulator's truth)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     out = args.out or Path(tempfile.mkdtemp(prefix="calibrated_demo_"))
@@ -134,7 +171,11 @@ def main(argv: list[str] | None = None) -> int:
     cal_cell = copy_cell(MISCALIBRATED_CELL, out / "cells" / "calibrated")
 
     def after_calibration() -> dict[str, Any]:
-        cal = calibrate(cal_cell, args.calibration_seed)
+        if args.reuse and session_done(out / "after_calibration"):
+            cal: dict[str, Any] = {k: {"written": str(cal_cell.with_suffix(".calibration.json")), "result": "reused"}
+                                   for k in KINDS}
+        else:
+            cal = calibrate(cal_cell, args.calibration_seed)
         res = run_demo(args.plan, cal_cell, out / "after_calibration", args.seed, args.reuse)
         res["calibration"] = cal
         return res
@@ -145,6 +186,15 @@ def main(argv: list[str] | None = None) -> int:
                 "uncalibrated": pool.submit(run_demo, args.plan, uncal_cell, out / "uncalibrated", args.seed,
                                             args.reuse),
                 "after_calibration": pool.submit(after_calibration)}
+        if args.oracle:
+            oracle_cell = copy_cell(MISCALIBRATED_CELL, out / "cells" / "perfect")
+
+            def perfect() -> dict[str, Any]:
+                written = write_perfect_calibration(oracle_cell)
+                return {**run_demo(args.plan, oracle_cell, out / "perfect_calibration", args.seed, args.reuse),
+                        "calibration": written}
+
+            jobs["perfect_calibration"] = pool.submit(perfect)
         runs = {name: job.result() for name, job in jobs.items()}
     e = {name: headline(r["evaluation"]) for name, r in runs.items()}
     result = {
@@ -155,10 +205,17 @@ def main(argv: list[str] | None = None) -> int:
         "uncalibrated_vs_calibrated": compare(e["calibrated"]["region_map_error"],
                                               e["uncalibrated"]["region_map_error"]),
         "goal": f"|after - calibrated| / calibrated <= {GOAL_REL_DIFF}",
+        "after_no_worse_than_calibrated": bool(
+            e["after_calibration"]["region_map_error"] is not None and e["calibrated"]["region_map_error"] is not None
+            and e["after_calibration"]["region_map_error"]
+            <= (1.0 + GOAL_REL_DIFF) * e["calibrated"]["region_map_error"]),
         "calibration": runs["after_calibration"].get("calibration"),
         "wall_time_s": {**{k: r["wall_time_s"] for k, r in runs.items()},
                         "total": round(time.perf_counter() - t0, 1)},
     }
+    if "perfect_calibration" in e:
+        result["after_vs_perfect_calibration"] = compare(e["perfect_calibration"]["region_map_error"],
+                                                         e["after_calibration"]["region_map_error"])
     result["goal_met"] = result["after_vs_calibrated"]["met"]
     print(json.dumps(result))
     return 0
