@@ -238,8 +238,14 @@ class UREmulator:
         self._sessions: list[_RtdeSession] = []
         self._t_boot_s = time.monotonic()
 
-        # Controller variables.
+        # Controller variables. RTDE input packages land in ``_inputs`` under their own small
+        # lock (a connection thread never waits for a controller tick, which holds ``_lock``
+        # while it steps the arm and packs the output streams); each tick reads one copy,
+        # ``_cycle_inputs``, as a real controller samples its inputs once per cycle (a
+        # command's arguments never mix two packages).
         self._inputs: dict[str, object] = {}
+        self._inputs_lock = threading.Lock()
+        self._cycle_inputs: dict[str, object] = {}
         self._input_owner: dict[str, _RtdeSession] = {}
         self._out_int = np.zeros(N_REGISTERS, dtype=np.int64)
         self._out_double = np.zeros(N_REGISTERS)
@@ -506,9 +512,10 @@ class UREmulator:
                 return
             values = recipe.unpack(payload[1:])
             now = time.monotonic()
-            with self._lock:
+            with self._inputs_lock:
                 self._inputs.update(values)
-                if self._watchdog is not None and self._watchdog[0] in values:
+                watchdog = self._watchdog
+                if watchdog is not None and watchdog[0] in values:
                     self._watchdog_last_s = now
         else:
             self._event("rtde_unknown_command", str(command))
@@ -776,6 +783,8 @@ class UREmulator:
             self._stop.wait(max(0.0, next_t - time.monotonic()))
 
     def _step(self, now: float) -> None:
+        with self._inputs_lock:
+            self._cycle_inputs = dict(self._inputs)
         self.backend.advance(now)
         reason = self.backend.protective_stop_requested()
         if reason and self._protective_stop_t_s is None:
@@ -803,7 +812,7 @@ class UREmulator:
 
     def _process_register_command(self, now: float) -> None:
         off = self._reg_offset
-        cmd = int(self._inputs.get(f"input_int_register_{off}", 0))  # type: ignore[call-overload]
+        cmd = int(self._cycle_inputs.get(f"input_int_register_{off}", 0))  # type: ignore[call-overload]
         if cmd in Cmd.REALTIME:
             if not self.commands_seen or self.commands_seen[-1] != cmd:
                 self.commands_seen.append(cmd)
@@ -821,10 +830,10 @@ class UREmulator:
 
     # ------------------------------------------------------------------ register access
     def _in_int(self, index: int) -> int:
-        return int(self._inputs.get(f"input_int_register_{index + self._reg_offset}", 0))  # type: ignore[call-overload]
+        return int(self._cycle_inputs.get(f"input_int_register_{index + self._reg_offset}", 0))  # type: ignore[call-overload]
 
     def _in_double(self, index: int) -> float:
-        return float(self._inputs.get(f"input_double_register_{index + self._reg_offset}", 0.0))  # type: ignore[arg-type]
+        return float(self._cycle_inputs.get(f"input_double_register_{index + self._reg_offset}", 0.0))  # type: ignore[arg-type]
 
     def _in_doubles(self, first: int, count: int) -> np.ndarray:
         return np.array([self._in_double(first + i) for i in range(count)])
