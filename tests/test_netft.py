@@ -343,3 +343,26 @@ def test_tracker_wraps_loses_reorders_and_resyncs():
     t2 = SequenceTracker(c2)
     assert [t2.accept(s) for s in (5, 2, 6, 3)] == [5, None, 6, None]
     assert (c2.received, c2.lost, c2.reordered) == (2, 1, 2)     # 4 never came: 2..6 all accounted
+
+
+# ---------------------------------------------------------------- receiving in the caller's thread
+def test_receive_in_caller_thread_delivers_every_record_and_times_out_quietly(make_server, make_client):
+    """receive_thread=False (the hardware process's safety thread reads the socket itself):
+    the same records, in order, and receive() returns 0 after its timeout when nothing comes."""
+    srv = make_server(rate_hz=1000.0, records_per_datagram=1)
+    client = make_client(srv, autostart=False, receive_thread=False)
+    assert client.receive(0.01) == 0                       # not streaming yet
+    client.start(sample_count=300)
+    got = 0
+    end = time.monotonic() + 10.0
+    while got < 300 and time.monotonic() < end:
+        got += client.receive(0.05)
+    block = client.read_block()
+    assert len(block) == 300 and got == 300
+    np.testing.assert_array_equal(block.seq, np.arange(1, 301))
+    np.testing.assert_array_equal(np.rint(block.force_n[:, 0] * CPF), np.arange(300))
+    t0 = time.monotonic()
+    assert client.receive(0.05) == 0                       # the finite stream ended
+    assert time.monotonic() - t0 >= 0.04                   # it waited instead of spinning
+    with pytest.raises(RuntimeError):
+        make_client(srv, autostart=False).receive(0.01)    # a threaded client refuses

@@ -169,6 +169,38 @@ def test_async_move_progress_then_stop_mid_move(cell) -> None:
 
 
 @pytest.mark.loopback
+@pytest.mark.timeout(60)
+def test_direct_stop_channel_halts_the_arm_and_reports(cell) -> None:
+    """stop_now: the stop pipe, served before any request, halts a moveL (stopL) and a speedL
+    (speedStop); each is reported with the child's timestamps."""
+    emu, link, _ = cell(36)
+    s0 = link.state()
+    link.move_linear(_far_target(s0), 0.25, 1.2)
+    assert wait_for(emu.is_moving, 3.0)
+    t0 = time.monotonic()
+    seq = link.stop_now(True, 5.0)
+    assert wait_for(lambda: not emu.is_moving(), 2.0)
+    assert ur_link_cmd(emu, 33)
+    z0 = link.state().tcp_pose_ur[2]
+    link.speed_linear([0.0, 0.0, -0.05, 0.0, 0.0, 0.0], 0.5)
+    assert wait_for(lambda: link.state().tcp_pose_ur[2] < z0 - 0.003, 3.0)
+    seq2 = link.stop_now(False, 2.0)
+    assert seq2 == seq + 1
+    assert wait_for(lambda: not emu.is_moving(), 2.0)
+    assert emu.commands_seen[-1] == 15
+    # Reports arrive with the next exchange with the child.
+    assert wait_for(lambda: link.state() is not None and seq2 in link.stop_reports, 2.0)
+    r = link.stop_reports[seq]
+    assert r["ok"] and r["error"] == "" and link.stop_reports[seq2]["ok"]
+    assert t0 <= r["child_recv_s"] <= r["child_lib_call_s"] <= r["child_lib_return_s"]
+    assert link.faults == [] and link.restarts == 0
+
+
+def ur_link_cmd(emu: UREmulator, cmd: int) -> bool:
+    return cmd in emu.commands_seen
+
+
+@pytest.mark.loopback
 @pytest.mark.timeout(90)
 def test_protective_stop_mid_move_then_bounded_recovery(cell) -> None:
     emu, link, _ = cell(33)

@@ -31,6 +31,7 @@ safety path divides by these differences.
 from __future__ import annotations
 
 import collections
+import select
 import socket
 import struct
 import threading
@@ -335,7 +336,7 @@ class NetFTClient:
                  clock: Clock | None = None, rate_hz: float = 1000.0, buffered: bool = False,
                  serial: str = "unknown", firmware: str = "unknown", model: str = "ATI Net F/T",
                  timeout_s: float = 2.0, max_pending_s: float = 60.0,
-                 tare_window_s: float = 0.1, autostart: bool = True) -> None:
+                 tare_window_s: float = 0.1, autostart: bool = True, receive_thread: bool = True) -> None:
         if rate_hz <= 0:
             raise ValueError("rate_hz must be > 0")
         self.host = host
@@ -373,8 +374,19 @@ class NetFTClient:
         except OSError as exc:
             self._sock.close()
             raise DeviceError(f"Net F/T {host}:{rdt_port}: {exc}") from exc
-        self._thread = threading.Thread(target=self._receive_loop, name=f"netft-rx-{host}", daemon=True)
-        self._thread.start()
+        # Without a receive thread the owner calls receive() itself (the hardware process's
+        # safety thread does: the check runs in the thread that read the datagram, no hop).
+        self._thread: threading.Thread | None = None
+        self._poller: select.poll | None = None
+        if not receive_thread:
+            # A non-blocking socket and a poll object: receive() waits in poll() only for the
+            # first datagram, then drains without a wait (a socket timeout would poll first).
+            self._sock.setblocking(False)
+            self._poller = select.poll()
+            self._poller.register(self._sock, select.POLLIN)
+        else:
+            self._thread = threading.Thread(target=self._receive_loop, name=f"netft-rx-{host}", daemon=True)
+            self._thread.start()
         if autostart:
             self.start()
 
@@ -459,7 +471,8 @@ class NetFTClient:
         except DeviceError:
             pass
         self._stop_event.set()
-        self._thread.join(timeout=2.0)
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
         self._sock.close()
 
     def __enter__(self) -> "NetFTClient":
@@ -475,6 +488,39 @@ class NetFTClient:
         except OSError as exc:
             raise DeviceError(f"Net F/T {self.host}:{self.rdt_port}: send failed: {exc}") from exc
 
+    def receive(self, timeout_s: float) -> int:
+        """Read the datagrams that have arrived, waiting up to ``timeout_s`` for the first;
+        returns how many datagrams were read (0 on timeout). For a client built with
+        ``receive_thread=False`` (one thread must do all the receiving)."""
+        if self._poller is None:
+            raise RuntimeError("this NetFTClient has its own receive thread")
+        if not self._poller.poll(max(0.0, float(timeout_s)) * 1e3):
+            return 0
+        got = 0
+        while got < 256:                  # bounded: a flood cannot keep the caller here
+            try:
+                data = self._sock.recv(MAX_UDP_PAYLOAD + 1)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                # ICMP port unreachable (device not up yet): staleness tells the controller;
+                # wait out the timeout so a caller's loop does not spin.
+                if not got:
+                    self._stop_event.wait(timeout_s)
+                break
+            self._accept_datagram(data, self.clock.now_s())
+            got += 1
+        return got
+
+    def _accept_datagram(self, data: bytes, arrival_s: float) -> None:
+        try:
+            records = parse_rdt_datagram(data)
+        except ProtocolError:
+            with self._lock:
+                self._counters.bad_datagrams += 1
+            return
+        self._ingest(records, arrival_s)
+
     def _receive_loop(self) -> None:
         while not self._stop_event.is_set():
             try:
@@ -487,14 +533,7 @@ class NetFTClient:
                 if self._stop_event.wait(0.01):
                     return
                 continue
-            arrival_s = self.clock.now_s()
-            try:
-                records = parse_rdt_datagram(data)
-            except ProtocolError:
-                with self._lock:
-                    self._counters.bad_datagrams += 1
-                continue
-            self._ingest(records, arrival_s)
+            self._accept_datagram(data, self.clock.now_s())
 
     def _ingest(self, records: list[RdtRecord], arrival_s: float) -> None:
         with self._lock:

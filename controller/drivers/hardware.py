@@ -121,6 +121,16 @@ class HardwareConfig:
     move_tolerance_mm: float = 0.5        # a moveL counts as DONE within this of its target
     move_grace_s: float = 0.5             # time for a new moveL to show up in the state
     safety_period_s: float = 0.002        # longest wait for F/T data before a stale check
+    # The stop path (bench/safety_latency.py times both): the safety thread reads the Net F/T
+    # socket itself (False: the client's receive thread wakes it, one more thread hop), and
+    # stops go to the ur_rtde child over a dedicated stop pipe (False: as a call through the
+    # link's request pipe, behind its lock, waiting for ur_rtde's acknowledgement).
+    ft_read_in_safety_thread: bool = True
+    direct_stop: bool = True
+    # Niceness of the hardware process (its threads and the ur_rtde child inherit it): on a
+    # busy computer the stop path waits for a CPU at every hop, so it asks for more than its
+    # share. Best effort (needs CAP_SYS_NICE to go below 0); None leaves it alone.
+    nice: int | None = -10
     call_timeout_s: float = 15.0          # controller -> hardware process request deadline
     start_timeout_s: float = 60.0
     max_restarts: int = 2
@@ -367,7 +377,8 @@ class _HardwareServer:
         self.cfg = cfg
         self.parent_pid = parent_pid
         self.stop_event = threading.Event()
-        self.ft = _NotifyingNetFT(cfg.ft_host, cfg.rdt_port, cfg.calinfo_port, rate_hz=cfg.ft_rate_hz)
+        self.ft = _NotifyingNetFT(cfg.ft_host, cfg.rdt_port, cfg.calinfo_port, rate_hz=cfg.ft_rate_hz,
+                                  receive_thread=not cfg.ft_read_in_safety_thread)
         self.link = URLink(cfg.robot_host, cfg.link).start()
         self.guard = StopFirstGuard(cfg.limits, np.asarray(cfg.probe_axis_sensor, float), rate_hz=cfg.ft_rate_hz)
         self.gate = threading.Lock()          # orders speedL (control) against stops (safety)
@@ -399,6 +410,8 @@ class _HardwareServer:
             time.sleep(0.01)
 
     def _wait_ft(self, timeout_s: float) -> bool:
+        if self.cfg.ft_read_in_safety_thread:
+            return self.ft.receive(timeout_s) > 0
         ev = self.ft.data_event
         got = ev.wait(timeout_s)
         ev.clear()
@@ -447,10 +460,20 @@ class _HardwareServer:
         self.state = None
 
     # ------------------------------------------------------------------ stops (safety thread)
-    def _send_stop(self, m: _Motion | None) -> None:
+    def _send_stop(self, m: _Motion | None) -> int | None:
+        """Stop the arm now: speedStop after speedL motions, stopL otherwise. Returns the
+        direct channel's sequence number (None for a call through the request pipe)."""
         decel = self.cfg.stop_decel_m_s2
+        speed_motion = m is not None and m.kind in ("seek_contact", "regulate_force")
+        if self.cfg.direct_stop:
+            try:
+                return self.link.stop_now(not speed_motion, decel)
+            except DeviceError as exc:
+                # The link restarts its child, whose new program stops the arm anyway.
+                self.pending_errors.append(f"stop failed: {exc}")
+                return None
         try:
-            if m is not None and m.kind in ("seek_contact", "regulate_force"):
+            if speed_motion:
                 self.link.speed_stop(decel)
             else:
                 self.link.stop_linear(decel)
@@ -469,14 +492,17 @@ class _HardwareServer:
             t_stop_s = time.monotonic()
             with self.gate:
                 t_gate_s = time.monotonic()
-                self._send_stop(m)
+                seq = self._send_stop(m)
             now = time.monotonic()
             self.latency.add(now - arrival_s)
             sl = self.safety
+            # Direct stops: the link's own stamps are its handing-off; the child's come later.
+            link = ({"t_call_s": t_gate_s, "t_locked_s": t_gate_s, "t_sent_s": now} if self.cfg.direct_stop
+                    else dict(self.link.last_stop_timing))
             self.stop_timings.append({
                 "arrival_s": arrival_s, "woke_s": sl.t_woke_s, "read_s": sl.t_read_s, "decided_s": sl.t_decided_s,
-                "block_len": sl.block_len, "stop_s": t_stop_s, "gate_s": t_gate_s, "acknowledged_s": now,
-                **self.link.last_stop_timing})
+                "block_len": sl.block_len, "stop_s": t_stop_s, "gate_s": t_gate_s, "sent_or_acknowledged_s": now,
+                "stop_seq": seq, **link})
 
     def _on_contact(self, t_s: float, arrival_s: float) -> None:
         m = self.motion
@@ -688,6 +714,10 @@ class _HardwareServer:
         child's receipt and ur_rtde call, the answer."""
         out = list(self.stop_timings)
         self.stop_timings.clear()
+        reports = self.link.stop_reports
+        for t in out:
+            if t.get("stop_seq") is not None and t["stop_seq"] in reports:
+                t.update(reports[t["stop_seq"]])
         return out
 
     def op_stats(self) -> dict[str, Any]:
@@ -745,6 +775,12 @@ def _hardware_main(conn: Any, cfg: HardwareConfig, parent_pid: int) -> None:
     if os.getppid() != parent_pid:        # the parent died before prctl took effect
         os._exit(0)
     sys.setswitchinterval(0.0005)          # a woken safety thread gets the GIL promptly
+    if cfg.nice is not None:
+        try:
+            # Before any thread starts: Linux threads and children inherit the caller's nice.
+            os.setpriority(os.PRIO_PROCESS, 0, cfg.nice)
+        except OSError:
+            pass                            # not permitted: run at the normal priority
     try:
         server = _HardwareServer(conn, cfg, parent_pid)
         server.start()

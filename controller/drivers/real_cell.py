@@ -125,8 +125,11 @@ def hardware_config(cell: Any, limits: Any, *, robot_host: str | None = None, ft
     axis = tcp_to_sensor.rotation.T @ np.array([0.0, 0.0, 1.0])
     joint_limits = None if cell.robot.joint_limits_deg is None else np.radians(np.asarray(cell.robot.joint_limits_deg, float))
     if link is None:
-        # On loopback the emulator streams RTDE in Python: 125 Hz spares the shared CPU.
-        link = URLinkConfig(frequency_hz=125.0) if cell.kind == "loopback" else URLinkConfig()
+        # On loopback the emulator streams RTDE in Python: 125 Hz spares the shared CPU, but
+        # the control stream stays at 500 Hz: ur_rtde 1.6.5 sends a command (a stop) only
+        # between two of its packages, so its period is in every stop's latency.
+        link = URLinkConfig(frequency_hz=125.0, control_frequency_hz=500.0) if cell.kind == "loopback" \
+            else URLinkConfig()
     return HardwareConfig(robot_host=robot_host or cell.robot.host, ft_host=ft_host or cell.ft.host, limits=limits,
                           rdt_port=rdt_port or cell.ft.rdt_port, calinfo_port=calinfo_port or cell.ft.calinfo_port,
                           ft_rate_hz=cell.ft.rate_hz, probe_axis_sensor=tuple(float(v) for v in axis),

@@ -28,11 +28,14 @@ speeds m/s, accelerations m/s^2, base frame. Convert with ``Pose.from_ur``/``to_
 """
 from __future__ import annotations
 
+import collections
 import ctypes
 import importlib.metadata
 import multiprocessing as mp
+import multiprocessing.connection
 import os
 import signal
+import struct
 import sys
 import threading
 import time
@@ -63,6 +66,11 @@ _REGISTER_WRITING_OPS = frozenset({"move_linear", "stop_linear", "speed_linear",
 # breakdown for bench/safety_latency.py; the same monotonic clock in every process).
 _STOP_OPS = frozenset({"stop_linear", "speed_stop"})
 
+# The direct stop channel (URLink.stop_now): kind b"L" stopL / b"S" speedStop, a sequence
+# number, the deceleration in m/s^2. Raw bytes on a pipe of its own: no pickling, no call
+# lock, and the child serves it before any request.
+_STOP_MESSAGE = struct.Struct(">cId")
+
 # What the receive interface streams (few variables keep the 500 Hz stream cheap).
 RECEIVE_VARIABLES = ["timestamp", "actual_q", "actual_TCP_pose", "actual_TCP_speed", "actual_TCP_force",
                      "robot_status_bits", "safety_status_bits", "runtime_state", "robot_mode", "safety_mode"]
@@ -81,7 +89,9 @@ class URLinkConfig:
     waits for a new child to be ready. ``max_restarts``: child restarts allowed over the
     link's life. ``unlock_wait_s``: wait after a protective stop before unlocking (a
     controller refuses earlier). ``recovery_attempts``: unlock attempts. ``frequency_hz``:
-    RTDE frequency for both interfaces (-1: the controller's default, 500 Hz on e-Series).
+    RTDE frequency for both interfaces (-1: the controller's default, 500 Hz on e-Series);
+    ``control_frequency_hz`` overrides it for the control interface: ur_rtde 1.6.5 sends a
+    command only between two packages of that stream, so its period bounds the wait of a stop.
     ``child_lifetime_s``: the child exits by itself after this long (bounded loops).
     """
 
@@ -96,6 +106,7 @@ class URLinkConfig:
     unlock_wait_s: float = 5.0
     recovery_attempts: int = 3
     frequency_hz: float = -1.0
+    control_frequency_hz: float | None = None
     child_lifetime_s: float = 24 * 3600.0
 
 
@@ -181,8 +192,10 @@ def check_ur_rtde_version() -> str:
 class _ChildLink:
     """Runs inside the child: owns the three ur_rtde interfaces and the kick loop."""
 
-    def __init__(self, conn: Any, host: str, cfg: URLinkConfig, heartbeat: Any, parent_pid: int) -> None:
+    def __init__(self, conn: Any, host: str, cfg: URLinkConfig, heartbeat: Any, parent_pid: int,
+                 stop_conn: Any = None) -> None:
         self.conn = conn
+        self.stop_conn = stop_conn
         self.host = host
         self.cfg = cfg
         self.heartbeat = heartbeat
@@ -209,8 +222,10 @@ class _ChildLink:
                 self.db.connect()
                 self.rcv = rtde_receive.RTDEReceiveInterface(self.host, frequency=self.cfg.frequency_hz,
                                                              variables=RECEIVE_VARIABLES)
+                control_hz = self.cfg.frequency_hz if self.cfg.control_frequency_hz is None \
+                    else self.cfg.control_frequency_hz
                 self.ctl = rtde_control.RTDEControlInterface(
-                    self.host, frequency=self.cfg.frequency_hz,
+                    self.host, frequency=control_hz,
                     flags=rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT)
                 break
             except Exception as exc:  # noqa: BLE001 — ur_rtde raises RuntimeError and others
@@ -286,7 +301,18 @@ class _ChildLink:
             if self.kicking and time.monotonic() - self.last_write_s >= self.cfg.kick_period_s:
                 self.ctl.kickWatchdog()
                 self.last_write_s = time.monotonic()
-            if self.conn.poll(self.cfg.kick_period_s):
+            if self.stop_conn is not None:
+                waitables = [self.stop_conn, self.conn]
+                ready = multiprocessing.connection.wait(waitables, self.cfg.kick_period_s)
+                if self.stop_conn in ready and not self._serve_stops():
+                    return 0
+                request = self.conn in ready and self.conn.poll(0)
+            else:
+                request = self.conn.poll(self.cfg.kick_period_s)
+            if request:
+                # A stop written meanwhile goes first: it must not wait behind this request.
+                if self.stop_conn is not None and self.stop_conn.poll(0) and not self._serve_stops():
+                    return 0
                 try:
                     msg = self.conn.recv()
                 except EOFError:
@@ -298,6 +324,38 @@ class _ChildLink:
                 if msg[0] == "call":
                     self._answer(msg[1], msg[2], msg[3], t_recv)
         return 0
+
+    def _serve_stops(self) -> bool:
+        """Execute every stop waiting on the stop pipe, each at once; report each with its
+        timestamps. False if the parent closed the pipe."""
+        while self.stop_conn.poll(0):
+            try:
+                raw = self.stop_conn.recv_bytes()
+            except (EOFError, OSError):
+                return False
+            t_recv = time.monotonic()
+            kind, seq, decel = _STOP_MESSAGE.unpack(raw)
+            ok = False
+            error = ""
+            t_lib = t_recv
+            try:
+                if self.ctl.isProgramRunning():
+                    t_lib = time.monotonic()
+                    # ok = the command went out. (ur_rtde 1.6.5's asynchronous stopL returns
+                    # False even when the controller took it; the old call path ignored it too.)
+                    if kind == b"L":
+                        self.ctl.stopL(decel, True)
+                    else:
+                        self.ctl.speedStop(decel)
+                    ok = True
+                else:
+                    error = "the control program is not running"
+            except Exception as exc:  # noqa: BLE001 — report it; the parent decides
+                error = f"{type(exc).__name__}: {exc}"
+            self.last_write_s = time.monotonic()
+            self.conn.send(("stopped", seq, {"child_recv_s": t_recv, "child_lib_call_s": t_lib,
+                                             "child_lib_return_s": self.last_write_s}, ok, error))
+        return True
 
     def _answer(self, rid: int, name: str, args: tuple[Any, ...], t_recv_s: float = 0.0) -> None:
         try:
@@ -426,14 +484,15 @@ class _ChildLink:
         return True
 
 
-def _child_main(conn: Any, host: str, cfg: URLinkConfig, heartbeat: Any, parent_pid: int) -> None:
+def _child_main(conn: Any, host: str, cfg: URLinkConfig, heartbeat: Any, parent_pid: int,
+                stop_conn: Any = None) -> None:
     """Entry point of the child process (spawned)."""
     _set_parent_death_signal()
     if os.getppid() != parent_pid:     # the parent died before prctl took effect
         os._exit(0)
     try:
         check_ur_rtde_version()
-        link = _ChildLink(conn, host, cfg, heartbeat, parent_pid)
+        link = _ChildLink(conn, host, cfg, heartbeat, parent_pid, stop_conn)
         link.connect()
         conn.send(("ready", link.identity()))
     except Exception as exc:  # noqa: BLE001 — report why, then exit
@@ -478,6 +537,12 @@ class URLink:
         self._stop_supervisor = threading.Event()
         # Monotonic stamps of the last stop call (lock taken, sent, answered, the child's).
         self.last_stop_timing: dict[str, Any] = {}
+        # The direct stop channel: its writer (replaced with every child), a sequence number,
+        # and the child's reports of the latest stops (seq -> timestamps, ok, error).
+        self._stop_writer: Any = None
+        self._stop_lock = threading.Lock()
+        self._stop_seq = 0
+        self.stop_reports: collections.OrderedDict[int, dict[str, Any]] = collections.OrderedDict()
 
     # -- lifecycle
     def start(self) -> "URLink":
@@ -550,6 +615,26 @@ class URLink:
     def speed_stop(self, decel_m_s2: float = 10.0) -> None:
         self._call("speed_stop", float(decel_m_s2))
 
+    def stop_now(self, linear: bool, decel_m_s2: float) -> int:
+        """Stop the arm by the direct channel: stopL (``linear``) or speedStop, written to the
+        child's stop pipe without waiting for the call lock or for ur_rtde's acknowledgement.
+
+        The child executes it before any request still queued; its report lands in
+        :attr:`stop_reports` under the returned sequence number. Raises DeviceError if the
+        pipe is gone (the child died: its restart replaces the program, which stops the arm).
+        """
+        with self._stop_lock:
+            self._stop_seq = (self._stop_seq + 1) % (1 << 32)
+            seq = self._stop_seq
+            writer = self._stop_writer
+            if writer is None:
+                raise DeviceError(f"UR link to {self.host} has no child to stop")
+            try:
+                writer.send_bytes(_STOP_MESSAGE.pack(b"L" if linear else b"S", seq, float(decel_m_s2)))
+            except (OSError, ValueError) as exc:
+                raise DeviceError(f"UR link to {self.host}: the stop pipe broke: {exc}") from exc
+        return seq
+
     def force_mode(self, task_frame_ur: "np.ndarray | list[float]", selection: "list[int]",
                    wrench: "np.ndarray | list[float]", mode: int, limits: "np.ndarray | list[float]") -> None:
         self._call("force_mode", [float(v) for v in task_frame_ur], [int(v) for v in selection],
@@ -577,12 +662,17 @@ class URLink:
     # -- machinery
     def _spawn(self) -> None:
         parent_conn, child_conn = self._ctx.Pipe(duplex=True)
+        stop_reader, stop_writer = self._ctx.Pipe(duplex=False)
         self.heartbeat()
         proc = self._ctx.Process(target=_child_main, name=f"urlink-{self.host}",
-                                 args=(child_conn, self.host, self.cfg, self._heartbeat, os.getpid()), daemon=True)
+                                 args=(child_conn, self.host, self.cfg, self._heartbeat, os.getpid(), stop_reader),
+                                 daemon=True)
         proc.start()
         child_conn.close()
+        stop_reader.close()
         self._proc, self._conn = proc, parent_conn
+        with self._stop_lock:
+            self._stop_writer = stop_writer
         try:
             self.identity_info = await_ready(proc, parent_conn, self.cfg.start_timeout_s, f"UR link to {self.host}")
         except DeviceError:
@@ -592,6 +682,13 @@ class URLink:
     def _kill_child(self) -> None:
         kill_child(self._proc, self._conn, 2.0)
         self._conn = None
+        with self._stop_lock:
+            writer, self._stop_writer = self._stop_writer, None
+        if writer is not None:
+            try:
+                writer.close()
+            except OSError:
+                pass
 
     def _fault(self, kind: str, message: str, reported: bool) -> LinkFault:
         """Record a fault, kill the child and start a new one (bounded)."""
@@ -613,6 +710,12 @@ class URLink:
         return fault
 
     def _handle_unsolicited(self, msg: tuple[Any, ...]) -> None:
+        if msg[0] == "stopped":
+            _, seq, stamps, ok, error = msg
+            self.stop_reports[int(seq)] = dict(stamps, ok=bool(ok), error=str(error))
+            while len(self.stop_reports) > 1000:
+                self.stop_reports.popitem(last=False)
+            return
         if msg[0] == "fault":
             # connection_lost: the child exits; program_stopped: it stays, waiting for recover().
             if msg[1] == "program_stopped":
