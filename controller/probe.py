@@ -8,7 +8,6 @@ A failure raises :class:`ProbeFault`; the caller applies the plan's fault policy
 """
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, field
 from typing import Callable, Protocol
 
@@ -415,14 +414,11 @@ class ProbeExecutor:
             return
         from .acquire import scan_points_base
 
-        # The arm rests during a burst: its mean profile at the mean pose says the same
-        # with the noise averaged down, at a tenth of the cost of every profile.
-        with np.errstate(all="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)      # all-NaN columns: dropouts
-            mean_xz = np.nanmean(_stack_scans(scans), axis=0)[None]
-        pts = scan_points_base(mean_xz, poses.mean(axis=0)[None], self.cell.tcp_to_scanner)
+        # Every profile, not the burst's mean: beside a loaded dent only a few samples per
+        # profile are left, and the mean profile would keep only those seen in all of them.
+        pts = scan_points_base(_stack_scans(scans), poses, self.cell.tcp_to_scanner)
         est = self.placement.estimate(pts, self.cell.base_to_object, loaded_at_mm,
-                                      dent_radius_mm if loaded_at_mm is not None else 0.0)
+                                      dent_radius_mm if loaded_at_mm is not None else 0.0, max_points=600)
         self.on_placement(what, est.as_dict())
         if self.placement.moved(est):
             self.cell.arm.stop()
