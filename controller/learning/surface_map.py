@@ -251,7 +251,7 @@ def cells(graph: SurfaceGraph, seeds_mm: np.ndarray) -> Cells:
 
 
 def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.ndarray,
-                      fit_radius_mm: float = 8.0, min_fit_points: int = 6) -> np.ndarray:
+                      fit_radius_mm: float = 15.0, min_fit_points: int = 12) -> np.ndarray:
     """Region label (P,) of every cloud point (see the module docstring, steps 3 and 4)."""
     lab = np.asarray(seed_labels, dtype=np.int64).reshape(-1)
     n = len(graph)
