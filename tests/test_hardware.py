@@ -29,6 +29,39 @@ def test_device_timebase_undoes_compressed_bursts() -> None:
     assert out2.t_s[0] > out.t_s[-1]
 
 
+def test_device_timebase_returns_from_a_late_burst_and_never_goes_back() -> None:
+    """After a burst that arrived 250 ms late, on-time samples get their arrival times back
+    (within a few hundred ms of sample time), never a time after their arrival, and times
+    never decrease on the way."""
+    tb = DeviceTimebase(1000.0)
+    z = np.zeros((1, 3))
+    st = np.zeros(1, np.uint32)
+    times, arrivals = [], []
+    for seq in range(1, 3001):
+        true_t = 100.0 + seq * 1e-3
+        # Samples 1000..1249 are held back and arrive together at 1.250 s, compressed by the
+        # client to its arrival; the rest arrive on time (the client's anchor is exact then).
+        if 1000 <= seq < 1250:
+            continue
+        if seq == 1250:
+            seqs = np.arange(1000, 1251)
+            t_client = 100.0 + 1.250 - np.arange(seqs.size)[::-1] * 1e-6      # <= their arrival
+            out = tb.retime(WrenchBlock(t_client, seqs, np.zeros((seqs.size, 3)), np.zeros((seqs.size, 3)),
+                                        np.zeros(seqs.size, np.uint32)))
+            times.extend(out.t_s.tolist())
+            arrivals.extend([100.0 + 1.250] * seqs.size)
+            continue
+        out = tb.retime(WrenchBlock(np.array([true_t]), np.array([seq]), z, z, st))
+        times.extend(out.t_s.tolist())
+        arrivals.append(true_t)
+    t = np.asarray(times)
+    assert np.all(np.diff(t) > 0)
+    assert np.all(t <= np.asarray(arrivals) + 1e-9)
+    # The burst keeps its device spacing; a second after it the times are exact again.
+    assert np.allclose(np.diff(t[999:1250]), 1e-3)
+    assert np.allclose(t[-1000:], 100.0 + np.arange(2001, 3001) * 1e-3)
+
+
 def test_resample_keeps_holes_and_interpolates_lines() -> None:
     x = np.linspace(-10, 10, 41)
     z = 100.0 + 0.5 * x

@@ -184,21 +184,36 @@ class DeviceTimebase:
     after the network or a starved thread held it back gets compressed times (tens of
     microseconds apart). The force-rate limit divides by these differences: a compressed
     burst turns 0.05 N of noise into thousands of N/s. The device sampled them 1/rate apart,
-    so the safety path uses that. ``offset`` follows the client's anchor (the largest
-    ``t - seq/rate`` seen, never decreasing): a stall still shows as a gap.
+    so the safety path uses that.
+
+    ``offset``: per block, the smallest ``t - seq/rate`` (the block's least-delayed record;
+    for a compressed burst read as one block, its last record), so every time stays at or
+    before its arrival. It rises at once (a stalled or restarted stream shows as a gap) and
+    falls by at most ``max_fall`` of the sample time elapsed, so times never go backwards and
+    spacings shrink by at most that fraction. (It once only rose: one stall of D seconds left
+    every later sample D in the future, which delayed the stale check by D and put the scans'
+    forces next to the wrong samples.)
     """
 
-    def __init__(self, rate_hz: float) -> None:
+    def __init__(self, rate_hz: float, max_fall: float = 0.2) -> None:
         self.period_s = 1.0 / float(rate_hz)
+        self.max_fall = float(max_fall)
         self.offset_s: float | None = None
+        self._last_seq: int | None = None
 
     def retime(self, block: WrenchBlock) -> WrenchBlock:
         if not len(block):
             return block
         nominal = block.seq.astype(np.float64) * self.period_s
-        offset = float(np.max(block.t_s - nominal))
-        self.offset_s = offset if self.offset_s is None else max(self.offset_s, offset)
-        return WrenchBlock(self.offset_s + nominal, block.seq, block.force_n, block.torque_nm, block.status)
+        candidate = float(np.min(block.t_s - nominal))
+        if self.offset_s is None or self._last_seq is None:
+            offset = candidate
+        else:
+            elapsed = max(int(block.seq[0]) - self._last_seq, 1)      # a restarted stream counts from 1
+            offset = max(candidate, self.offset_s - self.max_fall * self.period_s * elapsed)
+        self.offset_s = offset
+        self._last_seq = int(block.seq[-1])
+        return WrenchBlock(offset + nominal, block.seq, block.force_n, block.torque_nm, block.status)
 
 
 class SafetyLoop:
