@@ -91,6 +91,7 @@ class SoakConfig:
     seed: int = 1
     fault_rate_per_100_steps: float = 1.0           # all kinds together
     rates_per_100_steps: dict[str, float] | None = None   # per kind, overrides the even split
+    step_faults: tuple[tuple[str, int], ...] = ()   # (kind, step id): at that step's first attempt
     estop_clear_after_s: float = 60.0               # robot time: the operator walks over
     operator_delay_s: float = 1.0                   # wall: before the operator resumes
     kills: int = 6
@@ -119,10 +120,14 @@ QUICK = SoakConfig(
     },
     # A short run has ~40 steps: a fault every few steps, of the kinds that pause
     # (e-stop, disk error) and of kinds that are retried.
-    rates_per_100_steps={"emergency_stop": 5.0, "disk_error": 5.0, "force_spike": 4.0,
-                         "protective_stop": 4.0, "scanner_timeout": 4.0, "connection_loss": 4.0},
+    rates_per_100_steps={"emergency_stop": 1.5, "disk_error": 3.0, "force_spike": 3.0,
+                         "protective_stop": 3.0, "scanner_timeout": 3.0, "connection_loss": 3.0},
     operator_delay_s=0.2, kills=2, kill_delay_s=(6.0, 10.0), aimed_kill_every=2, aimed_nth=(3, 12),
     max_children=14, child_timeout_s=300.0, sample_s=0.5, min_robot_hours=0.0,
+    # A disk error at a middle force level of a contact that no other fault touches with
+    # this seed (listed after the rate faults, so their draws are unchanged): the short
+    # run is sure to meet one, whatever the rate draws give.
+    step_faults=(("disk_error", 10),),
 )
 
 
@@ -136,8 +141,10 @@ def fault_rates(cfg: SoakConfig) -> dict[str, float]:
     return {k: cfg.fault_rate_per_100_steps / len(KINDS) for k in KINDS}
 
 
-def write_cell(dst_dir: Path, name: str, rates: dict[str, float], estop_clear_after_s: float) -> Path:
-    """A private copy of the simulated cell (its own lock name) with rate-based faults."""
+def write_cell(dst_dir: Path, name: str, rates: dict[str, float], estop_clear_after_s: float,
+               step_faults: tuple[tuple[str, int], ...] = ()) -> Path:
+    """A private copy of the simulated cell (its own lock name) with rate-based faults
+    (then the step faults)."""
     lines = SIM_CELL.read_text().splitlines()
     lines = [f"name: {name}" if ln.startswith("name:") else ln for ln in lines]
     lines = [ln.replace("../objects/composite.yaml", str(COMPOSITE)) for ln in lines]
@@ -147,6 +154,8 @@ def write_cell(dst_dir: Path, name: str, rates: dict[str, float], estop_clear_af
     for kind, rate in rates.items():
         extra = f", clear_after_s: {estop_clear_after_s}" if kind == "emergency_stop" else ""
         lines.append(f"    - {{kind: {kind}, rate_per_100_steps: {rate:.6g}{extra}}}")
+    for kind, step in step_faults:
+        lines.append(f"    - {{kind: {kind}, step: {step}}}")
     out = dst_dir / f"{name}.yaml"
     out.write_text("\n".join(lines) + "\n")
     return out
@@ -497,7 +506,7 @@ def run_soak(cfg: SoakConfig, work_dir: Path) -> dict[str, Any]:
     work_dir.mkdir(parents=True, exist_ok=True)
     rng = random.Random(cfg.seed)
     rates = fault_rates(cfg)
-    cell = write_cell(work_dir, f"soak-cell-{os.getpid()}", rates, cfg.estop_clear_after_s)
+    cell = write_cell(work_dir, f"soak-cell-{os.getpid()}", rates, cfg.estop_clear_after_s, cfg.step_faults)
     plan = write_plan(work_dir, cell, cfg.plan_overrides)
     out = work_dir / "session"
     fault_log = work_dir / "sim_faults.jsonl"

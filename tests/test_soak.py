@@ -54,6 +54,8 @@ def quick(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     return soak.run_soak(soak.QUICK, tmp_path_factory.mktemp("soak_quick"))
 
 
+# About 45 s of CPU (five CLI children, each importing torch); more wall time on a busy machine.
+@pytest.mark.timeout(900)
 def test_short_soak_loses_nothing_and_every_fault_is_recovered_or_paused(quick: dict[str, Any]) -> None:
     _assert_sound(quick)
     # The run must have exercised what it claims to: faults recovered by retry, a pause,
@@ -73,6 +75,7 @@ def test_short_soak_figures_are_reported(quick: dict[str, Any]) -> None:
 
 
 @pytest.mark.soak
+@pytest.mark.timeout(4 * 3600)
 def test_overnight_soak(tmp_path: Path) -> None:
     result = soak.run_soak(soak.FULL, tmp_path)
     print(result)
