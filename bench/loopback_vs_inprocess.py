@@ -1,0 +1,202 @@
+"""Loopback vs in-process: the same plan, seed and cell file, step by step. Prints ONE JSON object.
+
+Runs ``elastoprobe run PLAN --cell CELL --seed S`` twice — on the real drivers against the
+served world (the loopback cell; ur_rtde 1.6.5, Net F/T over UDP, the scanner over a socket)
+and with ``--dry-run`` (the same cell file's limits, tool, placement and simulation, devices
+simulated in process) — or takes two finished session directories (``--sessions LB IP``).
+The cell is copied onto ``--host`` (a free 127.0.0.x) so the run never collides with a
+served shipped cell.
+
+Per step, matched by (phase, round, order) with the same angle and force:
+
+- ``force``: the held force, mean over the step's scans of |scan_force_n| (the mean contact
+  force around each exposure, N).
+- ``depth``: the dent under the tip, per scan the mean depth over |x| <= the tip radius of
+  that scan's depth profile (profiles.scan_depths against the step's own reference scans),
+  then the mean over the scans (mm).
+- ``sigma``: the per-scan standard deviation within the step (ddof 1), pooled over the two
+  runs (sqrt of the mean of the two variances): the scatter of one scan, which is what
+  noise and regulation ripple put into each exposure. ``N``: scans per step (the smaller
+  of the two). The step agrees when |loopback - in_process| <= 3 sigma / sqrt(N) (the
+  bound of issue #5). ``z`` is the difference over its own standard error,
+  sqrt(var_lb/N_lb + var_ip/N_ip), for reading how far inside or outside it is.
+- ``peak_mm``: the peak of each run's journaled averaged profile (for reference; no bound).
+- ``target_offset_mm``: distance between the two runs' probe points (each run builds its own
+  cloud, so the targets may differ).
+
+Noise: the two runs do not share noise keys (real devices have none), so their differences
+are of the size the bound expects, not smaller.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def prepare_configs(out_dir: Path, host: str, plan: Path, cell: Path) -> tuple[Path, Path]:
+    """Copy plan and cell into ``out_dir`` with the cell on ``host`` and absolute object paths."""
+    objects = ROOT / "config" / "objects"
+    cell_text = cell.read_text().replace("127.0.0.2", host).replace("file: ../objects/", f"file: {objects}/")
+    plan_text = plan.read_text().replace("simulated_object: ../objects/", f"simulated_object: {objects}/")
+    plan_text = plan_text.replace("cell: ../cells/loopback.yaml", f"cell: {out_dir / 'cell.yaml'}")
+    (out_dir / "cell.yaml").write_text(cell_text)
+    (out_dir / "plan.yaml").write_text(plan_text)
+    return out_dir / "plan.yaml", out_dir / "cell.yaml"
+
+
+def run_session(plan: Path, cell: Path, out: Path, seed: int, dry_run: bool, timeout_s: float) -> dict[str, Any]:
+    """One ``elastoprobe run`` in a subprocess; its exit code and wall time."""
+    cmd = [sys.executable, "-m", "elastoprobe.controller.cli", "run", str(plan), "--cell", str(cell),
+           "--seed", str(seed), "--out", str(out), "--quiet"] + (["--dry-run"] if dry_run else [])
+    t0 = time.monotonic()
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+    return {"exit_code": proc.returncode, "wall_s": round(time.monotonic() - t0, 1),
+            "stderr_tail": proc.stderr[-2000:]}
+
+
+def _per_scan_roi_depth(result: Any, rec: Any, cell: Any, grid: Any, tip_radius_mm: float) -> np.ndarray:
+    """(S,) mean depth over |x| <= tip radius of each scan (mm, NaN if the scan saw none of it)."""
+    from elastoprobe.controller.learning import profiles as prof
+
+    p = rec.plan
+    point, normal, tangent = (np.asarray(v, float) for v in (p.point_mm, p.normal, p.t))
+    tcp_to_scanner = cell.tool.tcp_to_scanner.pose()
+    base_to_object = cell.object.base_to_object.pose()
+    scans = prof.step_scan_points(result.scans_xz_mm, result.scan_pose, tcp_to_scanner, base_to_object)
+    refs = prof.step_scan_points(result.reference_xz_mm, result.reference_pose, tcp_to_scanner, base_to_object)
+    depths = np.asarray(prof.scan_depths(scans, point, normal, tangent, grid, refs), dtype=float)
+    roi = np.abs(grid.x_mm) <= tip_radius_mm
+    with np.errstate(all="ignore"):
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", category=RuntimeWarning)
+            return np.nanmean(depths[:, roi], axis=1)
+
+
+def session_steps(session_dir: Path) -> tuple[list[dict[str, Any]], Any]:
+    """The done steps of a session with their per-scan force and ROI depth."""
+    from elastoprobe.controller.config import load_session_inputs
+    from elastoprobe.controller.journal import Journal
+    from elastoprobe.controller.learning import profiles as prof
+
+    j = Journal.open_readonly(session_dir)
+    try:
+        prov = j.provenance()
+        plan_path = Path(prov["plan"]["path"])
+        cell_path = Path(prov["cell"]["path"])
+        inputs = load_session_inputs(plan_path, cell_path)
+        m = inputs.plan.model
+        grid = prof.ProfileGrid(span_mm=m.profile_span_mm, samples=m.profile_samples)
+        out = []
+        for rec in j.steps(statuses=["done"]):
+            res = j.step_result(rec.plan.step_id)
+            force = np.linalg.norm(np.asarray(res.scan_force_n, float), axis=1)
+            depth = _per_scan_roi_depth(res, rec, inputs.cell, grid, inputs.cell.tool.tip_radius_mm)
+            p = rec.plan
+            out.append({"phase": rec.phase, "round": rec.round, "step_id": p.step_id, "angle_deg": p.angle_deg,
+                        "force_n": p.force_n, "point_mm": np.asarray(p.point_mm, float).tolist(), "scan_force_n": force,
+                        "scan_depth_mm": depth, "peak_mm": float(np.nanmax(res.profile_depth_mm))
+                        if np.isfinite(res.profile_depth_mm).any() else None})
+        return out, inputs
+    finally:
+        j.close()
+
+
+def _stats(values: np.ndarray) -> tuple[float, float, int]:
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    if v.size < 2:
+        return (float(v.mean()) if v.size else math.nan), math.nan, int(v.size)
+    return float(v.mean()), float(v.std(ddof=1)), int(v.size)
+
+
+def compare_quantity(lb: np.ndarray, ip: np.ndarray) -> dict[str, Any]:
+    """Means, pooled per-scan sigma, N, the 3 sigma/sqrt(N) bound and whether it holds."""
+    m_lb, s_lb, n_lb = _stats(lb)
+    m_ip, s_ip, n_ip = _stats(ip)
+    n = min(n_lb, n_ip)
+    sigma = math.sqrt((s_lb ** 2 + s_ip ** 2) / 2.0) if n >= 2 else math.nan
+    diff = m_lb - m_ip
+    bound = 3.0 * sigma / math.sqrt(n) if n >= 2 else math.nan
+    se = math.sqrt(s_lb ** 2 / n_lb + s_ip ** 2 / n_ip) if n >= 2 else math.nan
+    return {"loopback": round(m_lb, 4), "in_process": round(m_ip, 4), "diff": round(diff, 4),
+            "sigma_lb": round(s_lb, 4), "sigma_ip": round(s_ip, 4), "sigma": round(sigma, 4), "n": n,
+            "bound": round(bound, 4), "z": round(diff / se, 2) if se and se > 0 else None,
+            "within": bool(abs(diff) <= bound) if n >= 2 else False}
+
+
+def compare_sessions(lb_dir: Path, ip_dir: Path) -> dict[str, Any]:
+    lb, _ = session_steps(lb_dir)
+    ip, _ = session_steps(ip_dir)
+    key = lambda s: (s["phase"], s["round"], s["angle_deg"], s["force_n"])  # noqa: E731
+    ip_by: dict[tuple, list[dict[str, Any]]] = {}
+    for s in ip:
+        ip_by.setdefault(key(s), []).append(s)
+    rows = []
+    for s in lb:
+        twins = ip_by.get(key(s))
+        if not twins:
+            continue
+        t = twins.pop(0)
+        rows.append({"phase": s["phase"], "round": s["round"], "angle_deg": s["angle_deg"],
+                     "force_setpoint_n": s["force_n"],
+                     "target_offset_mm": round(float(np.linalg.norm(np.subtract(s["point_mm"], t["point_mm"]))), 3),
+                     "force": compare_quantity(s["scan_force_n"], t["scan_force_n"]),
+                     "depth": compare_quantity(s["scan_depth_mm"], t["scan_depth_mm"]),
+                     "peak_mm": {"loopback": s["peak_mm"], "in_process": t["peak_mm"]}})
+    within = [r["force"]["within"] and r["depth"]["within"] for r in rows]
+    return {"steps_loopback": len(lb), "steps_in_process": len(ip), "steps_compared": len(rows),
+            "steps_within": int(sum(within)), "all_within": bool(rows) and all(within), "steps": rows}
+
+
+def _finite(value: Any) -> Any:
+    """NaN/inf (a quantity a step could not measure) -> null, recursively."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    return value
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--plan", type=Path, default=ROOT / "config" / "plans" / "loopback.yaml")
+    ap.add_argument("--cell", type=Path, default=ROOT / "config" / "cells" / "loopback.yaml")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--host", default="127.0.0.186", help="loopback address for the served cell")
+    ap.add_argument("--out", type=Path, default=None, help="where the two sessions go (default: a temp dir)")
+    ap.add_argument("--sessions", type=Path, nargs=2, metavar=("LOOPBACK", "IN_PROCESS"),
+                    help="compare two finished sessions instead of running them")
+    ap.add_argument("--timeout-s", type=float, default=900.0)
+    args = ap.parse_args(argv)
+    out: dict[str, Any] = {"seed": args.seed}
+    if args.sessions:
+        lb_dir, ip_dir = args.sessions
+    else:
+        base = args.out or Path(tempfile.mkdtemp(prefix="elastoprobe-compare-"))
+        base.mkdir(parents=True, exist_ok=True)
+        plan, cell = prepare_configs(base, args.host, args.plan, args.cell)
+        lb_dir, ip_dir = base / "loopback", base / "in_process"
+        out["loopback_run"] = run_session(plan, cell, lb_dir, args.seed, False, args.timeout_s)
+        out["in_process_run"] = run_session(plan, cell, ip_dir, args.seed, True, args.timeout_s)
+    out["sessions"] = {"loopback": str(lb_dir), "in_process": str(ip_dir)}
+    out.update(compare_sessions(lb_dir, ip_dir))
+    print(json.dumps(_finite(out), allow_nan=False))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
