@@ -49,6 +49,7 @@ CONCAVE_RISE = 0.34      # sin 20°
 MIN_CHORD_MM = 1.5
 _BRIDGE_ANGLE_DEG = 30.0
 _MAX_BRIDGE_PASSES = 20
+_MIN_BRIDGE_POINTS = 10
 
 
 @dataclass(frozen=True)
@@ -118,7 +119,10 @@ def _bridge_gaps(pts: np.ndarray, nrm: np.ndarray, i: np.ndarray, j: np.ndarray,
         if n_comp < 2:
             break
         added_i, added_j, added_l = [], [], []
-        for c in np.argsort(np.bincount(comp), kind="stable"):
+        sizes = np.bincount(comp)
+        for c in np.argsort(sizes, kind="stable"):
+            if sizes[c] < _MIN_BRIDGE_POINTS:
+                continue        # specks (stray returns): the Euclidean fallback labels them
             inside = np.flatnonzero(comp == c)
             outside = np.flatnonzero(comp != c)
             if outside.size == 0:
