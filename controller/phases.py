@@ -20,7 +20,7 @@ import numpy as np
 from .geometry import scan_direction
 from .journal import StepPlan
 from .learning import profiles as prof
-from .probe import ProbeFault, ProbeTarget, StepData, standoff_pose
+from .probe import ProbeTarget, StepData, standoff_pose
 
 if TYPE_CHECKING:
     from .learning.models import RegionModel
@@ -226,7 +226,6 @@ def _ordered(ctx: PhaseContext, ids: list[int]) -> list[int]:
 
 # --------------------------------------------------------------------------- phases
 def phase_cloud(ctx: PhaseContext) -> None:
-    from .acquire import acquire_cloud
     from .learning import cloud as cl
 
     s = ctx.session
@@ -242,24 +241,9 @@ def phase_cloud(ctx: PhaseContext) -> None:
                                      n_samples=plan.cloud.max_points, seed=s.seed)
         robot_s = 0.0
     else:
-        s.machine.fire("sweep")
-        mesh = s.world.object_mesh
-        verts = cell.base_to_object.apply(np.asarray(mesh.vertices))
-        attempt = 0
-        while True:
-            # Key the sweep's simulator noise here: a resumed session reaches this point
-            # after other motions (the resume retract) than an uninterrupted one.
-            cell.begin_step((s.seed, SWEEP_STEP_KEY, attempt))
-            try:
-                pts, robot_s, skipped = acquire_cloud(s.executor, verts.min(axis=0), verts.max(axis=0),
-                                                      plan.cloud.sweep_spacing_mm, plan.cloud.sweep_height_mm,
-                                                      max_points=plan.cloud.max_points, seed=s.seed)
-                break
-            except ProbeFault as fault:
-                # A trip during the sweep: stop, journal, recover, and sweep again under
-                # the plan's fault policy (a partial sweep is never used).
-                s.handle_sweep_fault(fault, attempt)
-                attempt += 1
+        # Keyed at the sweep, not before: a resumed session reaches it after other
+        # motions (the resume retract) than an uninterrupted one.
+        pts, robot_s, skipped = s.sweep_object(SWEEP_STEP_KEY)
         for why in skipped:
             s._log("sweep_line_skipped", reason=why)
         normals = None

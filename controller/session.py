@@ -187,7 +187,6 @@ class Session:
         step maps onto the same material again. A poor fit pauses the session: a person
         has to look at a cell where something moved.
         """
-        from .acquire import acquire_cloud
         from .phases import SWEEP_STEP_KEY, remove_table_below
         from .placement import reregister
         from .validation import build_validator
@@ -197,22 +196,9 @@ class Session:
         mesh = self.world.object_mesh
         before = cell.base_to_object
         n_before = len(j.events(kind="object_registered"))
-        self.machine.fire("sweep")
-        verts = before.apply(np.asarray(mesh.vertices))
-        attempt = 0
-        while True:
-            # Keyed like the cloud sweep (below every planned step id's range is taken),
-            # so a resumed session re-draws the same simulator noise.
-            cell.begin_step((self.seed, SWEEP_STEP_KEY - 1 - n_before, attempt))
-            try:
-                pts_obj, robot_s, _ = acquire_cloud(self.executor, verts.min(axis=0), verts.max(axis=0),
-                                                    plan.cloud.sweep_spacing_mm, plan.cloud.sweep_height_mm,
-                                                    max_points=plan.cloud.max_points, seed=self.seed)
-                break
-            except ProbeFault as fault:
-                self.handle_sweep_fault(fault, attempt)
-                attempt += 1
-                self.machine.fire("sweep")
+        # Keyed below the cloud sweep's key (every planned step id lies far below both),
+        # so a resumed session re-draws the same simulator noise.
+        pts_obj, robot_s, _ = self.sweep_object(SWEEP_STEP_KEY - 1 - n_before)
         j.add_robot_time("sweep", robot_s)
         self.machine.fire("plan")           # from here the session may also pause
         cloud_base, _ = remove_table_below(before.apply(pts_obj), seed=self.seed)
@@ -236,6 +222,32 @@ class Session:
         cell.base_to_object = after
         self.executor.validator = build_validator(self.inputs, cell, mesh)
         self._log("object_registered", **record)     # journal event too: resume starts from it
+
+    def sweep_object(self, key_step: int) -> tuple[np.ndarray, float, list[str]]:
+        """Sweep the scanner over the object where it is believed to be.
+
+        Returns object-frame points (N, 3) mm, the robot seconds it took and the sweep
+        lines refused by motion validation. The simulator's noise is keyed by
+        ``key_step``; a trip during the sweep follows the fault policy and the sweep
+        starts over (a partial sweep is never used).
+        """
+        from .acquire import acquire_cloud
+
+        assert self.cell is not None
+        cell, plan = self.cell, self.inputs.plan
+        verts = cell.base_to_object.apply(np.asarray(self.world.object_mesh.vertices))
+        attempt = 0
+        self.machine.fire("sweep")
+        while True:
+            cell.begin_step((self.seed, key_step, attempt))
+            try:
+                return acquire_cloud(self.executor, verts.min(axis=0), verts.max(axis=0),
+                                     plan.cloud.sweep_spacing_mm, plan.cloud.sweep_height_mm,
+                                     max_points=plan.cloud.max_points, seed=self.seed)
+            except ProbeFault as fault:
+                self.handle_sweep_fault(fault, attempt)
+                attempt += 1
+                self.machine.fire("sweep")
 
     def _record_identities(self) -> None:
         assert self.journal is not None and self.cell is not None
