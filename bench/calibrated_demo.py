@@ -93,8 +93,21 @@ def run_demo(plan: Path, cell: Path, out: Path, seed: int, reuse: bool) -> dict[
     ev = cli("evaluate", str(out), "--json", timeout_s=1800.0)
     if ev.returncode != 0:
         raise SystemExit(f"evaluate {out} exited {ev.returncode}: {ev.stderr.strip()[-2000:]}")
-    return {"session": str(out), "cell": str(cell), "ran_now": ran,
+    return {"session": str(out), "cell": str(cell), "ran_now": ran, "code": session_code(out),
             "wall_time_s": round(time.perf_counter() - t0, 1), "evaluation": json.loads(ev.stdout)}
+
+
+def session_code(session_dir: Path) -> Any:
+    """The git revision (and dirty flag) a session ran with, from its provenance: runs are
+    comparable only on the same code (the tree is shared with engineers committing)."""
+    import sqlite3
+
+    con = sqlite3.connect(f"file:{session_dir / 'journal.sqlite'}?mode=ro", uri=True)
+    try:
+        row = con.execute("SELECT value FROM provenance WHERE key='git'").fetchone()
+    finally:
+        con.close()
+    return json.loads(row[0]) if row else None
 
 
 def calibrate(cell: Path, seed: int) -> dict[str, Any]:
@@ -170,15 +183,15 @@ def main(argv: list[str] | None = None) -> int:
     uncal_cell = copy_cell(MISCALIBRATED_CELL, out / "cells" / "uncalibrated")
     cal_cell = copy_cell(MISCALIBRATED_CELL, out / "cells" / "calibrated")
 
+    # Calibrate before any demo starts, so that the runs start together on the same code.
+    if args.reuse and session_done(out / "after_calibration"):
+        cal: dict[str, Any] = {k: {"written": str(cal_cell.with_suffix(".calibration.json")), "result": "reused"}
+                               for k in KINDS}
+    else:
+        cal = calibrate(cal_cell, args.calibration_seed)
+
     def after_calibration() -> dict[str, Any]:
-        if args.reuse and session_done(out / "after_calibration"):
-            cal: dict[str, Any] = {k: {"written": str(cal_cell.with_suffix(".calibration.json")), "result": "reused"}
-                                   for k in KINDS}
-        else:
-            cal = calibrate(cal_cell, args.calibration_seed)
-        res = run_demo(args.plan, cal_cell, out / "after_calibration", args.seed, args.reuse)
-        res["calibration"] = cal
-        return res
+        return {**run_demo(args.plan, cal_cell, out / "after_calibration", args.seed, args.reuse), "calibration": cal}
 
     with ThreadPoolExecutor(max_workers=args.parallel) as pool:
         jobs = {"calibrated": pool.submit(run_demo, args.plan, CALIBRATED_CELL, out / "calibrated", args.seed,
@@ -216,6 +229,9 @@ def main(argv: list[str] | None = None) -> int:
     if "perfect_calibration" in e:
         result["after_vs_perfect_calibration"] = compare(e["perfect_calibration"]["region_map_error"],
                                                          e["after_calibration"]["region_map_error"])
+    codes = [r["code"] for r in runs.values()]
+    result["code"] = {k: r["code"] for k, r in runs.items()}
+    result["same_code"] = bool(all(c == codes[0] and c is not None and not c.get("dirty") for c in codes))
     result["goal_met"] = result["after_vs_calibrated"]["met"]
     print(json.dumps(result))
     return 0
