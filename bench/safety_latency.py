@@ -365,6 +365,7 @@ def run_loopback(trips: int, octet: int, direct: bool = True, nice: int | None =
         multi_record_blocks = 0
         ended = None
         missing = 0
+        stamps: list[dict[str, Any]] = []
         for _ in range(trips):
             n_cross = len(state["cross_k"])
             n_rec = len(emu.receipts)
@@ -393,13 +394,14 @@ def run_loopback(trips: int, octet: int, direct: bool = True, nice: int | None =
                     hop = _hops(sent, mine[0], emu.kernel[n_rec], emu.wire[n_rec], emu.receipts[n_rec])
                     if hop is not None:
                         hops.append(hop)
+                        stamps.append(dict(mine[0], sent_s=sent, receipt_s=emu.receipts[n_rec]))
                         multi_record_blocks += int(mine[0]["block_len"] > 1)
             time.sleep(0.005)
             while not hw.arm.rearm() and time.monotonic() < deadline:
                 time.sleep(0.002)
         return {"latencies_s": latencies, "hardware": hw.stats()["latency"], "hops": hops,
                 "multi_record_blocks": multi_record_blocks, "ended_early": ended,
-                "unpaired": missing}
+                "unpaired": missing, "stamps": stamps}
     finally:
         if hw is not None:
             hw.close()

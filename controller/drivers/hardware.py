@@ -511,9 +511,10 @@ class _HardwareServer:
             now = time.monotonic()
             self.latency.add(now - arrival_s)
             sl = self.safety
-            # Direct stops: the link's own stamps are its handing-off; the child's come later.
-            link = ({"t_call_s": t_gate_s, "t_locked_s": t_gate_s, "t_sent_s": now} if self.cfg.direct_stop
-                    else dict(self.link.last_stop_timing))
+            # Direct stops: no call lock; "sent" = handed to the pipe (the child's stamps are in
+            # its report, merged by op_stop_timings).
+            link = ({"t_call_s": t_gate_s, "t_locked_s": t_gate_s, "t_sent_s": self.link.last_stop_sent_s}
+                    if self.cfg.direct_stop else dict(self.link.last_stop_timing))
             self.stop_timings.append({
                 "arrival_s": arrival_s, "woke_s": sl.t_woke_s, "read_s": sl.t_read_s, "decided_s": sl.t_decided_s,
                 "block_len": sl.block_len, "stop_s": t_stop_s, "gate_s": t_gate_s, "sent_or_acknowledged_s": now,

@@ -68,8 +68,12 @@ _STOP_OPS = frozenset({"stop_linear", "speed_stop"})
 
 # The direct stop channel (URLink.stop_now): kind b"L" stopL / b"S" speedStop, a sequence
 # number, the deceleration in m/s^2. Raw bytes on a pipe of its own: no pickling, no call
-# lock, and the child serves it before any request.
+# lock, and the child serves it before any request. The child answers on the same pipe once
+# ur_rtde has sent it: the sequence number, a status (1 sent, 0 no program running, -1 the
+# library raised) and its timestamps (wait began, woke, read, library called, returned).
 _STOP_MESSAGE = struct.Struct(">cId")
+_STOP_REPORT = struct.Struct(">Ib5d")
+_STOP_REPORT_KEYS = ("child_wait_s", "child_woke_s", "child_recv_s", "child_lib_call_s", "child_lib_return_s")
 
 # What the receive interface streams (few variables keep the 500 Hz stream cheap).
 RECEIVE_VARIABLES = ["timestamp", "actual_q", "actual_TCP_pose", "actual_TCP_speed", "actual_TCP_force",
@@ -209,6 +213,7 @@ class _ChildLink:
         self.kicking = False
         self.last_write_s = 0.0
         self.t_lib_call_s = 0.0          # when the last stop op entered ur_rtde
+        self.t_wait_s = self.t_woke_s = 0.0   # the loop's last wait for requests began / ended
 
     # -- setup
     def connect(self) -> None:
@@ -303,7 +308,9 @@ class _ChildLink:
                 self.last_write_s = time.monotonic()
             if self.stop_conn is not None:
                 waitables = [self.stop_conn, self.conn]
+                self.t_wait_s = time.monotonic()
                 ready = multiprocessing.connection.wait(waitables, self.cfg.kick_period_s)
+                self.t_woke_s = time.monotonic()
                 if self.stop_conn in ready and not self._serve_stops():
                     return 0
                 request = self.conn in ready and self.conn.poll(0)
@@ -335,26 +342,26 @@ class _ChildLink:
                 return False
             t_recv = time.monotonic()
             kind, seq, decel = _STOP_MESSAGE.unpack(raw)
-            ok = False
-            error = ""
+            status = 0
             t_lib = t_recv
             try:
                 if self.ctl.isProgramRunning():
                     t_lib = time.monotonic()
-                    # ok = the command went out. (ur_rtde 1.6.5's asynchronous stopL returns
-                    # False even when the controller took it; the old call path ignored it too.)
+                    # Status 1 = the command went out. (ur_rtde 1.6.5's asynchronous stopL
+                    # returns False even when the controller took it; the old call path ignored it.)
                     if kind == b"L":
                         self.ctl.stopL(decel, True)
                     else:
                         self.ctl.speedStop(decel)
-                    ok = True
-                else:
-                    error = "the control program is not running"
-            except Exception as exc:  # noqa: BLE001 — report it; the parent decides
-                error = f"{type(exc).__name__}: {exc}"
+                    status = 1
+            except Exception:  # noqa: BLE001 — reported as -1; the loop notices a lost connection
+                status = -1
             self.last_write_s = time.monotonic()
-            self.conn.send(("stopped", seq, {"child_recv_s": t_recv, "child_lib_call_s": t_lib,
-                                             "child_lib_return_s": self.last_write_s}, ok, error))
+            try:
+                self.stop_conn.send_bytes(_STOP_REPORT.pack(seq, status, self.t_wait_s, self.t_woke_s, t_recv, t_lib,
+                                                            self.last_write_s))
+            except OSError:
+                return False
         return True
 
     def _answer(self, rid: int, name: str, args: tuple[Any, ...], t_recv_s: float = 0.0) -> None:
@@ -537,11 +544,12 @@ class URLink:
         self._stop_supervisor = threading.Event()
         # Monotonic stamps of the last stop call (lock taken, sent, answered, the child's).
         self.last_stop_timing: dict[str, Any] = {}
-        # The direct stop channel: its writer (replaced with every child), a sequence number,
-        # and the child's reports of the latest stops (seq -> timestamps, ok, error).
-        self._stop_writer: Any = None
+        # The direct stop channel: its pipe (replaced with every child), a sequence number,
+        # and the child's reports of the latest stops (seq -> timestamps, ok, status).
+        self._stop_pipe: Any = None
         self._stop_lock = threading.Lock()
         self._stop_seq = 0
+        self.last_stop_sent_s = 0.0
         self.stop_reports: collections.OrderedDict[int, dict[str, Any]] = collections.OrderedDict()
 
     # -- lifecycle
@@ -615,23 +623,37 @@ class URLink:
     def speed_stop(self, decel_m_s2: float = 10.0) -> None:
         self._call("speed_stop", float(decel_m_s2))
 
-    def stop_now(self, linear: bool, decel_m_s2: float) -> int:
+    def stop_now(self, linear: bool, decel_m_s2: float, wait_s: float = 0.05) -> int:
         """Stop the arm by the direct channel: stopL (``linear``) or speedStop, written to the
-        child's stop pipe without waiting for the call lock or for ur_rtde's acknowledgement.
+        child's stop pipe without the call lock; the child serves it before any queued request.
 
-        The child executes it before any request still queued; its report lands in
-        :attr:`stop_reports` under the returned sequence number. Raises DeviceError if the
-        pipe is gone (the child died: its restart replaces the program, which stops the arm).
+        Then waits up to ``wait_s`` for the child's report that ur_rtde has sent it (lands in
+        :attr:`stop_reports` under the returned sequence number). Waiting is also what gets
+        the stop out fast on a busy computer: this thread gives up its CPU to the child.
+        Raises DeviceError if the pipe is gone (the child died: its restart replaces the
+        program, which stops the arm).
         """
         with self._stop_lock:
             self._stop_seq = (self._stop_seq + 1) % (1 << 32)
             seq = self._stop_seq
-            writer = self._stop_writer
-            if writer is None:
+            pipe = self._stop_pipe
+            if pipe is None:
                 raise DeviceError(f"UR link to {self.host} has no child to stop")
             try:
-                writer.send_bytes(_STOP_MESSAGE.pack(b"L" if linear else b"S", seq, float(decel_m_s2)))
-            except (OSError, ValueError) as exc:
+                pipe.send_bytes(_STOP_MESSAGE.pack(b"L" if linear else b"S", seq, float(decel_m_s2)))
+                self.last_stop_sent_s = time.monotonic()
+                deadline = time.monotonic() + wait_s
+                while True:
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0 or not pipe.poll(remaining):
+                        break
+                    rseq, status, *stamps = _STOP_REPORT.unpack(pipe.recv_bytes())
+                    self.stop_reports[rseq] = dict(zip(_STOP_REPORT_KEYS, stamps), ok=status == 1, status=status)
+                    while len(self.stop_reports) > 1000:
+                        self.stop_reports.popitem(last=False)
+                    if rseq == seq:
+                        break
+            except (OSError, ValueError, EOFError) as exc:
                 raise DeviceError(f"UR link to {self.host}: the stop pipe broke: {exc}") from exc
         return seq
 
@@ -662,17 +684,17 @@ class URLink:
     # -- machinery
     def _spawn(self) -> None:
         parent_conn, child_conn = self._ctx.Pipe(duplex=True)
-        stop_reader, stop_writer = self._ctx.Pipe(duplex=False)
+        stop_child, stop_parent = self._ctx.Pipe(duplex=True)
         self.heartbeat()
         proc = self._ctx.Process(target=_child_main, name=f"urlink-{self.host}",
-                                 args=(child_conn, self.host, self.cfg, self._heartbeat, os.getpid(), stop_reader),
+                                 args=(child_conn, self.host, self.cfg, self._heartbeat, os.getpid(), stop_child),
                                  daemon=True)
         proc.start()
         child_conn.close()
-        stop_reader.close()
+        stop_child.close()
         self._proc, self._conn = proc, parent_conn
         with self._stop_lock:
-            self._stop_writer = stop_writer
+            self._stop_pipe = stop_parent
         try:
             self.identity_info = await_ready(proc, parent_conn, self.cfg.start_timeout_s, f"UR link to {self.host}")
         except DeviceError:
@@ -683,7 +705,7 @@ class URLink:
         kill_child(self._proc, self._conn, 2.0)
         self._conn = None
         with self._stop_lock:
-            writer, self._stop_writer = self._stop_writer, None
+            writer, self._stop_pipe = self._stop_pipe, None
         if writer is not None:
             try:
                 writer.close()
@@ -710,12 +732,6 @@ class URLink:
         return fault
 
     def _handle_unsolicited(self, msg: tuple[Any, ...]) -> None:
-        if msg[0] == "stopped":
-            _, seq, stamps, ok, error = msg
-            self.stop_reports[int(seq)] = dict(stamps, ok=bool(ok), error=str(error))
-            while len(self.stop_reports) > 1000:
-                self.stop_reports.popitem(last=False)
-            return
         if msg[0] == "fault":
             # connection_lost: the child exits; program_stopped: it stays, waiting for recover().
             if msg[1] == "program_stopped":
