@@ -37,6 +37,7 @@ import numpy as np
 
 STATE_FILE = "serve.json"
 DEFAULT_LIFETIME_S = 4 * 3600.0
+SERVE_NICE = -10             # niceness of a loopback cell's served world (best effort)
 MIN_RANGE_MM = 40.0          # the simulated scanner's near limit (ScannerSettings.min_range_mm)
 
 
@@ -227,6 +228,13 @@ def serve_child_main(cell_path: str, object_path: str | None, seed: int, run_dir
     _set_parent_death_signal()
     if os.getppid() != parent_pid:
         os._exit(0)
+    try:
+        # The served arm, F/T and scanner stand in for real-time hardware: on a busy computer
+        # they ask for more than their share (as the hardware process does), so the load is
+        # not taken for robot latency. Before any thread starts (threads inherit it).
+        os.setpriority(os.PRIO_PROCESS, 0, SERVE_NICE)
+    except OSError:
+        pass                                           # not permitted: normal priority
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, signal.SIG_IGN)      # the controller's Ctrl-C is the controller's
