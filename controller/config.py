@@ -171,6 +171,9 @@ class FaultSpec(Spec):
     step: int | None = Field(None, ge=0)
     rate_per_100_steps: float | None = Field(None, gt=0, le=100)
     clear_after_s: float | None = Field(None, gt=0)   # emergency stop: operator clears it after this
+    delay_s: float | None = Field(None, ge=0, le=3600)          # after the step begins (default: drawn 0.2-2 s)
+    duration_s: float | None = Field(None, gt=0, le=3600)       # default per kind (sim/faults.py)
+    magnitude: float | None = Field(None, gt=0, le=1000)        # spike N, shift mm, slip mm/s, burst fraction
 
     @model_validator(mode="after")
     def _when(self) -> "FaultSpec":
