@@ -236,7 +236,9 @@ class Session:
         assert self.cell is not None
         cell, plan = self.cell, self.inputs.plan
         verts = cell.base_to_object.apply(np.asarray(self.world.object_mesh.vertices))
-        attempt = 0
+        # Counted from the journal, not from zero in each process: a fault that paused a
+        # sweep must not be met again by the resumed one.
+        attempt = self._sweep_faults()
         self.machine.fire("sweep")
         while True:
             cell.begin_step((self.seed, key_step, attempt))
@@ -248,6 +250,11 @@ class Session:
                 self.handle_sweep_fault(fault, attempt)
                 attempt += 1
                 self.machine.fire("sweep")
+
+    def _sweep_faults(self) -> int:
+        assert self.journal is not None
+        return sum(1 for f in self.journal.faults(with_raw=False)
+                   if f.step_id is None and f.message.startswith(SWEEP_FAULT_PREFIX))
 
     def _record_identities(self) -> None:
         assert self.journal is not None and self.cell is not None
@@ -410,7 +417,9 @@ class Session:
         j = self.journal
         cell = self.cell
         first = group[0].plan
-        retry = max(self._retry_index(r.step_id) for r in group)
+        # Every fault the contact met counts (a later level's fault too): the retry must
+        # draw a new key, or it meets the same scheduled fault again.
+        retry = sum(self._retry_index(r.step_id) for r in group)
         done_before = {r.step_id for r in group if r.status == "done"}
         self.progress.target = target.index
         t_start = cell.clock.now_s()
@@ -567,7 +576,7 @@ class Session:
         if action in ("retry", "skip_target"):
             action = "retry" if attempt < policy.retries else "pause"
         raw = fault.trip.raw if fault.trip is not None else None
-        fault_id = self.journal.record_fault(fault.kind, f"during the cloud sweep: {fault.message}",
+        fault_id = self.journal.record_fault(fault.kind, f"{SWEEP_FAULT_PREFIX}: {fault.message}",
                                              t_robot_s=self.cell.clock.now_s(), policy_action=action, raw=raw)
         self._log("fault", kind=fault.kind, message=fault.message, step=None, action=action,
                   fault_id=fault_id, arm=arm_state, phase="cloud")
@@ -577,9 +586,9 @@ class Session:
         if not self._recover(fault) and action == "retry":
             action = "pause"
         if action == "pause":
-            raise SessionPaused(f"{fault.kind} during the cloud sweep: {fault.message}")
+            raise SessionPaused(f"{fault.kind} {SWEEP_FAULT_PREFIX}: {fault.message}")
         if action == "abort":
-            raise SessionAborted(f"{fault.kind} during the cloud sweep: {fault.message}")
+            raise SessionAborted(f"{fault.kind} {SWEEP_FAULT_PREFIX}: {fault.message}")
         # The machine has no "sweep" from retracting: the sweep runs again from there.
         self.machine.fire("retract")
 
@@ -598,7 +607,15 @@ class Session:
         try:
             self.executor.safe_retract()
         except (ProbeFault, ElastoprobeError) as exc:
-            self._log("recovery_failed", message=str(exc))
+            # A second fault while recovering from the first: journaled too, so the pause
+            # that follows names both.
+            self._stop_arm()
+            kind = exc.kind if isinstance(exc, ProbeFault) else "device"
+            assert self.journal is not None
+            self.journal.record_fault(kind, f"during recovery from {fault.kind}: {exc}",
+                                      t_robot_s=self.cell.clock.now_s(), policy_action="pause",
+                                      raw=exc.trip.raw if isinstance(exc, ProbeFault) and exc.trip else None)
+            self._log("recovery_failed", kind=kind, message=str(exc), during=fault.kind)
             return False
         finally:
             self.executor.acknowledged_trip = None
@@ -674,6 +691,9 @@ class Session:
         if self.journal is not None:
             t = self.cell.clock.now_s() if self.cell is not None else None
             self.journal.log_event(event, record, t_robot_s=t)
+
+
+SWEEP_FAULT_PREFIX = "during a sweep of the object"
 
 
 class BudgetSpent(Exception):
