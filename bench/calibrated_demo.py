@@ -5,7 +5,9 @@ Three sessions of the same plan and seed (default config/plans/demo.yaml, seed 1
   (i)   ``calibrated``:        the default simulated cell (config/cells/sim.yaml: true = believed);
   (ii)  ``uncalibrated``:      a copy of config/cells/sim_miscalibrated.yaml with no calibration file
                                (the controller believes the nominal drawing; the world is off by
-                               the cell's miscalibration);
+                               the cell's miscalibration; the controller may notice — its
+                               placement check sees scans and sweeps disagree — and pause,
+                               asking for calibration: reported with the reason, no map);
   (iii) ``after_calibration``: another copy of it, after ``elastoprobe calibrate ft``, ``tcp``,
                                ``scanner`` and ``object`` wrote its calibration file.
 
@@ -68,32 +70,51 @@ def copy_cell(src: Path, dest_dir: Path) -> Path:
     return dest
 
 
-def session_done(session_dir: Path) -> bool:
-    proc = cli("status", str(session_dir), "--json", timeout_s=60.0) if (session_dir / "journal.sqlite").exists() \
-        else None
-    if proc is None or proc.returncode != 0:
-        return False
+def session_status(session_dir: Path) -> dict[str, Any] | None:
+    """``elastoprobe status DIR --json`` (None when there is no session)."""
+    if not (session_dir / "journal.sqlite").exists():
+        return None
+    proc = cli("status", str(session_dir), "--json", timeout_s=60.0)
     try:
-        return json.loads(proc.stdout).get("status") == "done"
+        return json.loads(proc.stdout) if proc.returncode == 0 else None
     except json.JSONDecodeError:
-        return False
+        return None
+
+
+def session_done(session_dir: Path) -> bool:
+    st = session_status(session_dir)
+    return st is not None and st.get("status") == "done"
+
+
+def paused_record(session_dir: Path, cell: Path, t0: float) -> dict[str, Any]:
+    """A run that paused instead of finishing (e.g. the controller noticed the cell's calibration
+    is off and asked for it): no map to evaluate; the reason, from the session's status."""
+    st = session_status(session_dir) or {}
+    return {"session": str(session_dir), "cell": str(cell), "status": st.get("status"),
+            "reason": st.get("status_reason"), "code": session_code(session_dir),
+            "wall_time_s": round(time.perf_counter() - t0, 1), "evaluation": None}
 
 
 def run_demo(plan: Path, cell: Path, out: Path, seed: int, reuse: bool) -> dict[str, Any]:
     """Run the plan on the cell (unless ``reuse`` and it finished already); its evaluation."""
     t0 = time.perf_counter()
     ran = False
-    if not (reuse and session_done(out)):
+    status = session_status(out) if reuse else None
+    if status is not None and status.get("status") == "paused":
+        return paused_record(out, cell, t0)
+    if not (status is not None and status.get("status") == "done"):
         if out.exists() and any(out.iterdir()):
             raise SystemExit(f"{out} exists and is not a finished session: remove it or pick another --out")
         proc = cli("run", str(plan), "--cell", str(cell), "--out", str(out), "--seed", str(seed), "--quiet")
+        if proc.returncode == 3:          # paused (resumable): report why, nothing to evaluate
+            return paused_record(out, cell, t0)
         if proc.returncode != 0:
             raise SystemExit(f"run on {cell} exited {proc.returncode}: {proc.stderr.strip()[-2000:]}")
         ran = True
     ev = cli("evaluate", str(out), "--json", timeout_s=1800.0)
     if ev.returncode != 0:
         raise SystemExit(f"evaluate {out} exited {ev.returncode}: {ev.stderr.strip()[-2000:]}")
-    return {"session": str(out), "cell": str(cell), "ran_now": ran, "code": session_code(out),
+    return {"session": str(out), "cell": str(cell), "status": "done", "ran_now": ran, "code": session_code(out),
             "wall_time_s": round(time.perf_counter() - t0, 1), "evaluation": json.loads(ev.stdout)}
 
 
@@ -152,7 +173,10 @@ def write_perfect_calibration(cell: Path) -> str:
     return str(path)
 
 
-def headline(ev: dict[str, Any]) -> dict[str, Any]:
+def headline(run: dict[str, Any]) -> dict[str, Any]:
+    ev = run["evaluation"]
+    if ev is None:
+        return {"status": run.get("status"), "reason": run.get("reason"), "region_map_error": None}
     keys = ("region_map_error", "worst_region_iou", "boundary_mm_mean", "boundary_mm_p90", "profile_rmse_mm",
             "regions_found", "regions_true", "probes", "robot_hours")
     return {k: ev.get(k) for k in keys}
@@ -209,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
 
             jobs["perfect_calibration"] = pool.submit(perfect)
         runs = {name: job.result() for name, job in jobs.items()}
-    e = {name: headline(r["evaluation"]) for name, r in runs.items()}
+    e = {name: headline(r) for name, r in runs.items()}
     result = {
         "plan": str(args.plan), "seed": args.seed, "out": str(out),
         "figure": "region_map_error (mislabelled fraction of the reachable scanned surface)",
