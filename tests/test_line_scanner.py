@@ -259,3 +259,30 @@ def test_printable_debris_before_frames_does_not_stick_to_the_next_reply():
     events = parser.feed_events(b"\xff?x" + frame + b"DONE 3\n")
     assert [e if isinstance(e, str) else e.frame_counter for e in events] == [1, "DONE 3"]
     assert parser.counters.garbage_bytes == 3
+
+
+def test_a_frame_rendered_late_is_stamped_when_it_was_rendered():
+    """A source that says when its profile is true (a simulated world renders only its
+    present): every 3rd frame is rendered 30 ms after its schedule; the frame carries that
+    instant, and the client maps it onto the controller clock within its bound."""
+    rendered: dict[int, float] = {}
+
+    def late_source(counter: int, device_t_s: float) -> tuple[np.ndarray, float]:
+        if counter % 3 == 0:
+            time.sleep(0.03)                  # the render is held up (a busy world)
+        actual = max(time.monotonic(), device_t_s - DEVICE_OFFSET_S)
+        rendered[counter] = actual
+        return truth_z(counter, device_t_s), actual + DEVICE_OFFSET_S
+
+    srv = ScannerPtyServer(late_source, n_points=N, z_scale_mm=Z_SCALE, rate_hz=100.0,
+                           device_clock_offset_s=DEVICE_OFFSET_S, max_lifetime_s=30.0).start()
+    client = SerialLineScanner(srv.url, RealClock(), timeout_s=1.0)
+    try:
+        scans = collect(client, 9)
+        assert len(scans) == 9
+        for scan, frame in zip(scans, srv.log.frames):
+            assert frame.exposure_monotonic_s == pytest.approx(rendered[scan.frame_counter], abs=1e-6)
+            assert abs(scan.exposure_t_s - rendered[scan.frame_counter]) <= client.clock_offset_uncertainty_s + 2e-5
+    finally:
+        client.close()
+        srv.stop()

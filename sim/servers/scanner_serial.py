@@ -34,7 +34,9 @@ _SYNC = b"\xa5\x5a"
 _MISSING = -32768
 
 # (frame_counter, device time in s) -> z in mm (N,), NaN = missing
-ProfileSource = Callable[[int, float], np.ndarray]
+# (frame_counter, device time s) -> z (mm) on the fixed x grid, or (z, device time s of the
+# instant the profile shows) when rendering can lag the schedule (a simulated world).
+ProfileSource = Callable[[int, float], "np.ndarray | tuple[np.ndarray, float]"]
 
 
 def encode_frame(frame_counter: int, timestamp_us: int, z_mm: np.ndarray, *, x_scale: float,
@@ -352,7 +354,13 @@ class ScannerPtyServer:
 
     def _send_frame(self, exposure_s: float) -> None:
         counter, pos = self._counter, self._position
-        z = np.asarray(self.profile_source(counter, exposure_s + self.device_clock_offset_s), dtype=float)
+        result = self.profile_source(counter, exposure_s + self.device_clock_offset_s)
+        if isinstance(result, tuple):
+            # The source says when (device clock, s) the profile it rendered was true: a
+            # frame rendered late is stamped with that instant, not with its schedule.
+            result, actual_device_s = result
+            exposure_s = max(exposure_s, float(actual_device_s) - self.device_clock_offset_s)
+        z = np.asarray(result, dtype=float)
         x = self.x_offset + self.x_scale * np.arange(self.n_points) if self.explicit_x else None
         data = encode_frame(counter, self.device_time_us(exposure_s), z, x_scale=self.x_scale,
                             x_offset=self.x_offset, z_scale=self.z_scale, z_offset=self.z_offset, x_mm=x)

@@ -275,17 +275,30 @@ class WorldBackend:
     # ------------------------------------------------------------------ the scanner source
     def profile_xz(self, device_t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """The simulated scanner's fan (x, z) (mm, scanner frame, NaN missing) at the arm's pose now."""
+        x, z, _ = self.profile_xz_at(device_t_s)
+        return x, z
+
+    def profile_xz_at(self, device_t_s: float) -> tuple[np.ndarray, np.ndarray, float]:
+        """The fan (x, z) and the wall time (monotonic s; the served scanner's device clock is
+        the wall clock) of the world state it shows.
+
+        The world only has a present: a frame due at ``device_t_s`` that is rendered late
+        (a busy scanner thread, the world lock held by the controller tick) shows the arm
+        where it is when rendered, so that instant is its true exposure time.
+        """
         with self.lock:
             self._advance_locked(max(device_t_s, time.monotonic()))
-            return self.cell.scanner.profile(self.world.snapshot_now(), noise=True)
+            x, z = self.cell.scanner.profile(self.world.snapshot_now(), noise=True)
+            return x, z, self.cell.clock.now_s() + self._offset_s
 
     def profile_source(self, x_grid_mm: np.ndarray):
-        """A ``ProfileSource`` for ScannerPtyServer: z (mm) on the server's fixed ``x_grid_mm``."""
+        """A ``ProfileSource`` for ScannerPtyServer: (z (mm) on the server's fixed ``x_grid_mm``,
+        the true exposure time) — see :meth:`profile_xz_at`."""
         grid = np.asarray(x_grid_mm, float)
 
-        def source(frame_counter: int, device_t_s: float) -> np.ndarray:
-            x, z = self.profile_xz(device_t_s)
-            return resample_profile(x, z, grid)
+        def source(frame_counter: int, device_t_s: float) -> tuple[np.ndarray, float]:
+            x, z, wall_s = self.profile_xz_at(device_t_s)
+            return resample_profile(x, z, grid), wall_s
 
         return source
 
