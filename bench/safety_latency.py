@@ -13,9 +13,15 @@ x (stop time - true crossing time) + the force of the stopping distance v^2 / (2
 
 ``--loopback``: the real hardware process (URLink + ur_rtde 1.6.5 + NetFTClient) against the
 simulated Net F/T and the UR emulator on 127.0.0.x; ``loopback_p99_ms``/``loopback_max_ms``
-run from the Net F/T server's send of the datagram with the crossing to the emulator's
-receipt of the stop command (stopL in input_int_register_0), over ``--loopback-trips``.
-Values not measured are ``null``.
+run from the Net F/T server's send of the datagram with the crossing (stamped just before
+the sendto) to the emulator's receipt of the stop command (stopL in input_int_register_0,
+once it is in the controller's inputs), over ``--loopback-trips``. The production path
+(the safety thread reads the socket, the stop goes down the link's stop pipe, 500 Hz
+control stream, hardware process at nice -10) alternates in ``--loopback-rounds`` with the
+previous path (``loopback_baseline_*``: receive thread, stop as a link call, 125 Hz, normal
+priority). The simulated devices (this process) run at ``--devices-nice`` (-10): they stand
+in for real-time hardware. ``loopback_breakdown``: p50/p99/max of every hop (``HOPS``), on
+one monotonic clock. Values not measured are ``null``.
 """
 from __future__ import annotations
 
