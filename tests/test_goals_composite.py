@@ -1,0 +1,25 @@
+"""Issue 3's composite-object goals on a full simulated session of the shipped demo plan
+(slow: a few minutes of wall time), judged against the simulator's ground truth."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(1800)]
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_demo_plan_maps_the_box_and_the_pillow(tmp_path: Path, seed: int) -> None:
+    from elastoprobe.controller.cli import main
+    from elastoprobe.controller.evaluation import evaluate_session
+
+    out = tmp_path / "session"
+    assert main(["run", str(ROOT / "config" / "plans" / "demo.yaml"), "--out", str(out), "--seed", str(seed)]) == 0
+    ev = evaluate_session(out)
+    assert ev["regions_found"] == 2 == ev["regions_true"]
+    assert ev["region_map_error"] <= 0.03
+    assert ev["worst_region_iou"] >= 0.9
+    assert ev["boundary_mm_mean"] is not None and ev["boundary_mm_mean"] <= 10.0
+    assert ev["boundary_mm_p90"] <= 20.0
