@@ -123,7 +123,11 @@ class Session:
             built = build_cell(self.inputs, self.seed, dry_run=self.dry_run)
             self.cell = built.cell
             self.world = built
+            for warning in built.warnings:
+                self._log("calibration_warning", message=warning)
             self._record_identities()
+            if resume:
+                self._note_calibration_change()
             if resume:
                 self._restore_object_history()
                 self._restore_registration()
@@ -170,6 +174,19 @@ class Session:
             f = max(peak.get(p.target_index, (None, None, 0.0))[2], float(p.force_n))
             peak[p.target_index] = (np.asarray(p.point_mm), np.asarray(p.normal), f)
         self.world.restore_history(list(peak.values()))
+
+    def _note_calibration_change(self) -> None:
+        """A calibration redone between run and resume (e.g. after a pause that asked for it)
+        changes the believed geometry from here on: allowed, but on the record."""
+        from .provenance import calibration_entry
+
+        assert self.journal is not None
+        before = (self.journal.provenance().get("calibration") or {}).get("sha256")
+        now = calibration_entry(self.inputs.cell_path, self._calibration_path())
+        after = (now or {}).get("sha256")
+        if before != after:
+            self._log("calibration_changed", sha256_before=before, sha256_after=after,
+                      applied_sections=(now or {}).get("applied_sections"))
 
     def _restore_registration(self) -> None:
         """Where the object was last registered (after it moved): the journal's latest word."""
