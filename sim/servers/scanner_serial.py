@@ -35,7 +35,8 @@ _MISSING = -32768
 
 # (frame_counter, device time in s) -> z in mm (N,), NaN = missing
 # (frame_counter, device time s) -> z (mm) on the fixed x grid, or (z, device time s of the
-# instant the profile shows) when rendering can lag the schedule (a simulated world).
+# instant the profile shows) when rendering can lag the schedule (a simulated world), or
+# (x, z, that time) for a device that reports each sample's own x (sent as explicit x).
 ProfileSource = Callable[[int, float], "np.ndarray | tuple[np.ndarray, float]"]
 
 
@@ -97,6 +98,7 @@ class ScannerPtyServer:
                  model: str = "ELS-256", serial: str = "SIM00042", firmware: str = "1.0.0",
                  transport: str = "pty", host: str = "127.0.0.1", port: int = 0,
                  device_clock_offset_s: float = 0.0, explicit_x: bool = False,
+                 native_x_resolution_mm: float = 0.005,
                  faults: ScannerFaults | None = None, seed: int = 0, max_lifetime_s: float = 120.0) -> None:
         if transport not in ("pty", "tcp"):
             raise ValueError("transport is 'pty' or 'tcp'")
@@ -113,6 +115,8 @@ class ScannerPtyServer:
         self.transport = transport
         self.device_clock_offset_s = device_clock_offset_s
         self.explicit_x = explicit_x
+        # Explicit x of a source's own samples (3-tuples): int16 at this step, centred on 0.
+        self.native_x_scale = float(native_x_resolution_mm)
         self.faults = faults or ScannerFaults()
         self.log = ScannerLog()
         self.max_lifetime_s = max_lifetime_s
@@ -355,15 +359,24 @@ class ScannerPtyServer:
     def _send_frame(self, exposure_s: float) -> None:
         counter, pos = self._counter, self._position
         result = self.profile_source(counter, exposure_s + self.device_clock_offset_s)
+        x_native = None
         if isinstance(result, tuple):
             # The source says when (device clock, s) the profile it rendered was true: a
             # frame rendered late is stamped with that instant, not with its schedule.
-            result, actual_device_s = result
+            if len(result) == 3:
+                x_native, result, actual_device_s = result
+            else:
+                result, actual_device_s = result
             exposure_s = max(exposure_s, float(actual_device_s) - self.device_clock_offset_s)
         z = np.asarray(result, dtype=float)
-        x = self.x_offset + self.x_scale * np.arange(self.n_points) if self.explicit_x else None
-        data = encode_frame(counter, self.device_time_us(exposure_s), z, x_scale=self.x_scale,
-                            x_offset=self.x_offset, z_scale=self.z_scale, z_offset=self.z_offset, x_mm=x)
+        x_scale, x_offset = self.x_scale, self.x_offset
+        if x_native is not None:
+            x = np.asarray(x_native, dtype=float)
+            x_scale, x_offset = self.native_x_scale, 0.0
+        else:
+            x = self.x_offset + self.x_scale * np.arange(self.n_points) if self.explicit_x else None
+        data = encode_frame(counter, self.device_time_us(exposure_s), z, x_scale=x_scale,
+                            x_offset=x_offset, z_scale=self.z_scale, z_offset=self.z_offset, x_mm=x)
         fault = ""
         f = self.faults
         if pos in f.garbage_before:

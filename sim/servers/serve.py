@@ -111,11 +111,14 @@ def start_servers(cell_spec: Any, cell_path: str | Path, seed: int, *, object_pa
         kwargs: dict[str, Any] = {"transport": transport}
         if transport == "tcp":
             kwargs.update(host=host, port=port)
-        scanner = ScannerPtyServer(profile, n_points=sc_spec.samples_per_profile, x_span_mm=span_mm,
+        # Frames carry the world scanner's own samples with explicit x (5 um steps): the
+        # controller gets the points the in-process scanner gives. (A fixed x grid over the
+        # fan at the maximum range put half as many samples on the object and interpolated
+        # across silhouettes: a different cloud, different probe targets than in process.)
+        scanner = ScannerPtyServer(profile, n_points=backend.scanner_samples, x_span_mm=span_mm,
                                    z_scale_mm=z_scale_mm, z_offset_mm=z_mid_mm, rate_hz=sc_spec.rate_hz,
                                    serial=f"SIM-LLS-{seed:04d}", seed=seed, max_lifetime_s=lifetime_s, **kwargs)
-        grid = scanner.x_offset + scanner.x_scale * np.arange(scanner.n_points)
-        holder["source"] = backend.profile_source(grid)
+        holder["source"] = backend.native_profile_source()
         scanner.start()
     except BaseException:
         for server in (scanner, netft, emulator):

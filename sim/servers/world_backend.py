@@ -302,6 +302,22 @@ class WorldBackend:
 
         return source
 
+    def native_profile_source(self):
+        """A ``ProfileSource`` giving the world scanner's own samples (x, z) and the true
+        exposure time: the served frames carry explicit x, so the controller receives the
+        very points the in-process scanner gives (no resampling onto a fixed grid, which
+        halved the points on the object and interpolated across silhouettes)."""
+
+        def source(frame_counter: int, device_t_s: float) -> tuple[np.ndarray, np.ndarray, float]:
+            return self.profile_xz_at(device_t_s)
+
+        return source
+
+    @property
+    def scanner_samples(self) -> int:
+        """Samples per profile of the world's scanner."""
+        return int(self.cell.scanner.samples_per_profile)
+
     # ------------------------------------------------------------------ test hooks
     def inject(self, kind: str, **kwargs: float) -> None:
         """Inject a world fault now (e.g. ``force_spike`` with magnitude, duration_s)."""
