@@ -21,6 +21,7 @@ from .geometry import scan_direction
 from .journal import StepPlan
 from .learning import profiles as prof
 from .probe import ProbeTarget, StepData, standoff_pose
+from .session import SessionAborted
 
 if TYPE_CHECKING:
     from .learning.models import RegionModel
@@ -286,7 +287,7 @@ def remove_table_below(points_mm: np.ndarray, seed: int, max_tries: int = 4) -> 
         rest = rest[np.abs(h_rest) > 2.0]
         if len(rest) < 100:
             break
-    raise RuntimeError("no table plane found under the scanned points")
+    raise SessionAborted("no table plane found under the scanned points")
 
 
 def orient_outward_from_above(points_mm: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -410,7 +411,7 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
     if rec is None:
         ids, depth, forces = _survey_profiles(ctx, sorted(ctx.targets))
         if len(ids) == 0:
-            raise RuntimeError("no surveyed target has a complete survey: cannot find regions")
+            raise SessionAborted("no surveyed target has a complete survey: cannot find regions")
         # Features from the dent itself: the grid's ends see the object's edges and
         # the table, which say nothing about the material under the tip.
         window = np.abs(ctx.grid.x_mm) <= FEATURE_HALF_WINDOW_MM
@@ -428,7 +429,7 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
         ids = [i for i, ok in zip(ids, seen) if ok]
         depth, feats = depth[seen], feats[seen]
         if len(ids) == 0:
-            raise RuntimeError("the scanner saw none of the surveyed targets: cannot find regions")
+            raise SessionAborted("the scanner saw none of the surveyed targets: cannot find regions")
         pts = np.array([ctx.targets[i].point_mm for i in ids])
         # Neighbours along the scanned surface (cells on the cloud), never across a fold.
         edges = ctx.surface_neighbours(pts)
