@@ -19,6 +19,14 @@ weighted by how often it was drawn), so their spread reflects point-to-point
 variation within the region, not just scan noise. All members train together as
 one stacked tensor; Rprop is element-wise, so this is exactly independent training.
 
+Monotone in force: the true depth at a given x is monotone in F at a fixed α (not
+always increasing: behind a tangential load the surface can rise with force), so a
+profile at an unseen force must lie between those at the neighbouring forces. The
+loss adds ``monotone_weight`` x the mean, over (angle, output sample), of the summed
+steps against that sample's own end-to-end trend along a force grid
+(``monotone_forces`` forces over the trained range +-5 %, at the trained angles and
+midway between them). Only training changes; serving is untouched.
+
 Serving is pure numpy with the normalisation folded into the weights and
 preallocated buffers (``predict_mm``), fast enough for a 1 kHz haptic loop.
 """
@@ -59,12 +67,19 @@ class TrainConfig:
     rprop_step_sizes: tuple[float, float] = (1e-7, 1.0)
     ensemble: int = 5                   # bootstrap members besides the full-data member
     seed: int = 0
+    # Monotone-in-force penalty (see ``_fit``): weight (0 = off), force-grid size, and the
+    # margin (normalised depth per grid step) a step against the trend may not exceed.
+    monotone_weight: float = 0.1
+    monotone_forces: int = 25
+    monotone_margin: float = 1e-5
 
     def __post_init__(self) -> None:
         if self.activation not in ("tanh", "sigmoid"):
             raise ValueError(f"activation must be tanh or sigmoid, not {self.activation!r}")
         if self.hidden_units < 1 or self.stages < 1 or self.epochs_per_stage < 1 or self.ensemble < 0:
             raise ValueError("hidden_units, stages, epochs_per_stage must be >= 1 and ensemble >= 0")
+        if self.monotone_weight < 0.0 or self.monotone_forces < 2 or self.monotone_margin < 0.0:
+            raise ValueError("monotone_weight and monotone_margin must be >= 0 and monotone_forces >= 2")
 
 
 @dataclass
@@ -344,6 +359,38 @@ def _init_weights(rng: np.random.Generator, members: int, hidden: int, outputs: 
     return w1, b1, w2, b2
 
 
+def _monotone_grid(angle_deg: np.ndarray, f_range: tuple[float, float], config: TrainConfig) -> tuple[np.ndarray, tuple[int, int]] | None:
+    """Normalised inputs (A*K, 2) where the penalty looks, and (A, K): at every trained angle
+    and every midpoint between adjacent trained angles, ``config.monotone_forces`` forces
+    evenly over the force range widened by 5 % each side. None if the range is one force."""
+    if f_range[1] - f_range[0] <= 0.0:
+        return None
+    trained = np.unique(np.asarray(angle_deg, dtype=float))
+    angles = np.unique(np.concatenate([trained, 0.5 * (trained[1:] + trained[:-1])]))
+    forces = np.linspace(-1.1, 1.1, config.monotone_forces)
+    ang_n = _normalize_inputs(np.zeros_like(angles), angles, (0.0, 1.0), ANGLE_RANGE_DEG)[:, 1]
+    x = np.column_stack([np.tile(forces, angles.shape[0]), np.repeat(ang_n, forces.shape[0])])
+    return x, (int(angles.shape[0]), int(forces.shape[0]))
+
+
+def _monotone_penalty(g: Any, margin: float) -> Any:
+    """(B,A,K,L) predictions along the force grid -> (B,) penalty on non-monotone behaviour in F.
+
+    The true depth at a given x is monotone in force (deeper with force under the tip,
+    possibly shallower behind a tangential load), but not necessarily increasing. So the
+    trend of each (angle, sample) is the sign of its prediction's end-to-end change along
+    the grid, and every step against that trend (by more than -``margin``) costs its size:
+    the penalty is the mean over (angle, sample) of the summed wrong-way steps, i.e. half
+    the excess of the total variation over the net change. An L1 (exact) penalty: a large
+    enough weight makes the minimiser monotone, not just nearly so.
+    """
+    import torch
+    d = g[:, :, 1:, :] - g[:, :, :-1, :]
+    trend = torch.sign(g[:, :, -1, :] - g[:, :, 0, :]).detach()
+    wrong = torch.relu(margin - trend[:, :, None, :] * d)
+    return wrong.sum(dim=2).mean(dim=(1, 2))
+
+
 def bootstrap_point_weights(point_ids: np.ndarray, members: int, rng: np.random.Generator) -> np.ndarray:
     """(members+1, M) row weights: row 0 all ones; rows 1.. draw the distinct probe points
     with replacement, and every profile of a point gets the point's draw count."""
@@ -446,16 +493,26 @@ def _fit(force_n: np.ndarray, angle_deg: np.ndarray, depth_mm: np.ndarray, x_mm:
     history: list[np.ndarray] = []
     lag = max(1, config.plateau_patience // config.check_every)
 
-    def member_losses() -> Any:
-        pred = _torch_forward(x_t, *unflatten(flat), config.activation)
-        return ((pred - y_t[None]) ** 2 * w_t).sum(dim=(1, 2)) / denom
+    grid = _monotone_grid(a, f_range, config) if config.monotone_weight > 0.0 else None
+    grid_t = torch.from_numpy(grid[0]) if grid is not None else None
+
+    def member_losses() -> tuple[Any, Any]:
+        """(data MSE, monotone penalty) per member."""
+        params = unflatten(flat)
+        pred = _torch_forward(x_t, *params, config.activation)
+        mse = ((pred - y_t[None]) ** 2 * w_t).sum(dim=(1, 2)) / denom
+        if grid is None:
+            return mse, torch.zeros_like(mse)
+        g = _torch_forward(grid_t, *params, config.activation).view(members + 1, *grid[1], -1)
+        return mse, config.monotone_weight * _monotone_penalty(g, config.monotone_margin)
 
     opt = torch.optim.Rprop([flat], lr=config.rprop_lr, etas=config.rprop_etas,
                             step_sizes=config.rprop_step_sizes)
     epoch = 0
     for epoch in range(1, config.stages * config.epochs_per_stage + 1):
         opt.zero_grad(set_to_none=False)
-        losses = member_losses()
+        mse, pen = member_losses()
+        losses = mse + pen
         # Stopped members get zero gradient, and Rprop leaves a zero-gradient weight alone.
         (losses * active).sum().backward()
         opt.step()
@@ -478,12 +535,13 @@ def _fit(force_n: np.ndarray, angle_deg: np.ndarray, depth_mm: np.ndarray, x_mm:
         if active[b] != 0:
             epochs[b] = epoch
     with torch.no_grad():
-        final = member_losses().numpy().tolist()
+        final_mse, final_pen = (v.numpy().tolist() for v in member_losses())
     w1, b1, w2, b2 = (p.detach().numpy().copy() for p in unflatten(flat.detach()))
-    report = TrainReport(mse_norm=[float(v) for v in final], epochs=epochs, stop_reason=reason,
+    report = TrainReport(mse_norm=[float(v) for v in final_mse], epochs=epochs, stop_reason=reason,
                          train_s=time.perf_counter() - t0, n_profiles=int(f.shape[0]),
                          n_points=int(np.unique(ids).shape[0]), valid_fraction=float(valid.mean()),
-                         extra={"loss_goal_norm": goal})
+                         extra={"loss_goal_norm": goal, "monotone_penalty": [float(v) for v in final_pen],
+                                "monotone_grid": None if grid is None else list(grid[1])})
     meta = {
         "train_mse_norm": report.mse_norm[0],
         "training": asdict(report),
