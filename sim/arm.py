@@ -511,6 +511,24 @@ class SimArm:
             return min(end_us, law.end_us + (-law.end_us) % grid)
         return end_us
 
+    def _sim_hold_ready(self, now_us: int) -> bool:
+        """True when the arm only holds a regulated force: a finished regulate_force whose
+        loop update is due at ``now_us``, on a straight line path without rotation (the
+        world may then run whole force-loop periods in one batch, :meth:`SimWorld._hold_span`)."""
+        reg, motion = self._regulator, self._motion
+        return (reg is not None and motion is not None and reg.next_update_us == now_us
+                and motion.kind == "regulate_force" and motion.state() == MotionState.DONE
+                and not self._path._rotating and self._path.u_table.size > 1
+                and self._protective_since_us is None and not self._estop and self._program_running)
+
+    def _sim_hold_commit(self, reg: "_Regulator", t0_us: int, u0: float, v0: float, v1: float,
+                         u: float, du: float) -> None:
+        """Take the state a batched hold ended in: the regulator, the last loop period's law
+        (from ``t0_us``: u0, rate v0 -> v1), and u, du/dt at its last sample."""
+        self._regulator = reg
+        self._law = _Law("ramp", t0_us, u0, v0=v0, v1=v1, accel=self._settings.regulate_accel_mm_s2)
+        self._u, self._du = float(u), float(du)
+
     def _sim_plan(self, ts_us: np.ndarray) -> ArmPlan:
         reg = self._regulator
         if reg is not None and self._world.now_us >= reg.next_update_us:
@@ -617,9 +635,23 @@ class SimArm:
     def _regulate_update(self, t_us: int) -> None:
         reg = self._regulator
         s = self._settings
+        speed = self._force_loop_speed(reg, t_us, self._measured_force_n(), self._u)
+        self._law = _Law("ramp", t_us, self._u, v0=self._du, v1=speed, accel=s.regulate_accel_mm_s2)
+        motion = self._motion
+        if motion is not None and motion.state() == MotionState.RUNNING:
+            motion._progress = reg.last_force_n / reg.target_n if reg.target_n > 0 else 1.0
+            if reg.in_band >= s.settle_updates:
+                motion._finish(MotionState.DONE)
+                motion._progress = 1.0
+
+    def _force_loop_speed(self, reg: _Regulator, t_us: int, force: float, u: float) -> float:
+        """One update of the PI force loop at ``t_us`` from the measured |F| (N) and the
+        path position u (mm); returns the commanded speed (mm/s) and advances ``reg``.
+
+        Pure in the arm's state (only ``reg`` changes), so the world's batched hold
+        (:meth:`SimWorld._hold_span`) runs it on a copy of the regulator."""
+        s = self._settings
         period_s = s.force_loop_period_us / US_PER_S
-        force = self._measured_force_n()
-        u = self._u
         if reg.last_force_n is not None:
             du = u - reg.last_u
             df = force - reg.last_force_n
@@ -638,17 +670,11 @@ class SimArm:
         speed = ((ref_next - ref) / period_s) / k + s.regulate_loop_gain * err / (k * period_s) \
             + s.regulate_integral_per_s * reg.integral / k
         speed = min(max(speed, -s.regulate_max_speed_mm_s), s.regulate_max_speed_mm_s)
-        self._law = _Law("ramp", t_us, u, v0=self._du, v1=speed, accel=s.regulate_accel_mm_s2)
         reg.next_update_us = t_us + s.force_loop_period_us
         tol = max(s.regulate_tolerance_n, s.regulate_tolerance_rel * reg.target_n)
         at_target = ref == reg.target_n
         reg.in_band = reg.in_band + 1 if (at_target and abs(err) <= tol) else 0
-        motion = self._motion
-        if motion is not None and motion.state() == MotionState.RUNNING:
-            motion._progress = force / reg.target_n if reg.target_n > 0 else 1.0
-            if reg.in_band >= s.settle_updates:
-                motion._finish(MotionState.DONE)
-                motion._progress = 1.0
+        return speed
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

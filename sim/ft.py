@@ -235,6 +235,22 @@ class SimForceTorque:
         return FTSamples(ts_us, seq, raw, out, status, delivered, all_delivered, fmag, tmag2,
                          status_clear=clipped is None or not clipped.any())
 
+    def _sim_offset_force_n(self, ts_us: np.ndarray, rot_base_tcp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The delivered force channels less the contact's part, for one TCP orientation:
+        (gravity + bias + drift + noise - tare) (n, 3) N in the sensor frame, and R_bs.
+
+        What a batched hold's force loop adds to the contact force it computes itself
+        (:meth:`SimWorld._hold_span`); no faults, no saturation (the batch is screened
+        and redone sub-chunk by sub-chunk if either could matter). Reads the same noise
+        rows :meth:`_sim_synthesize` then delivers (PagedNormal re-reads them)."""
+        r_bs, static = self._static_terms(rot_base_tcp)
+        step_start = self._world.step_start_us
+        first = (int(ts_us[0]) - step_start) // self._period_us - 1
+        f = static[:3] + (ts_us - step_start).astype(float)[:, None] * self._drift_per_us[None, :3]
+        f += self._noise.take(first, ts_us.shape[0])[:, :3] * self._sigma[:3]
+        f -= self._tare[:3]
+        return f, r_bs
+
     def _sim_commit(self, samples: FTSamples, cut: int) -> None:
         if samples.all_delivered:
             t = samples.ts_us[:cut]

@@ -41,7 +41,8 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass
+from bisect import bisect_right
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
@@ -136,7 +137,18 @@ class PagedNormal:
 _FORCE_GRID_N = np.concatenate([[0.0], np.geomspace(1e-3, 600.0, 320)])
 _ONES = np.ones(4096)
 _ONES.setflags(write=False)
+_FORCE_GRID_LIST = _FORCE_GRID_N.tolist()
+_FORCE_END_SLOPE = (_FORCE_GRID_LIST[-1] - _FORCE_GRID_LIST[-2])
 _SHIFT_FORCE_N = np.concatenate([[0.0], np.geomspace(1e-3, 600.0, 48)])
+
+
+def _force_at(eq_push_mm: float, push_grid: list[float]) -> float:
+    """|F| (N) at one equilibrium push (mm) on a contact's force table (scalar Contact.forces_n)."""
+    if eq_push_mm >= push_grid[-1]:
+        return _FORCE_GRID_LIST[-1] + (eq_push_mm - push_grid[-1]) * _FORCE_END_SLOPE / (push_grid[-1] - push_grid[-2])
+    j = bisect_right(push_grid, eq_push_mm) - 1
+    return _FORCE_GRID_LIST[j] + (eq_push_mm - push_grid[j]) * (
+        (_FORCE_GRID_LIST[j + 1] - _FORCE_GRID_LIST[j]) / (push_grid[j + 1] - push_grid[j]))
 TABLE_STIFFNESS_N_MM = 400.0     # the table is rigid next to any probed material
 MIN_APPROACH_DEG = 2.0           # a grazing touch is treated as this shallow a push
 
@@ -178,9 +190,13 @@ class Contact:
 
     def hold_s(self) -> float:
         """The hold time equivalent to the creep state (for the model's creep law)."""
-        if self.creep_beta <= 0.0 or self.creep_c >= 1.0:
+        return self.hold_s_at(self.creep_c)
+
+    def hold_s_at(self, creep_c: float) -> float:
+        """The hold time (s) equivalent to creep state ``creep_c``."""
+        if self.creep_beta <= 0.0 or creep_c >= 1.0:
             return math.inf
-        return -self.creep_tau_s * math.log(max((1.0 - self.creep_c) / self.creep_beta, 1e-300))
+        return -self.creep_tau_s * math.log(max((1.0 - creep_c) / self.creep_beta, 1e-300))
 
     def forces_n(self, push_mm: np.ndarray, creep_c: np.ndarray) -> np.ndarray:
         """|F| at pushes (mm) with creep states c (vectorised)."""
@@ -194,14 +210,17 @@ class Contact:
             f = np.where(eq > grid[-1], _FORCE_GRID_N[-1] + (eq - grid[-1]) * slope, f)
         return f
 
-    def creep_after(self, c0: float, push0_mm: float, push1_mm: float, dt_s: float) -> float:
-        """Creep state after ``dt_s`` in which the push went from push0 to push1."""
+    def creep_after(self, c0: float, push0_mm: float, push1_mm: float, dt_s: float,
+                    push_max_mm: float | None = None) -> float:
+        """Creep state after ``dt_s`` in which the push went from push0 to push1 (mm);
+        ``push_max_mm`` is the deepest push so far (default: this contact's)."""
         if self.creep_beta <= 0.0:
             return 1.0
+        push_max = self.push_max_mm if push_max_mm is None else push_max_mm
         c = 1.0 - (1.0 - c0) * math.exp(-dt_s / self.creep_tau_s) if push0_mm > 0.0 else c0
-        if push1_mm > self.push_max_mm and push1_mm > 0.0:
+        if push1_mm > push_max and push1_mm > 0.0:
             # New loading enters un-crept: blend by the equilibrium push it adds.
-            old = max(self.push_max_mm, 0.0)
+            old = max(push_max, 0.0)
             fresh = 1.0 - self.creep_beta
             c = (c * old + fresh * (push1_mm - old)) / push1_mm
         return min(max(c, 1.0 - self.creep_beta), 1.0)
@@ -373,7 +392,11 @@ class SimWorld:
         self.scanner: SimLineScanner | None = None
         self.faults: FaultInjector | None = None
         self._advancing = False
-        self.stats = {"subchunks": 0, "distance_queries": 0, "guard_blocks": 0}
+        # Batched holds (_hold_span): whole force-loop periods of one sleep in one block while
+        # the arm only holds a regulated force (False: every period is its own sub-chunk).
+        self.hold_batching = True
+        self.stats = {"subchunks": 0, "distance_queries": 0, "guard_blocks": 0, "hold_spans": 0,
+                      "hold_periods": 0, "hold_fallbacks": 0}
         clock.add_listener(self.advance_to)
 
     # ------------------------------------------------------------------ wiring, keys
@@ -419,7 +442,14 @@ class SimWorld:
         self._advancing = True
         try:
             guard_loops = 0
+            batch = self.hold_batching
             while self.now_us < target:
+                if batch and self.contact is not None and self.arm._sim_hold_ready(self.now_us):
+                    done = self._hold_span(target)
+                    if done is None:
+                        batch = False          # the span needs sub-chunks: do not retry in this call
+                    elif done:
+                        continue
                 end = min(target, self.now_us + self.max_chunk_us)
                 end = self.arm._sim_bound_end(self.now_us, end)
                 end = self.faults._sim_bound_end(self.now_us, end)
@@ -507,6 +537,199 @@ class SimWorld:
             self.arm._sim_protective_stop(self.now_us, f"UR force limit: |F| {dry.force_mag_n[cut - 1]:.0f} N")
         elif event == "arm":
             self.arm._sim_on_event(self.now_us)
+
+    # ------------------------------------------------------------------ batched holds
+    def _hold_span(self, target_us: int) -> bool | None:
+        """Run whole force-loop periods of a regulated hold up to ``target_us`` in one batch.
+
+        While the arm only holds a force (:meth:`SimArm._sim_hold_ready`), on an object
+        contact, with no fault active or starting in the span, a sleep of P loop periods
+        costs one scalar recurrence over the P loop updates (the PI law, the contact's
+        push and creep, the mean F/T reading the loop acts on) and one vectorised block of
+        P x 10 samples (trajectory, contact force, F/T synthesis, the guard's screen and
+        the guard itself, scanner exposures), instead of P sub-chunks.
+
+        The block is screened before anything is committed: if any sample could end the
+        hold — the contact ending, the UR's own force limit, slip, the path's validated
+        range, anything the guard's screen cannot clear (checked period by period, as the
+        sub-chunk path screens) — nothing is committed and None is returned: the caller
+        redoes the span sub-chunk by sub-chunk, which stops at the exact sample. Returns
+        True when the span was committed, False when batching does not apply here.
+
+        The recurrence is the same physics and the same noise as the sub-chunk path, in
+        another floating-point order (the force loop reads its mean force as
+        contact + offsets rather than summing ten delivered samples): values agree to
+        ~1e-12 relative, not bit for bit; the same commands still give the same bytes.
+        """
+        arm, c, faults = self.arm, self.contact, self.faults
+        sp = self.sample_period_us
+        period = arm._settings.force_loop_period_us
+        m = period // sp
+        if c is None or c.model is None or period % sp or m < self._rate_window or self.trip is not None:
+            return False
+        n_periods = (target_us - self.now_us) // period
+        if n_periods < 2:
+            return False
+        now = self.now_us
+        end = now + n_periods * period
+        faults._sim_on_time(now)
+        if faults._sim_any_active() or faults._sim_bound_end(now, end) != end:
+            return False
+        path = arm._path
+        rot = path.r0
+        n = n_periods * m
+        ts = np.arange(now + sp, end + 1, sp, dtype=np.int64)
+        offsets, r_bs = self.ft._sim_offset_force_n(ts, rot)
+        offset_mean = offsets.reshape(n_periods, m, 3).mean(axis=1).tolist()
+        w0, w1, w2 = (-(c.d_base @ r_bs)).tolist()     # sensor force per N of contact force
+        tip0 = path.p0 if self._tip_offset_zero else path.p0 + rot @ self.tip_offset_tcp_mm
+        pc = float((tip0 - c.tip_touch_base) @ c.d_base)
+        vd = float(path.v @ c.d_base)
+        grid = c.push_grid_mm.tolist()
+        t_s = [(j + 1) * sp / US_PER_S for j in range(m)]       # sample instants after each update (s)
+        frac = [(j + 1) * sp / period for j in range(m)]        # creep interpolation, as in _dry
+        t_first, t_last, t_mid = t_s[0], t_s[-1], sum(t_s) / m
+        accel = arm._settings.regulate_accel_mm_s2
+        beta = c.creep_beta
+        dt_s = period / US_PER_S
+
+        # The recurrence: one force-loop update per period, on a copy of the regulator.
+        reg = replace(arm._regulator)
+        loop_speed = arm._force_loop_speed
+        u, du = arm._u, arm._du
+        measured = arm._measured_force_n()
+        push0, push_max, c0 = c.push_mm, c.push_max_mm, c.creep_c
+        laws = []                  # per period: u0, v0, v1, a, t_r
+        creep_ends = []            # per period: (creep at its start, creep_after at its end)
+        for k in range(n_periods):
+            v1 = loop_speed(reg, now + k * period, measured, u)
+            dv = v1 - du
+            a = math.copysign(accel, dv)
+            t_r = abs(dv) / accel
+            laws.append((u, du, v1, a, t_r))
+            tr = t_last if t_last < t_r else t_r
+            u_end = u + du * tr + 0.5 * a * tr * tr + v1 * max(t_last - t_r, 0.0)
+            du_end = du + a * t_last if t_last < t_r else v1
+            push_end = pc + u_end * vd
+            c_end = c.creep_after(c0, push0, push_end, dt_s, push_max) if beta > 0.0 else 1.0
+            creep_ends.append((c0, c_end))
+            # The loop's next reading: the mean of this period's ten samples.
+            f_mean = None
+            if beta <= 0.0 and t_r <= t_first:
+                # A straight line over the whole period: the push is linear in t, so where
+                # the ten pushes share one segment of the force table the mean force is the
+                # force at the mean push.
+                p_first = pc + (u + du * t_r + 0.5 * a * t_r * t_r + v1 * (t_first - t_r)) * vd
+                if p_first > 0.0 and push_end > 0.0:
+                    j = bisect_right(grid, p_first) - 1
+                    if j == bisect_right(grid, push_end) - 1 and j < len(grid) - 1:
+                        p_mid = pc + (u + du * t_r + 0.5 * a * t_r * t_r + v1 * (t_mid - t_r)) * vd
+                        f_mean = _FORCE_GRID_LIST[j] + (p_mid - grid[j]) * (
+                            (_FORCE_GRID_LIST[j + 1] - _FORCE_GRID_LIST[j]) / (grid[j + 1] - grid[j]))
+            if f_mean is None:
+                total = 0.0
+                for j in range(m):
+                    t = t_s[j]
+                    tr = t if t < t_r else t_r
+                    push_j = pc + (u + du * tr + 0.5 * a * tr * tr + v1 * max(t - t_r, 0.0)) * vd
+                    cj = c0 + (c_end - c0) * frac[j] if beta > 0.0 else 1.0
+                    total += _force_at(max(push_j, 0.0) / cj, grid)
+                f_mean = total / m
+            e = offset_mean[k]
+            fx, fy, fz = f_mean * w0 + e[0], f_mean * w1 + e[1], f_mean * w2 + e[2]
+            measured = math.sqrt(fx * fx + fy * fy + fz * fz)
+            u, du = u_end, du_end
+            push0 = push_end
+            push_max = max(push_max, push_end)
+            c0 = c0 + (c_end - c0) * frac[-1]       # the committed state is the last sample's, as in _dry
+
+        # The block: every sample of the span from the per-period laws (the same
+        # expressions as the recurrence, so its last sample is the recurrence's state).
+        law = np.repeat(np.array(laws), m, axis=0)
+        u0v, v0v, v1v, av, trv = law[:, 0], law[:, 1], law[:, 2], law[:, 3], law[:, 4]
+        t = np.tile(np.array(t_s), n_periods)
+        tr = np.minimum(t, trv)
+        u_all = u0v + v0v * tr + 0.5 * av * tr * tr + v1v * np.maximum(t - trv, 0.0)
+        du_all = np.where(t < trv, v0v + av * t, v1v)
+        push = pc + u_all * vd
+        if beta > 0.0:
+            ce = np.repeat(np.array(creep_ends), m, axis=0)
+            creep = ce[:, 0] + (ce[:, 1] - ce[:, 0]) * np.tile(np.array(frac), n_periods)
+        else:
+            creep = np.ones(n)
+        force = c.forces_n(push, creep)
+        # Anything that could end the hold inside the span: redo it sub-chunk by sub-chunk.
+        lo, hi = path.u_table[0], path.u_table[-1]
+        if (float(push.min()) <= 1e-6 or float(force.max()) > 0.99 * self.ur_force_limit_n
+                or float(u_all.min()) < lo or float(u_all.max()) > hi):
+            return self._hold_fallback()
+        if c.sliding and c.shift_grid_mm is not None:
+            slip = np.abs(np.interp(force[m - 1::m], _SHIFT_FORCE_N, c.shift_grid_mm))
+            if float(slip.max()) > 0.99 * self.limits.slip_mm:
+                return self._hold_fallback()
+        samples = self.ft._sim_synthesize(ts, -force[:, None] * c.d_base[None, :], rot, now)
+        if not self._screen_span(samples, n_periods, m):
+            return self._hold_fallback()
+
+        # Commit: the guard, the scanner's exposures, the F/T stream, the contact, the arm.
+        if self.guard_batch_us > 0:
+            self._guard_pending.append((ts, samples.seq, samples.out, samples.status))
+            self._guard_pending_n += n
+            trip = self.guard_flush() if self._guard_pending_n * sp >= self.guard_batch_us else None
+        else:
+            self.stats["guard_blocks"] += 1
+            trip = self.guard.check_block(samples.block(n))
+        for t_exp in self.scanner._sim_due(now, end):
+            i = min(int(np.searchsorted(ts, t_exp)), n - 1)
+            # As in _commit: the contact's creep state at the start of the sample's period.
+            hold_s = c.hold_s_at(creep_ends[i // m][0])
+            self.scanner._sim_capture(WorldSnapshot(int(ts[i]), Pose(path.p0 + u_all[i] * path.v, rot),
+                                                    self.base_to_object, c, float(force[i]), hold_s))
+        self.ft._sim_commit(samples, n)
+        c.push_mm = float(push[-1])
+        c.push_max_mm = push_max
+        c.creep_c = float(creep[-1])
+        c.force_n = float(force[-1])
+        c.max_force_n = max(c.max_force_n, float(force.max()))
+        u0, v0, v1, _, _ = laws[-1]
+        arm._sim_hold_commit(reg, end - period, u0, v0, v1, float(u_all[-1]), float(du_all[-1]))
+        self.now_us = end
+        self.stats["hold_spans"] += 1
+        self.stats["hold_periods"] += n_periods
+        if trip is not None:
+            # The screen clears only blocks that cannot cross a limit; kept for safety.
+            if self.trip is None:
+                self.trip = _trip_truncated(trip, self.guard)
+                self._latched_force_n = max(float(trip.value) if trip.kind == "force" else 0.0, float(force.max()))
+                self._latched_us = self.now_us
+            arm._sim_halt(self.now_us, "tripped")
+        return True
+
+    def _hold_fallback(self) -> None:
+        self.stats["hold_fallbacks"] += 1
+        return None
+
+    def _screen_span(self, samples, n_periods: int, m: int) -> bool:
+        """:meth:`_screen` applied to each force-loop period of a batched span in turn
+        (vectorised): True when every period would have been cleared as its own sub-chunk.
+        Updates the screen's carry-over only when it clears the whole span."""
+        if self._screen_noiseless or not samples.status_clear or self.faults._sim_frozen_possible():
+            return False
+        if self._screen_count < self._rate_window:
+            return False
+        fm = samples.fmag.reshape(n_periods, m)
+        fmax, fmin = fm.max(axis=1), fm.min(axis=1)
+        if float(fmax.max()) > 0.98 * self._screen_force_limit or float(samples.tmag2.max()) > self._screen_torque2:
+            return False
+        prev_max = np.concatenate([[self._screen_prev[0]], fmax[:-1]])
+        prev_min = np.concatenate([[self._screen_prev[1]], fmin[:-1]])
+        dt_min = self._rate_window * self.sample_period_us / US_PER_S
+        spread = np.maximum(fmax, prev_max) - np.minimum(fmin, prev_min)
+        if float(spread.max()) / dt_min > 0.9 * self.limits.max_force_rate_n_s:
+            return False
+        self._screen_prev = (float(fmax[-1]), float(fmin[-1]))
+        self._screen_count += n_periods * m
+        return True
 
     # ------------------------------------------------------------------ the safety guard
     def _guard_check(self, samples, cut: int) -> Trip | None:
