@@ -104,6 +104,12 @@ class ProbeSettings:
     tip_radius_mm: float
     clearance_mm: float = 60.0          # travel height above the object's top
     poll_period_s: float = 0.01
+    # While the arm holds still or holds a regulated force and the controller only records
+    # F/T and poses (the settle wait, tare waits, scan bursts), it polls this often. The
+    # safety check-and-stop runs where the data arrives on every sample whatever the poll
+    # (DESIGN §5): a crossing stops the arm at the same sample; the controller sees the
+    # same F/T blocks in bigger pieces. Motion and contact search keep poll_period_s.
+    hold_poll_period_s: float = 0.1
     reference_scans: int = 10
     scan_timeout_factor: float = 3.0
 
@@ -378,21 +384,32 @@ class ProbeExecutor:
         self._hold(0.05)
 
     def _hold(self, duration_s: float) -> None:
-        end = self.cell.clock.now_s() + duration_s
-        while self.cell.clock.now_s() < end - 1e-9:
-            self._tick()
+        """Wait ``duration_s`` (s) recording F/T and poses, polling every hold_poll_period_s
+        (the last poll shortened so the wait ends on time)."""
+        clock = self.cell.clock
+        end = clock.now_s() + duration_s
+        while clock.now_s() < end - 1e-9:
+            self._tick(min(self.s.hold_poll_period_s, end - clock.now_s()))
 
     def _scan_burst(self, count: int) -> tuple[list[Scan], np.ndarray]:
         scanner = self.cell.scanner
         self._rec.clear()
         scanner.read_scans()   # drop anything stale
+        # The pose at the burst's start: exposures begin before the first (hold-period) poll.
+        try:
+            status = self.cell.arm.status()
+        except DeviceError as exc:
+            raise ProbeFault("device", str(exc)) from exc
+        self._rec.pose_t_s.append(status.t_s)
+        self._rec.poses.append(status.tcp_pose.position_mm)
+        self._rec.rotations.append(status.tcp_pose.rotation)
         scanner.start_burst(count)
         scans: list[Scan] = []
         deadline = self.cell.clock.now_s() + count / scanner.rate_hz * self.s.scan_timeout_factor + 1.0
         while len(scans) < count:
             if self.cell.clock.now_s() > deadline:
                 raise ProbeFault("scanner", f"scanner delivered {len(scans)} of {count} profiles in time")
-            self._tick()
+            self._tick(self.s.hold_poll_period_s)
             try:
                 scans.extend(scanner.read_scans())
             except DeviceTimeout as exc:
@@ -427,10 +444,12 @@ class ProbeExecutor:
                              f"{est.rms_before_mm:.2f} -> {est.rms_after_mm:.2f} mm): it moved, or the "
                              f"scanner's calibration is off")
 
-    def _tick(self) -> None:
-        """One poll period: let time pass, collect F/T and pose, check for trips and faults."""
-        self.cell.clock.sleep_s(self.s.poll_period_s)
-        self.robot_time_s += self.s.poll_period_s
+    def _tick(self, period_s: float | None = None) -> None:
+        """One poll period (default poll_period_s, s): let time pass, collect F/T and pose,
+        check for trips and faults."""
+        period_s = self.s.poll_period_s if period_s is None else period_s
+        self.cell.clock.sleep_s(period_s)
+        self.robot_time_s += period_s
         try:
             block = self.cell.ft.read_block()
             status = self.cell.arm.status()
