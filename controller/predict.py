@@ -56,6 +56,10 @@ def retrain_session(session_dir: Path) -> list[str]:
         if rec is None:
             raise InputError("the session has no regions yet", path=str(session_dir))
         labels = dict(zip(rec.arrays["labelled_targets"].tolist(), rec.arrays["labels"].tolist()))
+        # The averaged scans' noise the session measured: the fit stops at it, as in the run.
+        noise_mm, q = None, 0
+        while (models_rec := j.phase("models", q)) is not None:
+            noise_mm, q = models_rec.outputs.get("noise_mm", noise_mm), q + 1
         rows: dict[int, list] = {}
         for step in j.steps(statuses=["done"]):
             label = labels.get(step.plan.target_index)
@@ -69,11 +73,12 @@ def retrain_session(session_dir: Path) -> list[str]:
     m = inputs.plan.model
     x = np.linspace(-m.profile_span_mm / 2, m.profile_span_mm / 2, m.profile_samples)
     out = []
+    (Path(session_dir) / "models" / "retrained").mkdir(parents=True, exist_ok=True)
     for label, data in sorted(rows.items()):
         f, a, d, p = (np.array(v) for v in zip(*data))
         cfg = TrainConfig(hidden_units=m.hidden_units, ensemble=m.ensemble - 1,
                           epochs_per_stage=max(10, m.max_epochs // 5), seed=seed * 1000 + label)
-        model = fit_region_model(f, a, d, x, point_ids=p, config=cfg)
+        model = fit_region_model(f, a, d, x, point_ids=p, config=cfg, noise_mm=noise_mm)
         path = model.save(Path(session_dir) / "models" / "retrained" / f"region{label}.npz")
         out.append(f"region {label}: {len(f)} profiles -> {path} ({model.model_hash()[:12]})")
     return out
