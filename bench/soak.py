@@ -38,6 +38,7 @@ Prints ONE JSON object.
 from __future__ import annotations
 
 import argparse
+import math
 import json
 import os
 import random
@@ -358,9 +359,12 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
         ident = (rec["kind"], tuple(rec["key"] or ()), rec["plan"])
         run_id = run_of_pid.get(rec["pid"])
         match = None
+        # A moved object stays moved: it is seen when a scan line first crosses relief that
+        # shows the shift, which may be many contacts later (in the same process).
+        window_s = math.inf if rec["kind"] == "object_moved" else MATCH_WINDOW_S
         for f in faults:
             if (f.fault_id not in claimed and run_of_fault[f.fault_id] == run_id and f.t_robot_s is not None
-                    and rec["t_s"] - 1e-6 <= f.t_robot_s <= rec["t_s"] + MATCH_WINDOW_S
+                    and rec["t_s"] - 1e-6 <= f.t_robot_s <= rec["t_s"] + window_s
                     and f.kind in SEEN_AS[rec["kind"]]):
                 match = f
                 break
@@ -368,7 +372,8 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
                                 "t_s": round(rec["t_s"], 3)}
         if match is not None:
             claimed.add(match.fault_id)
-            fate.update(fault_id=match.fault_id, seen_as=match.kind, step=match.step_id, action=match.policy_action)
+            fate.update(fault_id=match.fault_id, seen_as=match.kind, step=match.step_id, action=match.policy_action,
+                        detected_after_s=round(match.t_robot_s - rec["t_s"], 1))
             if match.fault_id in paused_fault_ids:
                 fate["fate"] = "paused"
             elif match.policy_action in ("retry", "skip_target") and (
