@@ -18,6 +18,13 @@ force limit, slip) shortens it; then the F/T block is checked by the controller'
 real driver runs where the data arrives — and on a crossing the arm is stopped at
 the crossing sample's virtual time; then the state is committed.
 
+Batched holds: while the arm only holds a regulated force on the object (the
+controller polls every 100 ms then, ProbeSettings.hold_poll_period_s), one sleep of
+P force-loop periods is one scalar recurrence over the P loop updates plus one block
+of samples (:meth:`SimWorld._hold_span`); a span in which anything could end the hold
+(guard screen, contact end, UR force limit, slip, path range, a fault) is redone
+sub-chunk by sub-chunk from its start, so it stops at the same sample.
+
 Randomness: every draw comes from a generator keyed by (seed, step, attempt,
 stream) (:func:`keyed_rng`); ``begin_step`` re-seeds all of them, and slowly varying
 random processes (F/T drift) restart at the begin_step instant, so the same commands
