@@ -113,6 +113,8 @@ class SimLineScanner:
         self._dropout_rng = np.random.default_rng(0)
         self._burst_index = 0
         self._shadow_cache: tuple | None = None
+        self._face_cache: tuple | None = None
+        self._lateral_cache: tuple | None = None
         self.stats = {"captures": 0, "cuts": 0}
 
     # ------------------------------------------------------------------ LineScanner
@@ -213,12 +215,8 @@ class SimLineScanner:
         hit = np.isfinite(r) & (r >= s.min_range_mm)
         face = np.where(on_table | ~hit, -1, face)
         n_s = s.samples
-        normals = np.zeros((n_s, 3))
-        normals[:, 2] = 1.0
-        on_mesh = face >= 0
-        normals[on_mesh] = self._face_normals[face[on_mesh]]
+        on_mesh, normals, steep_cos, drop_base, sigma, floor = self._face_terms(face)
         cos_inc = -np.einsum("ij,ij->i", dirs, normals)
-        label = np.where(on_mesh, self._face_labels[np.maximum(face, 0)], -1)
         # Deformation: move object hits along their ray onto the dented surface.
         r = r.copy()
         near_tip = np.zeros(n_s, dtype=bool)
@@ -234,18 +232,40 @@ class SimLineScanner:
         # Losses.
         lost = ~hit
         lost |= self._shadowed(o, dirs, r, snap, obj_scanner, hit)
-        steep_cos = np.where(on_mesh, self._mat_steep_cos[np.maximum(label, 0)], math.cos(math.radians(85.0)))
         lost |= cos_inc < steep_cos
         if noise:
-            p_drop = np.where(on_mesh, self._mat_dropout[np.maximum(label, 0)], s.table_dropout_prob)
-            p_drop = np.where(near_tip, np.maximum(p_drop, s.tip_dropout_prob), p_drop)
+            p_drop = np.where(near_tip, np.maximum(drop_base, s.tip_dropout_prob), drop_base)
             lost |= self._dropout_rng.random(n_s) < p_drop
-            sigma = np.where(on_mesh, self._mat_noise[np.maximum(label, 0)], s.table_noise_mm) * s.noise_scale
-            floor = np.where(on_mesh, self._mat_floor[np.maximum(label, 0)], s.table_corr_floor_mm) * s.noise_scale
             shape = correlated_shape if correlated_shape is not None else np.zeros(n_s)
             r = r + self._noise_rng.standard_normal(n_s) * sigma + shape * floor
         r = np.where(lost, np.nan, r)
         return r * np.sin(self._angles), r * np.cos(self._angles)
+
+    def _face_terms(self, face: np.ndarray) -> tuple[np.ndarray, ...]:
+        """What each sample's hit face alone decides: (on the mesh, surface normal, cosine of the
+        steepest visible incidence, base dropout probability, noise sigma mm, correlated floor mm).
+
+        A pure function of the face indices (-1: table or nothing), kept for the last set of
+        faces: within a burst the laser line crosses the same faces profile after profile."""
+        cached = self._face_cache
+        if cached is not None and np.array_equal(cached[0], face):
+            return cached[1]
+        s = self._s
+        on_mesh = face >= 0
+        normals = np.zeros((face.shape[0], 3))
+        normals[:, 2] = 1.0
+        normals[on_mesh] = self._face_normals[face[on_mesh]]
+        label = np.maximum(np.where(on_mesh, self._face_labels[np.maximum(face, 0)], -1), 0)
+        steep_cos = np.where(on_mesh, self._mat_steep_cos[label], math.cos(math.radians(85.0)))
+        drop_base = np.where(on_mesh, self._mat_dropout[label], s.table_dropout_prob)
+        sigma = np.where(on_mesh, self._mat_noise[label], s.table_noise_mm) * s.noise_scale
+        floor = np.where(on_mesh, self._mat_floor[label], s.table_corr_floor_mm) * s.noise_scale
+        terms = (on_mesh, normals, steep_cos, drop_base, sigma, floor)
+        for arr in terms:
+            arr.setflags(write=False)       # shared between profiles: never modified in place
+        if s.cache_cuts:
+            self._face_cache = (face.copy(), terms)
+        return terms
 
     def _plane_cut(self, o: np.ndarray, y_ax: np.ndarray, b2o: Pose) -> PlaneCut:
         key = (tuple(np.round(y_ax, 12)), round(float(o @ y_ax), 9), tuple(np.round(b2o.position_mm, 9)))
@@ -266,7 +286,11 @@ class SimLineScanner:
         if c is not None and c.model is not None:
             rel = pts - c.point_obj
             x = rel @ c.t_obj
-            lateral = rel @ np.cross(c.normal_obj, c.t_obj)
+            # The contact's lateral axis n x t, once per contact (its geometry is fixed from first touch).
+            lc = self._lateral_cache
+            if lc is None or lc[0] is not c:
+                lc = self._lateral_cache = (c, np.cross(c.normal_obj, c.t_obj))
+            lateral = rel @ lc[1]
             # The laser line runs through the tip; off the line (miscalibration) use the
             # distance from the tip with the sign of x (the dent is nearly axisymmetric).
             x_eff = np.sign(x) * np.sqrt(x * x + lateral * lateral)
