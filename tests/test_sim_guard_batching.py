@@ -2,28 +2,15 @@
 per-sub-chunk guard give the same bytes and stop at the same virtual sample."""
 from __future__ import annotations
 
-import hashlib
 
 import numpy as np
 
 from elastoprobe.controller.devices import MotionState
 
-from test_sim_helpers import Log, burst, hold, make_cell, press, wait
+from test_sim_helpers import Log, burst, digest, hold, make_cell, press, wait
 
 TOP = (0.0, 0.0, 130.0)
 UP = (0.0, 0.0, 1.0)
-
-
-def _digest(log: Log, scans) -> str:
-    h = hashlib.sha256()
-    for b in log.blocks:
-        for arr in (b.t_s, b.seq, b.force_n, b.torque_nm, b.status):
-            h.update(np.ascontiguousarray(arr).tobytes())
-    for sc in scans:
-        h.update(repr(sc.exposure_t_s).encode())
-        h.update(sc.x_mm.tobytes())
-        h.update(sc.z_mm.tobytes())
-    return h.hexdigest()
 
 
 def _force_limit_run(batch_us: int) -> tuple[str, object, int]:
@@ -37,7 +24,7 @@ def _force_limit_run(batch_us: int) -> tuple[str, object, int]:
     wait(cell, motion, log)
     hold(cell, 0.2, log)
     assert motion.state() == MotionState.TRIPPED
-    return _digest(log, scans), cell.arm.trip(), cell.world.stats["guard_blocks"]
+    return digest(log, scans), cell.arm.trip(), cell.world.stats["guard_blocks"]
 
 
 def test_batched_guard_gives_the_same_bytes_and_the_same_trip_sample():
@@ -60,7 +47,7 @@ def test_a_spike_after_a_long_batched_hold_stops_at_its_sample():
         cell.faults.inject("force_spike", delay_s=0.173)
         log = Log()
         hold(cell, 0.5, log)
-        return cell.arm.trip(), _digest(log, [])
+        return cell.arm.trip(), digest(log, [])
 
     (trip_b, digest_b), (trip_s, digest_s) = run(200_000), run(0)
     assert trip_b is not None and trip_s is not None

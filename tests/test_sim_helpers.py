@@ -2,6 +2,7 @@
 tests of the keyed random streams they rely on."""
 from __future__ import annotations
 
+import hashlib
 from dataclasses import replace
 from pathlib import Path
 
@@ -183,3 +184,16 @@ def test_paged_normal_is_independent_of_grouping():
     assert np.array_equal(whole, np.concatenate(parts))
     # Re-reading the current page (a sub-chunk cut short) gives the same rows.
     assert np.array_equal(b.take(290, 10), whole[290:300])
+
+
+def digest(log: Log, scans) -> str:
+    """SHA-256 of every F/T block and every scan (exposure time, x and z): same bytes, same digest."""
+    h = hashlib.sha256()
+    for b in log.blocks:
+        for arr in (b.t_s, b.seq, b.force_n, b.torque_nm, b.status):
+            h.update(np.ascontiguousarray(arr).tobytes())
+    for sc in scans:
+        h.update(repr(sc.exposure_t_s).encode())
+        h.update(sc.x_mm.tobytes())
+        h.update(sc.z_mm.tobytes())
+    return h.hexdigest()

@@ -5,7 +5,6 @@ path (to float rounding), deterministic, and stop at the same sample when anythi
 end the hold (it hands such spans back to the sub-chunk path)."""
 from __future__ import annotations
 
-import hashlib
 from dataclasses import replace
 
 import numpy as np
@@ -13,7 +12,7 @@ import pytest
 
 from elastoprobe.controller.devices import MotionState
 
-from test_sim_helpers import Log, make_cell, press, tick, wait
+from test_sim_helpers import Log, digest, make_cell, press, tick, wait
 
 UP = (0.0, 0.0, 1.0)
 POINTS = {"rubber_ball": (0.0, 0.0, 130.0), "composite": (130.0, 0.0, 80.0)}
@@ -44,17 +43,6 @@ def _run(obj: str, batching: bool, force_n: float = 12.0, angle_deg: float = 90.
     return cell, log, scans
 
 
-def _digest(log: Log, scans) -> str:
-    h = hashlib.sha256()
-    for b in log.blocks:
-        for arr in (b.t_s, b.seq, b.force_n, b.torque_nm, b.status):
-            h.update(np.ascontiguousarray(arr).tobytes())
-    for sc in scans:
-        h.update(repr(sc.exposure_t_s).encode())
-        h.update(sc.z_mm.tobytes())
-    return h.hexdigest()
-
-
 @pytest.mark.parametrize("obj, angle_deg", [("rubber_ball", 90.0), ("rubber_ball", 45.0), ("composite", 90.0)])
 def test_batched_hold_matches_the_sub_chunk_path(obj, angle_deg):
     fast, log_f, scans_f = _run(obj, True, angle_deg=angle_deg)
@@ -81,7 +69,7 @@ def test_batched_hold_matches_the_sub_chunk_path(obj, angle_deg):
 def test_batched_hold_is_deterministic():
     a = _run("rubber_ball", True)
     b = _run("rubber_ball", True)
-    assert _digest(a[1], a[2]) == _digest(b[1], b[2])
+    assert digest(a[1], a[2]) == digest(b[1], b[2])
 
 
 def test_the_batch_ends_on_time_whatever_the_sleep():
