@@ -237,7 +237,9 @@ class Session:
                                 f"sweep moves it by {np.round(change, 1).tolist()} mm): check the scanner and "
                                 f"tip calibration (elastoprobe calibrate scanner|tcp), then resume")
         cell.base_to_object = after
+        self.executor.validator = None               # type: ignore[assignment]  # one scene in memory, not two
         self.executor.validator = build_validator(self.inputs, cell, mesh)
+        _release_freed_memory()
         self._log("object_registered", **record)     # journal event too: resume starts from it
 
     def sweep_object(self, key_step: int) -> tuple[np.ndarray, float, list[str]]:
@@ -711,6 +713,20 @@ class Session:
 
 
 SWEEP_FAULT_PREFIX = "during a sweep of the object"
+
+
+def _release_freed_memory() -> None:
+    """Hand freed heap back to the OS after a burst of large temporaries (a re-registration's
+    sweep, ICP and collision scene): glibc keeps such pages, and an overnight session's
+    resident memory would ratchet up by tens of MB per re-registration. No-op elsewhere."""
+    import ctypes
+    import gc
+
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 class BudgetSpent(Exception):
