@@ -25,7 +25,7 @@ Ground truth, not the controller's word:
   steps_duplicated = steps with more than one ``step_done`` line.
 
 Memory: the child's RSS (/proc/PID/status VmRSS) every ``sample_s`` with the journal's
-robot time; peak_rss_mb is the largest ru_maxrss of the children (os.wait4).
+robot time; peak_rss_mb is the largest VmHWM sampled from the children (peak since exec).
 rss_growth_mb_per_h is the RSS slope against ROBOT hours over the probing stretches
 (samples where robot time advances; start-up and learning phases excluded): Theil-Sen
 per stretch, averaged weighted by each stretch's robot hours. baseline_rss_mb is the
@@ -202,15 +202,23 @@ class ChildRun:
     stderr_tail: str = ""
 
 
-def _vm_rss_mb(pid: int) -> float | None:
+def _vm_mb(pid: int, field_name: str = "VmRSS") -> float | None:
+    """A /proc/<pid>/status memory line in MB (VmRSS now, VmHWM the peak since exec).
+
+    Not ru_maxrss: on Linux a child's ru_maxrss includes the parent it was forked from
+    (under pytest that is the test process itself, a gigabyte)."""
     try:
         with open(f"/proc/{pid}/status", encoding="ascii") as f:
             for line in f:
-                if line.startswith("VmRSS:"):
+                if line.startswith(field_name + ":"):
                     return int(line.split()[1]) / 1024.0
     except (OSError, ValueError):
         return None
     return None
+
+
+def _vm_rss_mb(pid: int) -> float | None:
+    return _vm_mb(pid, "VmRSS")
 
 
 def _journal_poll(session_dir: Path) -> tuple[float, set[int]] | None:
@@ -247,6 +255,7 @@ def run_child(args: list[str], env: dict[str, str], session_dir: Path, kill_afte
     samples: list[tuple[float, float, float]] = []
     killed = None
     robot_s = 0.0
+    peak_mb = 0.0
     while True:
         pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
         if pid != 0:
@@ -268,10 +277,11 @@ def run_child(args: list[str], env: dict[str, str], session_dir: Path, kill_afte
         rss = _vm_rss_mb(proc.pid)
         if rss is not None:
             samples.append((t, rss, robot_s))
+            peak_mb = max(peak_mb, _vm_mb(proc.pid, "VmHWM") or rss)
         time.sleep(sample_s)
     proc.returncode = os.waitstatus_to_exitcode(status)
     tail = log_path.read_bytes()[-3000:].decode("utf-8", "replace") if log_path.exists() else ""
-    return ChildRun(args, proc.pid, proc.returncode, killed, time.monotonic() - t0, usage.ru_maxrss / 1024.0, samples,
+    return ChildRun(args, proc.pid, proc.returncode, killed, time.monotonic() - t0, peak_mb, samples,
                     stderr_tail=tail)
 
 
@@ -306,8 +316,11 @@ def baseline_rss_mb(plan: Path, env: dict[str, str]) -> float:
     """Peak RSS of ``elastoprobe check PLAN`` (the CLI, plan and cell loaded, no session)."""
     proc = subprocess.Popen(CLI + ["check", str(plan)], env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
-    _, _, usage = os.wait4(proc.pid, 0)
-    return usage.ru_maxrss / 1024.0
+    peak_mb = 0.0
+    while proc.poll() is None:           # sampled: the peak since exec, until it exits
+        peak_mb = max(peak_mb, _vm_mb(proc.pid, "VmHWM") or 0.0)
+        time.sleep(0.02)
+    return peak_mb
 
 
 # ----------------------------------------------------------------------------- accounting
