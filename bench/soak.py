@@ -197,7 +197,7 @@ class ChildRun:
     killed: str | None                 # "delay 12.3 s" / "aimed commit_step:half_arrays@7" / None
     wall_s: float
     max_rss_mb: float
-    samples: list[tuple[float, float, float]]   # (wall s since start, RSS MB, robot s)
+    samples: list[tuple[float, ...]]   # (wall s since start, RSS MB, robot s, committed phases)
     pause_reason: str | None = None
     stderr_tail: str = ""
 
@@ -221,8 +221,8 @@ def _vm_rss_mb(pid: int) -> float | None:
     return _vm_mb(pid, "VmRSS")
 
 
-def _journal_poll(session_dir: Path) -> tuple[float, set[int]] | None:
-    """Robot time (s) and done step ids, read-only (safe while the child writes)."""
+def _journal_poll(session_dir: Path) -> tuple[float, set[int], int] | None:
+    """Robot time (s), done step ids and committed phases, read-only (safe while the child writes)."""
     from elastoprobe.controller.journal import Journal
 
     if not (session_dir / "journal.sqlite").exists():
@@ -233,7 +233,7 @@ def _journal_poll(session_dir: Path) -> tuple[float, set[int]] | None:
         return None
     try:
         done = {r.step_id for r in j.steps(statuses=["done"])}
-        return j.robot_time_s()["total"], done
+        return j.robot_time_s()["total"], done, len(j.phases())
     except (sqlite3.Error, Exception):   # noqa: BLE001
         return None
     finally:
@@ -252,9 +252,10 @@ def run_child(args: list[str], env: dict[str, str], session_dir: Path, kill_afte
     with open(log_path, "ab") as err:
         proc = subprocess.Popen(CLI + args, env=env, stdout=subprocess.DEVNULL, stderr=err)
     t0 = time.monotonic()
-    samples: list[tuple[float, float, float]] = []
+    samples: list[tuple[float, ...]] = []
     killed = None
     robot_s = 0.0
+    phases = 0
     peak_mb = 0.0
     while True:
         pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
@@ -272,11 +273,11 @@ def run_child(args: list[str], env: dict[str, str], session_dir: Path, kill_afte
             continue
         polled = _journal_poll(session_dir)
         if polled is not None:
-            robot_s = polled[0]
+            robot_s, phases = polled[0], polled[2]
             ever_done |= polled[1]
         rss = _vm_rss_mb(proc.pid)
         if rss is not None:
-            samples.append((t, rss, robot_s))
+            samples.append((t, rss, robot_s, phases))
             peak_mb = max(peak_mb, _vm_mb(proc.pid, "VmHWM") or rss)
         time.sleep(sample_s)
     proc.returncode = os.waitstatus_to_exitcode(status)
@@ -497,9 +498,14 @@ def rss_growth_mb_per_h(children: list[ChildRun], min_span_h: float = 0.05) -> t
     slopes, weights = [], []
     for c in children:
         stretch: list[tuple[float, float]] = []
-        prev_robot, prev_rss = None, 0.0
-        for _, rss, robot_s in c.samples + [(0.0, 0.0, -1.0)]:     # a sentinel closes the last stretch
-            advancing = prev_robot is not None and robot_s > prev_robot
+        prev_robot, prev_rss, prev_phases = None, 0.0, None
+        for sample in list(c.samples) + [(0.0, 0.0, -1.0, None)]:     # a sentinel closes the last stretch
+            _, rss, robot_s = sample[:3]
+            phases = sample[3] if len(sample) > 3 else None
+            # A stretch is probing only: a learning phase committed between two samples
+            # (its models, maps and torch stay resident) ends it, as start-up does.
+            same_phase = phases == prev_phases or phases is None or prev_phases is None
+            advancing = prev_robot is not None and robot_s > prev_robot and same_phase
             if advancing:
                 if not stretch:
                     stretch.append((prev_robot / 3600.0, prev_rss))
@@ -511,7 +517,7 @@ def rss_growth_mb_per_h(children: list[ChildRun], min_span_h: float = 0.05) -> t
                     slopes.append(float(theilslopes(m, h)[0]))
                     weights.append(span)
                 stretch = []
-            prev_robot, prev_rss = robot_s, rss
+            prev_robot, prev_rss, prev_phases = robot_s, rss, phases
     if not slopes:
         return None, 0.0
     w = np.array(weights)
