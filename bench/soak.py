@@ -395,6 +395,11 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
             elif match.policy_action in ("retry", "skip_target") and (
                     match.step_id is None or status.get(match.step_id) in ("done", "skipped")):
                 fate["fate"] = "recovered"     # retried or skipped per policy, and the session went on
+            elif match.policy_action == "pause" and _killed_run(run_id, children, run_of_pid) and (
+                    match.step_id is None or status.get(match.step_id) in ("done", "skipped")):
+                # Journaled as a pause, then a SIGKILL landed before the process could exit 3:
+                # the resume finished the step, as it would have after the pause.
+                fate.update(fate="paused", killed_while_pausing=True)
             else:
                 fate["fate"] = "unresolved"
         elif rec["kind"] in ("scanner_timeout", "scanner_short_burst", "slip") and \
