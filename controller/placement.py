@@ -112,6 +112,7 @@ class PlacementMonitor:
         # Wide acceptance first (a shift of a few cm must still pull), then tighter.
         scale_mm = max(20.0, 3.0 * rms0)
         relief = 0.0
+        horiz = np.eye(3) - np.outer(up_obj, up_obj)
         for _ in range(iterations):
             r, nrm = self._residuals(q, shift)
             w = _tukey(r, scale_mm)
@@ -123,7 +124,6 @@ class PlacementMonitor:
             a += np.eye(3) * 1e-3 * w.sum()
             delta = np.linalg.solve(a, b)
             shift = shift + delta
-            horiz = np.eye(3) - np.outer(up_obj, up_obj)
             relief = float(np.linalg.eigvalsh(horiz @ a @ horiz)[-1] / max(w.sum(), 1e-9))
             scale_mm = max(2.0, 0.7 * scale_mm)
             if np.linalg.norm(delta) < 0.02:
@@ -158,8 +158,8 @@ def reregister(mesh: object, cloud_base_mm: np.ndarray, believed: Pose, max_rms_
     """
     from .learning.cloud import register_mesh_to_cloud
 
-    init = believed                       # cloud frame = base frame here
-    pose, rms = register_mesh_to_cloud(mesh, cloud_base_mm, init=init, seed=seed)
+    # The cloud is in the base frame, so the believed base <- object pose is the start.
+    pose, rms = register_mesh_to_cloud(mesh, cloud_base_mm, init=believed, seed=seed)
     change = float(np.linalg.norm(pose.position_mm - believed.position_mm))
     tilt_deg = float(np.degrees(np.arccos(np.clip(pose.rotation[:, 2] @ believed.rotation[:, 2], -1.0, 1.0))))
     if rms > max_rms_mm:

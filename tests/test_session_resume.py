@@ -72,9 +72,11 @@ def _check_sound(session_dir: Path) -> None:
         j.close()
 
 
-def _kill_and_resume(setup: dict, name: str, kills: list[tuple[str, object]]) -> tuple[Path, list[int]]:
+def _kill_and_resume(setup: dict, name: str, kills: list[tuple[str, object]],
+                     aimed_must_land: bool = True) -> tuple[Path, list[int]]:
     """Run the session through ``kills`` (("delay", seconds) or ("crash", spec)), then
-    resume until it is done. Returns the directory and the exit codes in order."""
+    resume until it is done. Returns the directory and the exit codes in order.
+    ``aimed_must_land``: every crash spec must kill its run (else that moment went untested)."""
     out = setup["tmp"] / name
     codes = []
     for kind, value in kills:
@@ -83,8 +85,9 @@ def _kill_and_resume(setup: dict, name: str, kills: list[tuple[str, object]]) ->
         else:
             env = child_env(setup["tmp"] / "locks", crash_at=str(value))
             child = start_or_resume(setup["plan"], out, SEED, env)
-            # An aimed kill must really land (else the test would test nothing there).
-            assert child.returncode == -9, f"{value}: expected a SIGKILL, got {child.returncode}\n{child.stderr[-2000:]}"
+            if aimed_must_land:
+                assert child.returncode == -9, \
+                    f"{value}: expected a SIGKILL, got {child.returncode}\n{child.stderr[-2000:]}"
         codes.append(child.returncode)
         assert child.returncode in (-9, 0), child.stderr[-3000:]
         _check_sound(out)
@@ -154,25 +157,7 @@ def test_twenty_kills_then_resume_equals_uninterrupted(setup: dict, reference: O
         kills.append(("crash", f"{rnd.choice(STEP_POINTS)}@{2 if k % 3 == 2 else 1}"))
     kills.append(("delay", rnd.uniform(1.5, 3.0)))
     kills += [("crash", spec) for spec in LATE_POINTS]
-    out = setup["tmp"] / "killed20"
-    codes: list[int] = []
-    for kind, value in kills:
-        if kind == "delay":
-            child = start_or_resume(setup["plan"], out, SEED, setup["env"], kill_after_s=float(value))  # type: ignore[arg-type]
-        else:
-            env = child_env(setup["tmp"] / "locks", crash_at=str(value))
-            child = start_or_resume(setup["plan"], out, SEED, env)
-        codes.append(child.returncode)
-        assert child.returncode in (-9, 0), child.stderr[-3000:]
-        _check_sound(out)
-        if child.returncode == 0:
-            break
-    for _ in range(MAX_FINAL_RESUMES):
-        if codes[-1] == 0:
-            break
-        child = start_or_resume(setup["plan"], out, SEED, setup["env"])
-        codes.append(child.returncode)
-    assert codes[-1] == 0, codes
+    out, codes = _kill_and_resume(setup, "killed20", kills, aimed_must_land=False)
     landed = codes.count(-9)
     print(f"kills landed: {landed}; runs: {len(codes)}; exit codes: {codes}")
     assert landed >= 20, f"only {landed} kills landed: {codes}"
