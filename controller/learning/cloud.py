@@ -19,6 +19,10 @@ from ..errors import InputError
 from ..geometry import Pose, rotvec_to_matrix
 
 _PCA_CHUNK = 131_072  # neighbourhoods per chunk: bounds memory at ~chunk*k*3 doubles
+# A neighbourhood whose second PCA eigenvalue is under this fraction of its largest is a
+# line, not a patch of surface (see _local_pca); it is widened at most _MAX_WIDEN times.
+_LINE_RATIO = 0.1
+_MAX_WIDEN = 3
 
 
 # --------------------------------------------------------------------------- loading
@@ -155,22 +159,45 @@ def _unit_rows(v: np.ndarray) -> np.ndarray:
     return v / np.where(n > 1e-12, n, 1.0)
 
 
+def _pca_of_neighbourhoods(pts: np.ndarray, tree: cKDTree, rows: np.ndarray, k: int,
+                           evals: np.ndarray, normals: np.ndarray) -> None:
+    """k-NN covariance eigenvalues (ascending) and smallest eigenvectors of ``pts[rows]``, in place."""
+    for start in range(0, rows.size, _PCA_CHUNK):
+        sel = rows[start:start + _PCA_CHUNK]
+        _, idx = tree.query(pts[sel], k=k, workers=-1)
+        nb = pts[idx]
+        centred = nb - nb.mean(axis=1, keepdims=True)
+        cov = np.einsum("nki,nkj->nij", centred, centred) / k
+        w, v = np.linalg.eigh(cov)
+        evals[sel] = np.clip(w, 0.0, None)
+        normals[sel] = v[:, :, 0]
+
+
 def _local_pca(points_mm: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Eigenvalues (N,3) ascending and smallest-eigenvalue eigenvectors (N,3) of k-NN covariances."""
+    """Eigenvalues (N,3) ascending and smallest-eigenvalue eigenvectors (N,3) of k-NN covariances.
+
+    A laser-line raster samples the surface far more densely along a profile (~0.5 mm)
+    than across profiles (the sweep spacing, ~4 mm): the k nearest neighbours of a point
+    can all lie on its own profile line. A line has no normal — the smallest-variance
+    direction is then any direction across it (on the demo's box top, mostly the sweep
+    direction: a horizontal "normal" that made the top count as a wall). Such a
+    neighbourhood (second eigenvalue under ``_LINE_RATIO`` of the largest: a spread
+    across the line under ~1/3 of the spread along it) is widened, doubling k up to
+    ``_MAX_WIDEN`` times, until it reaches the neighbouring lines.
+    """
     pts = np.asarray(points_mm, dtype=float)
     k = int(min(max(k, 3), pts.shape[0]))
     tree = cKDTree(pts)
     evals = np.empty((pts.shape[0], 3))
     normals = np.empty((pts.shape[0], 3))
-    for start in range(0, pts.shape[0], _PCA_CHUNK):
-        stop = min(start + _PCA_CHUNK, pts.shape[0])
-        _, idx = tree.query(pts[start:stop], k=k, workers=-1)
-        nb = pts[idx]
-        centred = nb - nb.mean(axis=1, keepdims=True)
-        cov = np.einsum("nki,nkj->nij", centred, centred) / k
-        w, v = np.linalg.eigh(cov)
-        evals[start:stop] = np.clip(w, 0.0, None)
-        normals[start:stop] = v[:, :, 0]
+    rows = np.arange(pts.shape[0])
+    _pca_of_neighbourhoods(pts, tree, rows, k, evals, normals)
+    for _ in range(_MAX_WIDEN):
+        rows = rows[evals[rows, 1] < _LINE_RATIO * evals[rows, 2]]
+        if rows.size == 0 or k >= pts.shape[0]:
+            break
+        k = int(min(2 * k, pts.shape[0]))
+        _pca_of_neighbourhoods(pts, tree, rows, k, evals, normals)
     return evals, normals
 
 
