@@ -39,6 +39,8 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parent.parent
 PLAN = ROOT / "config" / "plans" / "demo.yaml"
 CALIBRATED_CELL = ROOT / "config" / "cells" / "sim.yaml"
@@ -182,81 +184,198 @@ def headline(run: dict[str, Any]) -> dict[str, Any]:
     return {k: ev.get(k) for k in keys}
 
 
-def compare(calibrated: float | None, after: float | None) -> dict[str, Any]:
-    """The goal: |after - calibrated| / calibrated <= 10 % (None when a figure is missing)."""
-    if calibrated is None or after is None or calibrated <= 0.0:
-        return {"rel_diff": None, "met": False}
-    rel = abs(after - calibrated) / calibrated
-    return {"rel_diff": round(rel, 4), "met": bool(rel <= GOAL_REL_DIFF)}
+AGG_KEYS = ("region_map_error", "worst_region_iou", "boundary_mm_mean", "boundary_mm_p90", "regions_found")
+
+
+def aggregate(per_seed: dict[int, dict[str, Any]]) -> dict[str, Any]:
+    """Per-seed values, mean, sample standard deviation and standard error of the mean of each
+    headline figure over the seeds that produced a map (paused runs are counted, not averaged)."""
+    out: dict[str, Any] = {"seeds": sorted(per_seed), "maps": 0, "paused": 0}
+    done = {s: h for s, h in per_seed.items() if h.get("region_map_error") is not None}
+    out["maps"], out["paused"] = len(done), len(per_seed) - len(done)
+    for key in AGG_KEYS:
+        vals = {s: h.get(key) for s, h in done.items()}
+        xs = np.array([v for v in vals.values() if v is not None], dtype=float)
+        row: dict[str, Any] = {"per_seed": vals}
+        if xs.size:
+            sd = float(np.std(xs, ddof=1)) if xs.size > 1 else None
+            row.update(mean=round(float(xs.mean()), 7), sd=None if sd is None else round(sd, 7),
+                       sem=None if sd is None else round(sd / np.sqrt(xs.size), 7),
+                       min=round(float(xs.min()), 7), max=round(float(xs.max()), 7))
+        out[key] = row
+    return out
+
+
+def compare(reference: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
+    """Issue #6's goal on the seeds' mean region_map_error: |mean_other - mean_ref| <= 10 % of mean_ref.
+
+    ``strict``: the issue's words. ``floored``: also met when the difference is within
+    ``noise_floor`` = 2 standard errors of the difference of the two means (sqrt(sem_ref^2 +
+    sem_other^2)): with errors near zero a run's map error is a handful of points and swings
+    between equivalent runs by more than 10 % relative, so a difference under two standard
+    errors cannot be told from none with these seeds. Both verdicts are reported; the strict
+    one is the goal.
+    """
+    a, b = reference["region_map_error"], other["region_map_error"]
+    if "mean" not in a or "mean" not in b:
+        return {"strict_met": False, "floored_met": False, "why": "a case has no map to score"}
+    ma, mb = a["mean"], b["mean"]
+    diff = mb - ma
+    rel = abs(diff) / ma if ma > 0 else None
+    sem_a, sem_b = a.get("sem"), b.get("sem")
+    floor = 2.0 * float(np.hypot(sem_a, sem_b)) if sem_a is not None and sem_b is not None else None
+    strict = rel is not None and rel <= GOAL_REL_DIFF
+    return {"mean_reference": ma, "mean_other": mb, "difference": round(diff, 7),
+            "rel_diff": None if rel is None else round(rel, 4),
+            "strict_goal": f"|difference| <= {GOAL_REL_DIFF} x mean_reference", "strict_met": bool(strict),
+            "noise_floor": None if floor is None else round(floor, 7),
+            "noise_floor_is": "2 x sqrt(sem_reference^2 + sem_other^2) over the seeds",
+            "floored_met": bool(strict or (floor is not None and abs(diff) <= floor)),
+            "other_no_worse_by_10pct": bool(mb <= (1.0 + GOAL_REL_DIFF) * ma)}
+
+
+def draw_cell(src: Path, dest_dir: Path, cell_seed: int) -> Path:
+    """A copy of the miscalibrated cell whose miscalibration is drawn from ``cell_seed``."""
+    from ruamel.yaml import YAML
+
+    dest = copy_cell(src, dest_dir)
+    yaml = YAML()
+    doc = yaml.load(dest.read_text(encoding="utf-8"))
+    doc["simulation"]["miscalibration"]["seed"] = int(cell_seed)
+    with dest.open("w", encoding="utf-8") as f:
+        yaml.dump(doc, f)
+    return dest
+
+
+def calibration_complete(cell: Path) -> bool:
+    """Whether the cell copy's calibration file holds all four sections (``--reuse``)."""
+    path = cell.with_suffix(".calibration.json")
+    if not path.exists():
+        return False
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError):
+        return False
+    sections = doc.get("sections", doc)
+    return all(k in sections for k in KINDS)
+
+
+def parse_ints(text: str) -> list[int]:
+    try:
+        vals = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+    if not vals:
+        raise argparse.ArgumentTypeError("expected at least one integer")
+    return vals
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--plan", type=Path, default=PLAN)
-    ap.add_argument("--seed", type=int, default=1, help="the runs' seed (noise); the miscalibration is the cell's")
+    ap.add_argument("--seeds", type=parse_ints, default=[1],
+                    help="the demo runs' seeds, e.g. 1,2,3,4,5 (noise only; the miscalibration is the cell's)")
+    ap.add_argument("--seed", type=int, default=None, help="one seed (same as --seeds N)")
+    ap.add_argument("--cell-seeds", type=parse_ints, default=None,
+                    help="miscalibration draws: copies of the miscalibrated cell with these "
+                         "simulation.miscalibration.seed values (default: the shipped cell's own)")
     ap.add_argument("--calibration-seed", type=int, default=0, help="seed of the calibration runs' noise")
     ap.add_argument("--out", type=Path, default=None, help="folder for the cells and sessions (default: temporary)")
-    ap.add_argument("--reuse", action="store_true", help="keep sessions that already finished in --out")
+    ap.add_argument("--reuse", action="store_true", help="keep sessions and calibrations that already finished in --out")
     ap.add_argument("--parallel", type=int, default=1, choices=(1, 2, 3, 4), help="demo runs at once")
     ap.add_argument("--oracle", action="store_true",
-                    help="also run the miscalibrated cell with its exact calibration (the simulator's truth)")
+                    help="also run the first miscalibration draw with its exact calibration (the simulator's truth)")
     args = ap.parse_args(argv)
+    seeds = [args.seed] if args.seed is not None else args.seeds
     t0 = time.perf_counter()
     out = args.out or Path(tempfile.mkdtemp(prefix="calibrated_demo_"))
     out.mkdir(parents=True, exist_ok=True)
-    uncal_cell = copy_cell(MISCALIBRATED_CELL, out / "cells" / "uncalibrated")
-    cal_cell = copy_cell(MISCALIBRATED_CELL, out / "cells" / "calibrated")
+    from ruamel.yaml import YAML
 
-    # Calibrate before any demo starts, so that the runs start together on the same code.
-    if args.reuse and session_done(out / "after_calibration"):
-        cal: dict[str, Any] = {k: {"written": str(cal_cell.with_suffix(".calibration.json")), "result": "reused"}
-                               for k in KINDS}
-    else:
-        cal = calibrate(cal_cell, args.calibration_seed)
+    shipped_draw = int(YAML().load(MISCALIBRATED_CELL.read_text(encoding="utf-8"))
+                       ["simulation"]["miscalibration"]["seed"])
+    draws = args.cell_seeds if args.cell_seeds is not None else [shipped_draw]
 
-    def after_calibration() -> dict[str, Any]:
-        return {**run_demo(args.plan, cal_cell, out / "after_calibration", args.seed, args.reuse), "calibration": cal}
+    # Cells first, then every calibration, before any demo starts, so that the runs start
+    # together on the same code.
+    cells: dict[int, dict[str, Path]] = {}
+    calibrations: dict[int, Any] = {}
+    for draw in draws:
+        base = out / "cells" / f"draw{draw}"
+        cells[draw] = {"uncalibrated": draw_cell(MISCALIBRATED_CELL, base / "uncalibrated", draw),
+                       "calibrated": draw_cell(MISCALIBRATED_CELL, base / "calibrated", draw)}
+        if args.reuse and calibration_complete(cells[draw]["calibrated"]):
+            calibrations[draw] = {k: {"written": str(cells[draw]["calibrated"].with_suffix(".calibration.json")),
+                                      "result": "reused"} for k in KINDS}
+        else:
+            calibrations[draw] = calibrate(cells[draw]["calibrated"], args.calibration_seed)
+        if args.oracle and draw == draws[0]:
+            cells[draw]["perfect"] = draw_cell(MISCALIBRATED_CELL, base / "perfect", draw)
+            if not (args.reuse and calibration_complete(cells[draw]["perfect"])):
+                write_perfect_calibration(cells[draw]["perfect"])
+
+    jobs_spec: list[tuple[str, int | None, int, Path]] = []     # (case, draw, seed, cell)
+    for seed in seeds:
+        jobs_spec.append(("calibrated", None, seed, CALIBRATED_CELL))
+        for draw in draws:
+            jobs_spec.append(("uncalibrated", draw, seed, cells[draw]["uncalibrated"]))
+            jobs_spec.append(("after_calibration", draw, seed, cells[draw]["calibrated"]))
+            if "perfect" in cells[draw]:
+                jobs_spec.append(("perfect_calibration", draw, seed, cells[draw]["perfect"]))
+
+    def session_dir(case: str, draw: int | None, seed: int) -> Path:
+        return out / f"seed{seed}" / (case if draw is None else f"{case}_draw{draw}")
 
     with ThreadPoolExecutor(max_workers=args.parallel) as pool:
-        jobs = {"calibrated": pool.submit(run_demo, args.plan, CALIBRATED_CELL, out / "calibrated", args.seed,
-                                          args.reuse),
-                "uncalibrated": pool.submit(run_demo, args.plan, uncal_cell, out / "uncalibrated", args.seed,
-                                            args.reuse),
-                "after_calibration": pool.submit(after_calibration)}
-        if args.oracle:
-            oracle_cell = copy_cell(MISCALIBRATED_CELL, out / "cells" / "perfect")
+        futures = {(case, draw, seed): pool.submit(run_demo, args.plan, cell, session_dir(case, draw, seed), seed,
+                                                   args.reuse)
+                   for case, draw, seed, cell in jobs_spec}
+        runs = {key: f.result() for key, f in futures.items()}
 
-            def perfect() -> dict[str, Any]:
-                written = write_perfect_calibration(oracle_cell)
-                return {**run_demo(args.plan, oracle_cell, out / "perfect_calibration", args.seed, args.reuse),
-                        "calibration": written}
+    def case_name(case: str, draw: int | None) -> str:
+        return case if draw is None else f"{case}_draw{draw}"
 
-            jobs["perfect_calibration"] = pool.submit(perfect)
-        runs = {name: job.result() for name, job in jobs.items()}
-    e = {name: headline(r) for name, r in runs.items()}
+    per_case: dict[str, dict[int, dict[str, Any]]] = {}
+    for (case, draw, seed), run in runs.items():
+        per_case.setdefault(case_name(case, draw), {})[seed] = headline(run)
+    agg = {name: aggregate(rows) for name, rows in per_case.items()}
+    # Every draw's after-calibration seeds pooled: "a miscalibrated cell" over the draws.
+    pooled = {f"{seed}/draw{draw}": per_case[case_name('after_calibration', draw)][seed]
+              for draw in draws for seed in seeds}
+    agg_pooled = aggregate({i: h for i, h in enumerate(pooled.values())})
+    agg_pooled["seeds"] = list(pooled)
+    comparisons: dict[str, Any] = {
+        f"after_calibration_draw{d}_vs_calibrated": compare(agg["calibrated"], agg[case_name("after_calibration", d)])
+        for d in draws}
+    if len(draws) > 1:
+        comparisons["after_calibration_all_draws_vs_calibrated"] = compare(agg["calibrated"], agg_pooled)
+    if args.oracle:
+        for d in draws[:1]:
+            comparisons[f"after_calibration_draw{d}_vs_perfect_calibration"] = compare(
+                agg[case_name("perfect_calibration", d)], agg[case_name("after_calibration", d)])
+            comparisons[f"perfect_calibration_draw{d}_vs_calibrated"] = compare(
+                agg["calibrated"], agg[case_name("perfect_calibration", d)])
+    goal_key = ("after_calibration_all_draws_vs_calibrated" if len(draws) > 1
+                else f"after_calibration_draw{draws[0]}_vs_calibrated")
+    codes = {f"{case_name(c, d)}/seed{s}": r["code"] for (c, d, s), r in runs.items()}
+    code_list = list(codes.values())
     result = {
-        "plan": str(args.plan), "seed": args.seed, "out": str(out),
+        "plan": str(args.plan), "seeds": seeds, "miscalibration_draws": draws, "out": str(out),
         "figure": "region_map_error (mislabelled fraction of the reachable scanned surface)",
-        "evaluations": e,
-        "after_vs_calibrated": compare(e["calibrated"]["region_map_error"], e["after_calibration"]["region_map_error"]),
-        "uncalibrated_vs_calibrated": compare(e["calibrated"]["region_map_error"],
-                                              e["uncalibrated"]["region_map_error"]),
-        "goal": f"|after - calibrated| / calibrated <= {GOAL_REL_DIFF}",
-        "after_no_worse_than_calibrated": bool(
-            e["after_calibration"]["region_map_error"] is not None and e["calibrated"]["region_map_error"] is not None
-            and e["after_calibration"]["region_map_error"]
-            <= (1.0 + GOAL_REL_DIFF) * e["calibrated"]["region_map_error"]),
-        "calibration": runs["after_calibration"].get("calibration"),
-        "wall_time_s": {**{k: r["wall_time_s"] for k, r in runs.items()},
+        "per_seed": {name: {str(s): h for s, h in sorted(rows.items())} for name, rows in per_case.items()},
+        "aggregate": {**agg, **({"after_calibration_all_draws": agg_pooled} if len(draws) > 1 else {})},
+        "comparisons": comparisons,
+        "goal": f"|mean(after) - mean(calibrated)| / mean(calibrated) <= {GOAL_REL_DIFF} (issue #6), "
+                f"over the seeds{' and draws' if len(draws) > 1 else ''}",
+        "goal_comparison": goal_key,
+        "goal_met_strict": comparisons[goal_key]["strict_met"],
+        "goal_met_floored": comparisons[goal_key]["floored_met"],
+        "calibration": {f"draw{d}": c for d, c in calibrations.items()},
+        "wall_time_s": {"runs": {f"{case_name(c, d)}/seed{s}": r["wall_time_s"] for (c, d, s), r in runs.items()},
                         "total": round(time.perf_counter() - t0, 1)},
+        "code": codes,
+        "same_code": bool(all(c == code_list[0] and c is not None and not c.get("dirty") for c in code_list)),
     }
-    if "perfect_calibration" in e:
-        result["after_vs_perfect_calibration"] = compare(e["perfect_calibration"]["region_map_error"],
-                                                         e["after_calibration"]["region_map_error"])
-    codes = [r["code"] for r in runs.values()]
-    result["code"] = {k: r["code"] for k, r in runs.items()}
-    result["same_code"] = bool(all(c == codes[0] and c is not None and not c.get("dirty") for c in codes))
-    result["goal_met"] = result["after_vs_calibrated"]["met"]
     print(json.dumps(result))
     return 0
 
