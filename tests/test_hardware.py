@@ -4,6 +4,7 @@ with bounded recovery; plus the pieces that need no network (device timebase, re
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -145,8 +146,57 @@ def test_protective_stop_mid_probe_then_bounded_recovery() -> None:
         assert arm.recover_protective_stop()
         status = arm.status()
         assert status.program_running and not status.protective_stop
+        # The re-uploaded script started with the robot's installation TCP; the link set the
+        # believed tool again, so the probe tip (not the flange) goes where it is sent.
+        assert rig.emulator.tcp_offset_ur == pytest.approx(rig.cfg.flange_to_tcp.to_ur(), abs=1e-12)
         # Re-seeded from the measured pose: a new move works.
         assert wait_motion(arm.move_linear(above, 50.0, 500.0), 10.0) == MotionState.DONE
         assert np.linalg.norm(arm.status().tcp_pose.position_mm - above.position_mm) < 1.0
+        assert np.linalg.norm(_true_tip_mm(rig) - above.position_mm) < 1.0
+    finally:
+        rig.close()
+
+
+def _true_tip_mm(rig) -> np.ndarray:  # noqa: ANN001 — test_loopback_rig.Rig
+    """Where the served world's probe tip really is (base frame, mm)."""
+    world = rig.backend.world
+    with rig.backend.lock:
+        return rig.backend.arm._sim_tip_base(world.tip_offset_tcp_mm)
+
+
+def _tip_off_by_4_mm(spec):  # noqa: ANN001, ANN202 — controller.config.CellSpec
+    """The served cell's true tip 4 mm from where its file says (nothing else miscalibrated)."""
+    sim = spec.simulation
+    mis = sim.miscalibration.model_copy(update={"enabled": True, "tip_mm": 4.0, "payload_mass_rel": 0.0,
+                                                "payload_com_mm": 0.0, "scanner_deg": 0.0, "scanner_mm": 0.0})
+    return spec.model_copy(update={"simulation": sim.model_copy(update={"miscalibration": mis})})
+
+
+@pytest.mark.loopback
+@pytest.mark.timeout(120)
+def test_the_believed_tool_s_tip_lands_where_commanded_over_the_real_protocols() -> None:
+    """The controller plans and commands TCP poses for the tool it believes in (the cell file
+    with its calibration applied). The link sets that TCP on the robot (setTcp) and the
+    emulator, as a UR does, moves and reports that TCP: a tool other than the file's nominal
+    one (here calibrated: the true tip 4 mm off the file's) puts the true tip at the
+    commanded point. Without setTcp the flange would go there (the tip 160 mm off); with a
+    robot that kept the file's TCP, the tip would be 4 mm off."""
+    rig = make_rig(185, start_hardware=False, spec_update=_tip_off_by_4_mm)
+    try:
+        truth = rig.backend.cell.truth
+        assert np.linalg.norm(truth.tip_offset_mm) == pytest.approx(4.0)
+        # A perfect tip calibration: the believed TCP is the true tip centre.
+        believed = rig.cfg.flange_to_tcp.compose(Pose(truth.tip_offset_mm, np.eye(3)))
+        rig.cfg = replace(rig.cfg, flange_to_tcp=believed)
+        rig.start_hardware()
+        assert rig.emulator.tcp_offset_ur == pytest.approx(believed.to_ur(), abs=1e-12)
+        arm = rig.hw.arm
+        rot = arm.status().tcp_pose.rotation
+        for target_mm in ([400.0, 0.0, 160.0], [380.0, 40.0, 175.0]):
+            target = Pose(np.array(target_mm), rot)
+            assert wait_motion(arm.move_linear(target, 100.0, 600.0), 15.0) == MotionState.DONE
+            time.sleep(0.1)
+            assert np.linalg.norm(arm.status().tcp_pose.position_mm - target.position_mm) < 0.05
+            assert np.linalg.norm(_true_tip_mm(rig) - target.position_mm) < 0.05
     finally:
         rig.close()

@@ -87,11 +87,16 @@ class Rig:
 
 
 def make_rig(octet: int, *, unlock_delay_s: float = 5.0, link: URLinkConfig | None = None,
-             start_hardware: bool = True, **cfg_overrides: Any) -> Rig:
-    """Serve the world on the first free 127.0.0.x from ``octet`` and start the hardware process."""
+             start_hardware: bool = True, spec_update: Callable[[CellSpec], CellSpec] | None = None,
+             **cfg_overrides: Any) -> Rig:
+    """Serve the world on the first free 127.0.0.x from ``octet`` and start the hardware process.
+
+    ``spec_update`` changes the cell served (and driven), e.g. its simulated miscalibration."""
     last: Exception | None = None
     for o in range(octet, octet + 8):
         spec = cell_on(f"127.0.0.{o}")
+        if spec_update is not None:
+            spec = spec_update(spec)
         try:
             served = start_servers(spec, CELL, seed=3, lifetime_s=600.0, unlock_delay_s=unlock_delay_s)
             break

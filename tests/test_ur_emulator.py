@@ -315,6 +315,63 @@ def test_watchdog_stops_program_and_arm_without_kicks(emulator_at) -> None:
     assert not emulator.is_moving()
 
 
+_TCP_CLIENT = r"""
+import json, sys, time
+import rtde_control, rtde_receive
+host = sys.argv[1]
+r = rtde_receive.RTDEReceiveInterface(host, frequency=125.0)
+c = rtde_control.RTDEControlInterface(host, frequency=125.0, flags=rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT)
+out = {"offset_at_start": c.getTCPOffset(), "pose_flange": r.getActualTCPPose()}
+out["set"] = c.setTcp([0.01, 0.0, 0.16, 0.0, 0.0, 0.0])
+out["offset"] = c.getTCPOffset()
+time.sleep(0.05)
+out["pose_tcp"] = r.getActualTCPPose()
+target = [0.45, -0.05, 0.12, 0.0, 3.141592653589793, 0.0]
+out["moved"] = c.moveL(target, 0.25, 1.2)
+time.sleep(0.05)
+out["pose_after_move"] = r.getActualTCPPose()
+out["target"] = target
+c.stopScript()                           # as after a protective stop: the program has ended
+time.sleep(0.1)
+c.reuploadScript()
+time.sleep(0.3)
+out["offset_after_reupload"] = c.getTCPOffset()
+out["pose_after_reupload"] = r.getActualTCPPose()
+c.stopScript(); c.disconnect(); r.disconnect()
+print(json.dumps(out))
+"""
+
+
+@pytest.mark.loopback
+@pytest.mark.timeout(60)
+def test_poses_are_the_active_tcp_s_and_a_new_script_starts_with_the_installation_tcp(emulator_at) -> None:
+    """As on a real UR: actual_TCP_pose = flange pose ∘ TCP offset, a moveL target is where the
+    TCP goes, and setTcp lasts until the program ends (a re-uploaded script starts with the
+    installation's TCP, here the flange's)."""
+    from elastoprobe.controller.geometry import Pose
+
+    emulator = emulator_at(29)
+    out = _run_client(_TCP_CLIENT, emulator.host)
+    flange = Pose.from_ur(START_POSE)                      # the kinematic stand-in's poses are the flange's
+    offset = Pose.from_ur([0.01, 0.0, 0.16, 0.0, 0.0, 0.0])
+    assert out["offset_at_start"] == pytest.approx([0.0] * 6)
+    assert out["pose_flange"] == pytest.approx(START_POSE)
+    assert out["set"] is True and out["offset"] == pytest.approx([0.01, 0.0, 0.16, 0.0, 0.0, 0.0])
+    # The flange points down (rotation pi about y): the TCP is 160 mm below it, 10 mm along -x.
+    assert out["pose_tcp"][:3] == pytest.approx(flange.compose(offset).to_ur()[:3], abs=1e-9)
+    assert out["pose_tcp"][:3] == pytest.approx([0.39, -0.1, 0.14], abs=1e-9)
+    # moveL takes the TCP to the target; the flange (the arm itself) is one offset back.
+    assert out["moved"] is True
+    assert out["pose_after_move"][:3] == pytest.approx(out["target"][:3], abs=1e-6)
+    flange_now = Pose.from_ur(emulator.backend.tcp_pose_ur())
+    expected_flange = Pose.from_ur(out["target"]).compose(offset.inverse())
+    assert flange_now.distance_to(expected_flange)[0] < 1e-3          # mm
+    # A new program starts with the installation's TCP: the same arm reads as its flange again.
+    assert out["offset_after_reupload"] == pytest.approx([0.0] * 6)
+    assert out["pose_after_reupload"][:3] == pytest.approx(flange_now.to_ur()[:3], abs=1e-6)
+    assert [e.kind for e in emulator.events_of("tcp_set")] == ["tcp_set"]
+
+
 def test_kinematic_backend_joint_move_and_joints_follow_the_pose() -> None:
     kin = pytest.importorskip("elastoprobe.controller.kinematics")
     from elastoprobe.controller.geometry import Pose

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from elastoprobe.controller.drivers import ur_link
-from elastoprobe.controller.drivers.ur_link import LinkMove, URLink, URLinkConfig, URState
+from elastoprobe.controller.drivers.ur_link import LinkMove, RobotClock, URLink, URLinkConfig, URState
 from elastoprobe.controller.errors import DeviceError, DeviceTimeout
 from elastoprobe.sim.servers.ur_backend import KinematicBackend
 from elastoprobe.sim.servers.ur_emulator import UREmulator
@@ -358,3 +358,45 @@ def test_child_dies_with_its_parent(tmp_path) -> None:
             parent.kill()
         parent.wait(5.0)
         emu.stop()
+
+
+# ---------------------------------------------------------------- robot clock (no network)
+def test_robot_clock_maps_package_times_with_the_quickest_reading() -> None:
+    """Packages sent at robot time k * 8 ms (clock offset 100 s) and read 0.3-8 ms later: every
+    mapped time is the package's own instant plus at most the quickest reading's delay, and
+    never the (later) reading time."""
+    rng = np.random.default_rng(4)
+    clock = RobotClock()
+    true_offset_s = 100.0
+    errors, ages = [], []
+    for k in range(400):
+        robot_s = 5.0 + k * 0.008
+        delay_s = 0.0003 + rng.uniform(0.0, 0.008)
+        local = clock.to_local_s(robot_s, robot_s + true_offset_s + delay_s)
+        errors.append(local - (robot_s + true_offset_s))
+        ages.append(delay_s)
+    errors_ms, ages_ms = np.asarray(errors[50:]) * 1e3, np.asarray(ages[50:]) * 1e3
+    assert errors_ms.min() >= 0.3 - 1e-6          # causal: never before the package was sent
+    # The quickest recent reading's delay (plus the drift allowance since), not each
+    # reading's age (median 4.6 ms here: what stamping on receipt would give).
+    assert np.median(ages_ms) > 4.0
+    assert np.median(errors_ms) < 0.6 and errors_ms.max() < 1.2
+    assert clock.offset_s == pytest.approx(true_offset_s, abs=1e-3)
+
+
+def test_robot_clock_follows_drift_restarts_and_never_goes_back() -> None:
+    clock = RobotClock(max_drift=2e-4)
+    # The local clock runs 100 ppm fast: the offset grows, and the bound follows it.
+    for k in range(2000):
+        robot_s = k * 0.01
+        clock.to_local_s(robot_s, robot_s * (1.0 + 1e-4) + 50.0 + 0.0005)
+    assert clock.offset_s == pytest.approx(50.0 + 19.99 * 1e-4 + 0.0005, abs=2e-4)
+    # A quicker reading lowers the offset, but a later package never maps before an earlier one.
+    first = clock.to_local_s(20.0, 20.0 + 50.0 + 0.004)
+    second = clock.to_local_s(20.001, 20.001 + 50.0)
+    assert second >= first
+    # The controller rebooted (its time went back): start over from the new readings.
+    after = clock.to_local_s(1.0, 900.0)
+    assert after == pytest.approx(900.0)
+    assert clock.offset_s == pytest.approx(899.0)
+

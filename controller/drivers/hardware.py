@@ -101,7 +101,9 @@ class HardwareConfig:
     """What the hardware process needs (units in the names, base frame).
 
     ``probe_axis_sensor``: the probe axis in the sensor frame (for the lateral-force limit).
-    ``flange_to_tcp`` and ``joint_limits_rad`` give the controller-side IK.
+    ``flange_to_tcp`` (the believed tool) and ``joint_limits_rad`` give the controller-side
+    IK; ``flange_to_tcp`` is also the TCP set on the robot (setTcp), whatever
+    ``link.tcp_offset_ur`` says: poses go to and come from the arm as this TCP's.
     """
 
     robot_host: str
@@ -394,7 +396,10 @@ class _HardwareServer:
         self.stop_event = threading.Event()
         self.ft = _NotifyingNetFT(cfg.ft_host, cfg.rdt_port, cfg.calinfo_port, rate_hz=cfg.ft_rate_hz,
                                   receive_thread=not cfg.ft_read_in_safety_thread)
-        self.link = URLink(cfg.robot_host, cfg.link).start()
+        # The arm moves the TCP the controller plans with (its IK uses cfg.flange_to_tcp, the
+        # believed tool): the link sets that TCP on the robot at every script start.
+        link_cfg = replace(cfg.link, tcp_offset_ur=tuple(float(v) for v in cfg.flange_to_tcp.to_ur()))
+        self.link = URLink(cfg.robot_host, link_cfg).start()
         self.guard = StopFirstGuard(cfg.limits, np.asarray(cfg.probe_axis_sensor, float), rate_hz=cfg.ft_rate_hz)
         self.gate = threading.Lock()          # orders speedL (control) against stops (safety)
         self.motion: _Motion | None = None

@@ -31,6 +31,7 @@ from __future__ import annotations
 import collections
 import ctypes
 import importlib.metadata
+import math
 import multiprocessing as mp
 import multiprocessing.connection
 import os
@@ -97,6 +98,11 @@ class URLinkConfig:
     ``control_frequency_hz`` overrides it for the control interface: ur_rtde 1.6.5 sends a
     command only between two packages of that stream, so its period bounds the wait of a stop.
     ``child_lifetime_s``: the child exits by itself after this long (bounded loops).
+    ``tcp_offset_ur``: the tool the controller believes in, flange -> TCP (m, rotation
+    vector): every pose the link sends (moveL targets) and reads (actual_TCP_pose) is this
+    TCP's, so the child sets it on the robot (setTcp) whenever a control script starts —
+    at connect and after every re-upload, since a new program starts with the
+    installation's TCP — and reads it back.
     """
 
     watchdog_min_hz: float = 10.0
@@ -112,6 +118,7 @@ class URLinkConfig:
     frequency_hz: float = -1.0
     control_frequency_hz: float | None = None
     child_lifetime_s: float = 24 * 3600.0
+    tcp_offset_ur: tuple[float, float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -120,7 +127,9 @@ class URState:
 
     ``async_progress``: getAsyncOperationProgress — -1 when no asynchronous operation
     runs, >= 0 while one does. ``kicking``: the child is kicking the watchdog (the
-    parent's heartbeat is fresh and the program runs). ``t_s``: parent monotonic time.
+    parent's heartbeat is fresh and the program runs). ``t_s``: when the controller
+    sampled this state, on the parent's monotonic clock (:class:`RobotClock`), not when
+    the parent received it.
     """
 
     t_s: float
@@ -140,6 +149,56 @@ class URState:
     @property
     def tcp_speed_m_s(self) -> float:
         return float(np.linalg.norm(self.tcp_speed_ur[:3]))
+
+
+class RobotClock:
+    """The UR controller's package timestamps (s since its boot) on this process's monotonic clock.
+
+    Why: a pose is only useful with the instant it was measured. The receive stream runs
+    at up to 500 Hz (125 Hz on loopback), ur_rtde keeps the latest package, and the
+    parent reads it through the child's pipe: stamped on arrival, a pose is 0-10 ms older
+    than its stamp, and while the scanner sweeps at 250 mm/s that put the profiles of the
+    two sweep headings ~1.6 mm apart (measured on the loopback cell: median lag 6.5 ms).
+
+    The offset local - robot is bounded above by every reading (arrival - timestamp: a
+    package cannot arrive before it was sent), so the estimate is the smallest such
+    difference, allowed to grow by ``max_drift`` (s/s) since it was last lowered, for the
+    two clocks' rate difference. A timestamp that goes back (a controller reboot, another
+    controller) starts over. The error is the quickest reading's transit, well under a ms
+    on a local network.
+    """
+
+    def __init__(self, max_drift: float = 2e-4) -> None:
+        self.max_drift = float(max_drift)
+        self._offset_s: float | None = None
+        self._at_local_s = 0.0
+        self._last_robot_s = -math.inf
+        self._last_local_s: float | None = None
+
+    def to_local_s(self, robot_s: float, arrival_local_s: float) -> float:
+        """The local time of controller time ``robot_s``, given a package read at ``arrival_local_s``."""
+        sample = arrival_local_s - robot_s
+        if self._offset_s is None or robot_s < self._last_robot_s:
+            self._offset_s, self._at_local_s = sample, arrival_local_s
+        else:
+            relaxed = self._offset_s + self.max_drift * max(0.0, arrival_local_s - self._at_local_s)
+            if sample <= relaxed:
+                self._offset_s, self._at_local_s = sample, arrival_local_s
+            else:
+                self._offset_s, self._at_local_s = relaxed, arrival_local_s
+        # Never back in time for a later package (a quicker reading lowers the offset by a
+        # fraction of a ms): the controller interpolates poses over these times.
+        if robot_s >= self._last_robot_s and self._last_local_s is not None:
+            local = max(robot_s + self._offset_s, self._last_local_s)
+        else:
+            local = robot_s + self._offset_s
+        self._last_robot_s, self._last_local_s = robot_s, local
+        return local
+
+    @property
+    def offset_s(self) -> float | None:
+        """Local minus controller time (s), or None before the first reading."""
+        return self._offset_s
 
 
 @dataclass(frozen=True)
@@ -242,9 +301,21 @@ class _ChildLink:
         self._arm_watchdog()
 
     def _arm_watchdog(self) -> None:
+        """After a control script starts: the believed TCP, then the watchdog."""
+        self._set_tcp()
         if not self.ctl.setWatchdog(self.cfg.watchdog_min_hz):
             raise DeviceError("setWatchdog was refused (control script not running?)")
         self.program_expected = True
+
+    def _set_tcp(self, tolerance: float = 1e-6) -> None:
+        """setTcp(the believed tool) and read it back: a robot moving another TCP would put
+        the probe tip where the controller never planned it."""
+        wanted = [float(v) for v in self.cfg.tcp_offset_ur]
+        if not self.ctl.setTcp(wanted):
+            raise DeviceError("setTcp was refused (control script not running?)")
+        got = [float(v) for v in self.ctl.getTCPOffset()]
+        if len(got) != 6 or max(abs(a - b) for a, b in zip(got, wanted)) > tolerance:
+            raise DeviceError(f"the robot's TCP offset reads {got} after setTcp({wanted})")
 
     def identity(self) -> dict[str, str]:
         out = {"host": self.host, "ur_rtde": UR_RTDE_VERSION}
@@ -399,9 +470,21 @@ class _ChildLink:
     def op_state(self) -> dict[str, Any]:
         bits = int(self.rcv.getSafetyStatusBits())
         status = int(self.rcv.getRobotStatus())
+        # The controller's timestamp of the package the pose comes from. ur_rtde's getters
+        # each read the latest package: a package landing between them would pair a pose with
+        # the next package's time, so read the time on both sides and retry (bounded).
+        for _ in range(3):
+            # Read here, not on the parent's receipt: the reply's trip through the pipe is
+            # no part of the package's age (time.monotonic is one clock for all processes).
+            read_s = time.monotonic()
+            stamp_s = float(self.rcv.getTimestamp())
+            pose, q = list(self.rcv.getActualTCPPose()), list(self.rcv.getActualQ())
+            speed = list(self.rcv.getActualTCPSpeed())
+            if float(self.rcv.getTimestamp()) == stamp_s:
+                break
         return {
-            "pose": list(self.rcv.getActualTCPPose()), "q": list(self.rcv.getActualQ()),
-            "speed": list(self.rcv.getActualTCPSpeed()), "force": list(self.rcv.getActualTCPForce()),
+            "pose": pose, "q": q, "speed": speed, "force": list(self.rcv.getActualTCPForce()),
+            "robot_timestamp_s": stamp_s, "read_s": read_s,
             "robot_status_bits": status, "safety_status_bits": bits,
             "program_running": bool(self.ctl.isProgramRunning()),
             "protective": bool(self.rcv.isProtectiveStopped()), "emergency": bool(self.rcv.isEmergencyStopped()),
@@ -551,6 +634,8 @@ class URLink:
         self._stop_seq = 0
         self.last_stop_sent_s = 0.0
         self.stop_reports: collections.OrderedDict[int, dict[str, Any]] = collections.OrderedDict()
+        # Maps the controller's package timestamps onto this process's clock (URState.t_s).
+        self.robot_clock = RobotClock()
 
     # -- lifecycle
     def start(self) -> "URLink":
@@ -600,7 +685,8 @@ class URLink:
 
     def state(self) -> URState:
         d = self._call("state")
-        return URState(time.monotonic(), np.asarray(d["pose"], dtype=float), np.asarray(d["q"], dtype=float),
+        t_s = self.robot_clock.to_local_s(float(d["robot_timestamp_s"]), float(d["read_s"]))
+        return URState(t_s, np.asarray(d["pose"], dtype=float), np.asarray(d["q"], dtype=float),
                        np.asarray(d["speed"], dtype=float), np.asarray(d["force"], dtype=float),
                        int(d["robot_status_bits"]), int(d["safety_status_bits"]), bool(d["program_running"]),
                        bool(d["protective"]), bool(d["emergency"]), int(d["async_progress"]),

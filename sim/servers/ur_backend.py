@@ -7,6 +7,11 @@ emulator's monotonic wall clock in seconds (ur_rtde runs on the wall clock).
 
 The emulator calls a backend from one thread at a time (under its lock), at its tick
 rate (500 Hz); a backend never blocks.
+
+Tool frames: a backend's poses are those of ITS tool point, ``tool_ur()`` from the flange
+(:class:`KinematicBackend`: the flange itself; the simulated world: the cell file's TCP).
+The emulator re-expresses them in the TCP the robot program set (``set_tcp``), as a real
+controller reports and takes TCP poses for its active TCP offset.
 """
 from __future__ import annotations
 
@@ -43,7 +48,11 @@ class ArmBackend(Protocol):
         ...
 
     def tcp_pose_ur(self) -> np.ndarray:
-        """Actual TCP pose (6,), m + rotation vector."""
+        """Actual pose (6,) of the backend's tool point (``tool_ur``), m + rotation vector."""
+        ...
+
+    def tool_ur(self) -> np.ndarray:
+        """The backend's tool point in the flange frame (6,), m + rotation vector (zeros: the flange)."""
         ...
 
     def tcp_speed_ur(self) -> np.ndarray:
@@ -211,6 +220,10 @@ class KinematicBackend:
 
     def tcp_pose_ur(self) -> np.ndarray:
         return np.concatenate([self._pos_m, matrix_to_rotvec(self._rot)])
+
+    def tool_ur(self) -> np.ndarray:
+        """No tool: the poses are the flange's."""
+        return np.zeros(6)
 
     def tcp_speed_ur(self) -> np.ndarray:
         return np.concatenate([self._lin_vel, self._ang_vel])

@@ -19,6 +19,14 @@ dashboard refuses to unlock it for ``unlock_delay_s`` = 5 s, as a real controlle
 does), emergency stop (only :meth:`release_emergency_stop` clears it, never the
 dashboard), dropped RTDE connections (optionally refusing reconnects for a while).
 
+TCP: like a real controller, the emulator takes and reports TCP poses for the active TCP
+offset — ``actual_TCP_pose`` = flange pose ∘ offset, and a moveL target is where that TCP
+goes. A control script starts with the installation's TCP (``installation_tcp_ur``,
+default the flange itself) and ``setTcp`` replaces it until the program ends (a new script
+starts from the installation's again). speedL velocities are passed on as they are: the
+controller commands no rotation with them, and without rotation the TCP and the flange move
+alike.
+
 Everything is bounded: sockets use short timeouts, each server has a lifetime
 (``lifetime_s``), and :meth:`stop` closes every socket and joins every thread.
 """
@@ -34,6 +42,8 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
+
+from elastoprobe.controller.geometry import Pose
 
 from .ur_backend import ArmBackend, KinematicBackend  # noqa: F401  (re-exported)
 from .ur_rtde_protocol import (
@@ -135,7 +145,15 @@ class _Snapshot:
 
     def _core(self, key: str) -> object:
         if key not in self._cache:
-            self._cache[key] = self._emu._core_value(key, self._now_s)
+            if key in _POSE_SAMPLE_NAMES:
+                # The timestamp and the TCP pose of one package come from one read of the arm.
+                if "_pose_sample" not in self._cache:
+                    self._cache["_pose_sample"] = self._emu._pose_sample(self._now_s)
+                t_s, pose = self._cache["_pose_sample"]          # type: ignore[misc]
+                self._cache[key] = (t_s - self._emu._t_boot_s if key == "timestamp"
+                                    else tuple(float(v) for v in pose))
+            else:
+                self._cache[key] = self._emu._core_value(key, self._now_s)
         return self._cache[key]
 
     def get(self, name: str, typ: str) -> object:
@@ -150,6 +168,8 @@ class _Snapshot:
             return self._core(name)
         return _default_value(typ)
 
+
+_POSE_SAMPLE_NAMES = frozenset({"timestamp", "actual_TCP_pose", "target_TCP_pose"})
 
 _CORE_NAMES = frozenset({
     "timestamp", "actual_q", "target_q", "actual_qd", "target_qd", "actual_TCP_pose", "target_TCP_pose",
@@ -212,7 +232,8 @@ class UREmulator:
                  robot_model: str = "UR5", tick_hz: float = 500.0, unlock_delay_s: float = 5.0,
                  program_stop_decel_m_s2: float = 10.0, protective_stop_decel_m_s2: float = 20.0,
                  script_start_delay_s: float = 0.05, lifetime_s: float = 3600.0,
-                 ports: dict[str, int] | None = None, max_connections: int = 32) -> None:
+                 ports: dict[str, int] | None = None, max_connections: int = 32,
+                 installation_tcp_ur: "np.ndarray | list[float] | None" = None) -> None:
         if not host.startswith("127."):
             raise ValueError(f"the UR emulator only serves loopback addresses, not {host!r}")
         self.host = host
@@ -262,7 +283,13 @@ class UREmulator:
         self._async_wr_count = 0
         self._watchdog: tuple[str, float] | None = None   # (variable, period_s)
         self._watchdog_last_s = 0.0
-        self._tcp_offset = np.zeros(6)
+        # The TCP a program starts with (a real controller's installation TCP), the one in
+        # force (set_tcp), and the map from the backend's tool point to it (None: the same).
+        self.installation_tcp_ur = np.zeros(6) if installation_tcp_ur is None \
+            else np.asarray(installation_tcp_ur, float).reshape(6).copy()
+        self._tcp_offset = self.installation_tcp_ur.copy()
+        self._tool_to_tcp: Pose | None = None
+        self._set_tcp_offset(self._tcp_offset)
         self._payload_kg = 0.0
 
         # Safety state.
@@ -381,8 +408,49 @@ class UREmulator:
             return sum(not s.closed for s in self._sessions)
 
     def tcp_pose_ur(self) -> np.ndarray:
+        """The TCP pose as the controller reports it (for the active TCP offset), m + rotation vector."""
         with self._lock:
-            return np.array(self.backend.tcp_pose_ur(), dtype=float)
+            return self._reported_pose_ur(np.asarray(self.backend.tcp_pose_ur(), dtype=float))
+
+    @property
+    def tcp_offset_ur(self) -> np.ndarray:
+        """The active TCP offset (flange -> TCP), m + rotation vector."""
+        with self._lock:
+            return self._tcp_offset.copy()
+
+    # ------------------------------------------------------------------ TCP offset
+    def _set_tcp_offset(self, offset_ur: np.ndarray) -> None:
+        """Make ``offset_ur`` (flange -> TCP) the active TCP; poses in and out follow it."""
+        self._tcp_offset = np.asarray(offset_ur, float).reshape(6).copy()
+        tool = getattr(self.backend, "tool_ur", None)
+        tool_ur = np.zeros(6) if tool is None else np.asarray(tool(), float)
+        # backend tool point -> active TCP: tool^-1 ∘ offset.
+        move = Pose.from_ur(tool_ur).inverse().compose(Pose.from_ur(self._tcp_offset))
+        identity = np.allclose(move.position_mm, 0.0, atol=1e-9) and np.allclose(move.rotation, np.eye(3), atol=1e-12)
+        self._tool_to_tcp = None if identity else move
+
+    def _reported_pose_ur(self, backend_pose_ur: np.ndarray) -> np.ndarray:
+        """A backend pose (its tool point) as the active TCP's pose."""
+        if self._tool_to_tcp is None:
+            return np.asarray(backend_pose_ur, float)
+        return np.asarray(Pose.from_ur(backend_pose_ur).compose(self._tool_to_tcp).to_ur(), float)
+
+    def _backend_target_ur(self, tcp_target_ur: np.ndarray) -> np.ndarray:
+        """A TCP target (active TCP) as the pose of the backend's tool point."""
+        if self._tool_to_tcp is None:
+            return np.asarray(tcp_target_ur, float)
+        return np.asarray(Pose.from_ur(tcp_target_ur).compose(self._tool_to_tcp.inverse()).to_ur(), float)
+
+    def _pose_sample(self, now: float) -> tuple[float, np.ndarray]:
+        """(controller time of the state (s, monotonic), the active TCP's pose): one read of the
+        backend, so the pose and its timestamp belong together (a real controller stamps each
+        package with the cycle its values were sampled in)."""
+        sample = getattr(self.backend, "pose_sample_ur", None)
+        if sample is None:
+            t_s, pose = now, np.asarray(self.backend.tcp_pose_ur(), float)
+        else:
+            t_s, pose = sample()
+        return float(t_s), self._reported_pose_ur(pose)
 
     def is_moving(self) -> bool:
         with self._lock:
@@ -725,6 +793,8 @@ class UREmulator:
         self._sync_wait = None
         self._watchdog = None
         self._async_running = False
+        # A program starts with the installation's TCP: a setTcp of an earlier program is gone.
+        self._set_tcp_offset(self.installation_tcp_ur)
         self._write_async_progress(-1)
         self._out_int[self._reg_offset] = READY
         self._event("program_started", f"{self._program_name} offset {self._reg_offset}")
@@ -860,7 +930,7 @@ class UREmulator:
                 self._write_async_progress(-1)
             try:
                 if cmd == Cmd.MOVEL:
-                    b.move_linear(target, speed, accel)
+                    b.move_linear(self._backend_target_ur(target), speed, accel)
                 elif cmd == Cmd.MOVEJ:
                     b.move_joint(target, speed, accel)
                 else:
@@ -910,7 +980,8 @@ class UREmulator:
         elif cmd == Cmd.STOP_SCRIPT:
             self._end_program("stop_script")
         elif cmd == Cmd.SET_TCP:
-            self._tcp_offset = self._in_doubles(0, 6)
+            self._set_tcp_offset(self._in_doubles(0, 6))
+            self._event("tcp_set", " ".join(f"{v:.6g}" for v in self._tcp_offset))
         elif cmd == Cmd.SET_PAYLOAD:
             self._payload_kg = self._in_double(0)
         elif cmd == Cmd.GET_TCP_OFFSET:
@@ -918,7 +989,7 @@ class UREmulator:
         elif cmd == Cmd.IS_STEADY:
             self._out_int[1 + self._reg_offset] = 0 if b.is_moving() else 1
         elif cmd == Cmd.GET_FORWARD_KINEMATICS_DEFAULT:
-            self._out_double[self._reg_offset:self._reg_offset + 6] = b.tcp_pose_ur()
+            self._out_double[self._reg_offset:self._reg_offset + 6] = self._reported_pose_ur(b.tcp_pose_ur())
         elif cmd in Cmd.REALTIME:
             self._event("command_unsupported", f"real-time command {cmd}")
         else:
@@ -934,11 +1005,11 @@ class UREmulator:
     def _core_value(self, key: str, now: float) -> object:
         b = self.backend
         if key == "timestamp":
-            return now - self._t_boot_s
+            return self._pose_sample(now)[0] - self._t_boot_s
         if key in ("actual_q", "target_q"):
             return tuple(float(v) for v in b.joints_rad())
         if key in ("actual_TCP_pose", "target_TCP_pose"):
-            return tuple(float(v) for v in b.tcp_pose_ur())
+            return tuple(float(v) for v in self._pose_sample(now)[1])
         if key in ("actual_TCP_speed", "target_TCP_speed"):
             return tuple(float(v) for v in b.tcp_speed_ur())
         if key in ("actual_TCP_force", "ft_raw_wrench"):

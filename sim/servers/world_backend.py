@@ -199,6 +199,21 @@ class WorldBackend:
         with self.lock:
             return np.asarray(self.arm._sim_tcp_pose().to_ur(), float)
 
+    def tool_ur(self) -> np.ndarray:
+        """The simulated arm's TCP in the flange frame: the one its kinematic model (and so every
+        pose of this backend) uses — the cell file's, where the served world's true tool is
+        expressed."""
+        return np.asarray(self.cell._model.flange_to_tcp.to_ur(), float)
+
+    def pose_sample_ur(self) -> tuple[float, np.ndarray]:
+        """(wall time (monotonic s) of the world state, the TCP pose (ur units) in it), read together.
+
+        The world moves on its control grid (2 ms): a pose read at wall time t shows the arm
+        at the grid instant at or before t, and other threads (the F/T and scanner servers)
+        may advance the world between two reads; the pose and its instant must be one read."""
+        with self.lock:
+            return self.world.now_s() + self._offset_s, np.asarray(self.arm._sim_tcp_pose().to_ur(), float)
+
     def tcp_speed_ur(self) -> np.ndarray:
         with self.lock:
             return self._velocity.copy()
@@ -288,8 +303,11 @@ class WorldBackend:
         """
         with self.lock:
             self._advance_locked(max(device_t_s, time.monotonic()))
-            x, z = self.cell.scanner.profile(self.world.snapshot_now(), noise=True)
-            return x, z, self.cell.clock.now_s() + self._offset_s
+            snap = self.world.snapshot_now()
+            x, z = self.cell.scanner.profile(snap, noise=True)
+            # The instant of the world state shown (on the control grid), not the clock's:
+            # the clock may be up to a control period past it.
+            return x, z, snap.t_us / US_PER_S + self._offset_s
 
     def profile_source(self, x_grid_mm: np.ndarray):
         """A ``ProfileSource`` for ScannerPtyServer: (z (mm) on the server's fixed ``x_grid_mm``,
