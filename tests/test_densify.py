@@ -124,3 +124,17 @@ def test_averaged_noise_from_scan_statistics():
     scans = rng.normal(0, 0.08, (16, 256))
     _, count, std = average_profiles(scans)
     assert abs(averaged_noise_mm(std, count) - 0.02) < 0.003
+
+
+def test_bisects_the_widest_unresolved_gaps_first(models):
+    """Crossing edges of one pair of regions all score alike: the longest gaps are split first,
+    and an edge already within resolution_mm is not split again."""
+    pos = np.array([[0.0, 0, 0], [6.0, 0, 0], [0.0, 20, 0], [30.0, 20, 0], [0.0, 40, 0], [14.0, 40, 0]])
+    edges = np.array([[0, 1], [2, 3], [4, 5], [0, 2], [2, 4], [1, 3], [3, 5]])
+    labels = np.array([0, 1, 0, 1, 0, 1])
+    rnd = plan_round(0, pos, edges, labels, {0: models[0], 1: models[1]}, SURVEY_F, SURVEY_A, NOISE_MM,
+                     budget=2, min_spacing_mm=2.0, resolution_mm=8.0)
+    assert np.allclose(rnd.proposed_mm, [[15.0, 20, 0], [7.0, 40, 0]])
+    one = plan_round(0, pos, edges, labels, {0: models[0], 1: models[1]}, SURVEY_F, SURVEY_A, NOISE_MM,
+                     budget=5, min_spacing_mm=2.0, resolution_mm=8.0)
+    assert [3.0, 0.0, 0.0] not in one.proposed_mm           # the 6 mm edge is resolved

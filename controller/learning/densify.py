@@ -14,10 +14,16 @@ worth localising; below it the two regions are indistinguishable at survey setti
 A point whose features sit between two regions (ambiguity from the region map) scores
 its ambiguity times the score of those two regions.
 
-New survey points are the midpoints of high-scoring edges (and of the edges around
-ambiguous points), snapped to the measured surface if a cloud is given, accepted
-greedily by score while keeping ``min_spacing_mm`` from every existing and accepted
-point. The boundary is resolved when every disagreeing edge is shorter than
+New survey points bisect the unresolved boundary: the midpoints of high-scoring edges
+longer than ``resolution_mm`` (an edge already that short has located its piece of the
+boundary; probing its midpoint again buys nothing), and of the edges around ambiguous
+points, snapped to the measured surface if a cloud is given. They are accepted greedily,
+longest edge first (the widest gap in which the boundary is still unknown: the most
+mislabelled area at stake), ties by score, while keeping ``min_spacing_mm`` from every
+existing and accepted point. All edges between the same two regions carry the same
+score, so ordering by score alone took them in index order, often short edges before
+long ones. Each round halves the gaps it splits: a bisection of every crossing edge down
+to ``resolution_mm``. The boundary is resolved when every disagreeing edge is shorter than
 ``resolution_mm``. A midpoint is half an edge from its ends, so edges shorter than
 2 x min_spacing_mm cannot be split: choose resolution_mm >= 2 x min_spacing_mm, or the
 rounds end "spacing-limited" (``DensifyRound.stop`` with ``resolved`` False).
@@ -131,17 +137,21 @@ def snap_to_surface(points_mm: np.ndarray, surface_points_mm: np.ndarray) -> np.
 
 
 def candidate_points(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np.ndarray,
-                     point_score: np.ndarray | None = None, surface_points_mm: np.ndarray | None = None
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Candidate new survey points (C,3) and their scores (C,).
+                     point_score: np.ndarray | None = None, surface_points_mm: np.ndarray | None = None,
+                     min_length_mm: float = 0.0, return_lengths: bool = False
+                     ) -> tuple[np.ndarray, ...]:
+    """Candidate new survey points (C,3) and their scores (C,) [and edge lengths (C,) mm].
 
-    Midpoints of edges with a positive score; for points with a positive ambiguity score,
-    the midpoints of all their edges (a ring around the doubtful point) carry that score.
-    Duplicate midpoints keep their highest score.
+    Midpoints of edges with a positive score and longer than ``min_length_mm`` (a shorter
+    crossing edge has already placed its piece of the boundary within that length); for
+    points with a positive ambiguity score, the midpoints of all their edges (a ring
+    around the doubtful point) carry that score, whatever their length.
     """
     pos = np.asarray(positions_mm, dtype=float).reshape(-1, 3)
     e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
     s = np.asarray(edge_score, dtype=float).copy()
+    lengths = np.linalg.norm(pos[e[:, 0]] - pos[e[:, 1]], axis=1) if e.shape[0] else np.zeros(0)
+    s[lengths <= min_length_mm] = 0.0
     if point_score is not None:
         ps = np.asarray(point_score, dtype=float)
         s = np.maximum(s, np.maximum(ps[e[:, 0]], ps[e[:, 1]]))
@@ -149,21 +159,27 @@ def candidate_points(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np
     mids = 0.5 * (pos[e[keep, 0]] + pos[e[keep, 1]])
     if surface_points_mm is not None and mids.shape[0]:
         mids = snap_to_surface(mids, surface_points_mm)
+    if return_lengths:
+        return mids, s[keep], lengths[keep]
     return mids, s[keep]
 
 
 def propose_points(candidates_mm: np.ndarray, scores: np.ndarray, existing_mm: np.ndarray, budget: int,
-                   min_spacing_mm: float, min_score: float = DEFAULT_THRESHOLD) -> np.ndarray:
-    """Indices (K,) into ``candidates_mm`` of the new survey points, best score first.
+                   min_spacing_mm: float, min_score: float = DEFAULT_THRESHOLD,
+                   priority: np.ndarray | None = None) -> np.ndarray:
+    """Indices (K,) into ``candidates_mm`` of the new survey points, in acceptance order.
 
-    Greedy: candidates scoring at least ``min_score`` in decreasing score order (ties by
-    index), each accepted only if it keeps ``min_spacing_mm`` from every existing point
-    and every point already accepted; at most ``budget`` points.
+    Greedy: candidates scoring at least ``min_score`` in decreasing ``priority`` (default:
+    the score), then decreasing score, then index, each accepted only if it keeps
+    ``min_spacing_mm`` from every existing point and every point already accepted; at
+    most ``budget`` points.
     """
     cand = np.asarray(candidates_mm, dtype=float).reshape(-1, 3)
     sc = np.asarray(scores, dtype=float).reshape(-1)
-    order = [int(i) for i in np.lexsort((np.arange(sc.size), -np.nan_to_num(sc, nan=-np.inf)))
-             if sc[i] >= min_score]
+    key_score = -np.nan_to_num(sc, nan=-np.inf)
+    key_priority = key_score if priority is None else -np.nan_to_num(
+        np.asarray(priority, dtype=float).reshape(-1), nan=-np.inf)
+    order = [int(i) for i in np.lexsort((np.arange(sc.size), key_score, key_priority)) if sc[i] >= min_score]
     taken = [np.asarray(p, dtype=float) for p in np.asarray(existing_mm, dtype=float).reshape(-1, 3)]
     accepted: list[int] = []
     for i in order:
@@ -237,6 +253,7 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
 
     ``forces_n``, ``angles_deg``: the survey probe settings; ``posterior`` (N,K) optional
     feature posteriors for ambiguous points; ``surface_points_mm``: the cloud to snap to.
+    Candidates are taken longest crossing edge first (the widest unresolved gap).
     When resolved, nothing is proposed; when nothing can be placed (spacing), the reason says so.
     """
     lab = np.asarray(labels)
@@ -250,8 +267,9 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
     if ps is not None and resolved and np.any(ps >= threshold):
         resolved, reason = False, f"{int(np.sum(ps >= threshold))} points have ambiguous features between disagreeing regions"
     if not resolved:
-        cand, cs = candidate_points(positions_mm, edges, es, ps, surface_points_mm)
-        idx = propose_points(cand, cs, positions_mm, budget, min_spacing_mm, threshold)
+        cand, cs, gap_mm = candidate_points(positions_mm, edges, es, ps, surface_points_mm,
+                                            min_length_mm=resolution_mm, return_lengths=True)
+        idx = propose_points(cand, cs, positions_mm, budget, min_spacing_mm, threshold, priority=gap_mm)
         proposed, proposed_scores = cand[idx], cs[idx]
         if idx.size == 0:
             reason += f"; no candidate keeps {min_spacing_mm:g} mm from existing points"
