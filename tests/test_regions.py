@@ -140,3 +140,36 @@ def test_peak_is_read_near_the_contact_not_at_an_occlusion_far_out():
     spoiled, _ = survey_features(d, X_MM, FORCES_N)
     assert np.allclose(spoiled[0, :2], clean[0, :2])
     assert spoiled[0, 0] < 0.5
+
+
+def test_probes_on_a_seam_between_two_materials_are_not_a_third_region():
+    """A strip of probes along the seam of a stiff and a soft material, each pressing both,
+    dents between the two: it joins them instead of becoming a region of its own; a strip
+    of a third material with an interior (not sandwiched) stays a region."""
+    from elastoprobe.controller.learning.regions import cluster_regions
+
+    rng = np.random.default_rng(3)
+    gx, gy = np.meshgrid(np.arange(-50.0, 51.0, 10.0), np.arange(-30.0, 31.0, 10.0), indexing="ij")
+    xy = np.column_stack([gx.ravel(), gy.ravel()])
+    seam = np.column_stack([np.full(7, -1.0), np.arange(-30.0, 31.0, 10.0) + 5.0])
+    xy = np.vstack([xy, seam])
+    tree_k = 6
+    from scipy.spatial import cKDTree
+
+    _, nb = cKDTree(xy).query(xy, k=tree_k + 1)
+    edges = np.array([(i, j) for i, row in enumerate(nb) for j in row[1:] if i < j])
+    stiff = xy[:, 0] < -1.5
+    on_seam = np.abs(xy[:, 0] + 1.0) < 1e-9
+    peak = np.where(stiff, 0.05, 1.0) * (1 + 0.05 * rng.normal(size=len(xy)))
+    peak[on_seam] = 0.3 * (1 + 0.05 * rng.normal(size=on_seam.sum()))
+    feats = np.column_stack([peak, 2.5 * peak])
+    rmap = cluster_regions(feats, edges, ["peak_mm@2N", "peak_mm@6N"], seed=0)
+    assert rmap.n_regions == 2
+    assert sorted(rmap.stats["transition_band_points"]) == np.flatnonzero(on_seam).tolist()
+    assert len(set(rmap.labels[stiff])) == 1 and len(set(rmap.labels[~stiff & ~on_seam])) == 1
+    # The same intermediate material over a band two probes wide with points off the seam: a region.
+    band = (xy[:, 0] >= -1.5) & (xy[:, 0] <= 10.5)
+    peak2 = np.where(stiff, 0.05, 1.0) * (1 + 0.05 * rng.normal(size=len(xy)))
+    peak2[band] = 0.3 * (1 + 0.05 * rng.normal(size=band.sum()))
+    rmap2 = cluster_regions(np.column_stack([peak2, 2.5 * peak2]), edges, ["peak_mm@2N", "peak_mm@6N"], seed=0)
+    assert rmap2.n_regions == 3 and rmap2.stats["transition_band_points"] == []

@@ -20,7 +20,10 @@ slope), and the surface graph (neighbour pairs of the neural-gas units).
    ``beta`` per neighbour already in that region: ambiguous points follow their
    neighbours, clear ones keep their own), then connected components per label
    smaller than ``min_island_points`` are relabelled to their neighbours' majority
-   (recorded in ``stats["islands"]``, so densification can look there again).
+   (recorded in ``stats["islands"]``, so densification can look there again); and a
+   region that is only the blend along the seam of two others (sandwiched between them,
+   smaller than both, its dent between theirs) is split between them
+   (``stats["transition_band_points"]``).
 4. Region ids are sorted by the mean of one feature (default column 0, the peak depth
    at the smallest survey force: region 0 is the stiffest), so reruns on the same data
    give the same ids.
@@ -396,6 +399,55 @@ def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.n
     return labels, sorted(set(relabelled))
 
 
+def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray],
+                             depth_columns: list[int]) -> tuple[np.ndarray, list[int]]:
+    """Relabel a region that is only the blend between two others into those two.
+
+    Where two materials meet, a probe on the seam presses both: its dent lies between
+    theirs, and densification, which bisects the seam, puts several probes there. They
+    form a "region" of their own that is no material. A region is such a transition
+    band when every one of its points borders a point of region A and a point of region
+    B on the surface graph (it is sandwiched between them), it has fewer points than
+    either, and its median peak depth lies strictly between A's and B's at every survey
+    force. Each of its points joins A or B, whichever median it is nearer to in log depth.
+    A real material probed only along a seam looks the same; once probed off the seam it
+    has interior points and is kept. Returns (labels, relabelled point indices).
+    """
+    relabelled: list[int] = []
+    if not depth_columns:
+        return labels, relabelled
+    labels = labels.copy()
+    cols = np.log(np.maximum(features[:, depth_columns], 1e-6))
+    while True:
+        labels, k = _compact(labels)
+        if k < 3:
+            return labels, relabelled
+        with np.errstate(all="ignore"):
+            med = np.stack([np.nanmedian(cols[labels == j], axis=0) for j in range(k)])
+        sizes = np.bincount(labels, minlength=k)
+        done = True
+        for band in np.argsort(sizes, kind="stable"):
+            members = np.flatnonzero(labels == band)
+            touching = [set(int(v) for v in labels[neighbours[i]]) - {int(band)} for i in members]
+            common = set.intersection(*touching) if touching else set()
+            pair = next(((a, b) for a in sorted(common) for b in sorted(common)
+                         if a < b and sizes[a] > sizes[band] and sizes[b] > sizes[band]
+                         and np.all(np.isfinite(med[[a, b, band]]))
+                         and np.all((med[band] - med[a]) * (med[band] - med[b]) < 0)), None)
+            if pair is None:
+                continue
+            a, b = pair
+            with np.errstate(all="ignore"):
+                da = np.nanmean(np.abs(cols[members] - med[a]), axis=1)
+                db = np.nanmean(np.abs(cols[members] - med[b]), axis=1)
+            labels[members] = np.where(np.nan_to_num(da, nan=np.inf) <= np.nan_to_num(db, nan=np.inf), a, b)
+            relabelled.extend(int(i) for i in members)
+            done = False
+            break
+        if done:
+            return labels, relabelled
+
+
 def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list[str] | None = None, *,
                     kmax: int = 6, beta: float = 1.5, min_island_points: int = 2,
                     feature_noise: np.ndarray | None = None, merge_sigmas: float = 4.0,
@@ -445,11 +497,13 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
         means, cov, log_prior = _fit_gaussians(z, labels, k, reg)
         labels, icm_changes = _icm(_gauss_loglik(z, means, cov) + log_prior, labels, neighbours, beta)
         labels, islands = _remove_islands(labels, e, neighbours, min_island_points)
+        labels, bands = _absorb_transition_bands(x, labels, neighbours, depth_cols)
         labels, k = _compact(labels)
     else:
-        islands = []
+        islands, bands = [], []
     stats["icm_changes"] = icm_changes
     stats["islands"] = islands
+    stats["transition_band_points"] = bands
 
     # Stable ids: sort regions by the mean of one feature (then by size, then by first index).
     order_key = [(float(np.nanmean(x[labels == j, order_feature])), -int(np.sum(labels == j)),
