@@ -13,7 +13,7 @@ hardware process — owns :class:`~.ati_netft.NetFTClient` and :class:`~.ur_link
   search (|F| >= threshold stops the arm at the sample rate) and checks for a stale
   stream. It is the only caller of ``URLink.heartbeat()``: the robot's watchdog is kicked
   only while this loop runs (if it hangs, ur_rtde stops kicking and the arm stops).
-- **control**: at ``control_hz`` (125 Hz) reads the arm's state through the link and runs
+- **control**: at ``control_hz`` (121 Hz) reads the arm's state through the link and runs
   the outer loops on UR motion: contact search = speedL along d (distance bound), force
   regulation = PI on the ATI reading commanding speedL along d; and follows moveL
   progress. A gate lock orders its speedL against the safety thread's stop: once a motion
@@ -117,7 +117,10 @@ class HardwareConfig:
     joint_limits_rad: np.ndarray | None = None
     link: URLinkConfig = field(default_factory=URLinkConfig)
     regulator: RegulatorSettings = field(default_factory=RegulatorSettings)
-    control_hz: float = 125.0
+    # Not 125 Hz: polling the RTDE stream (125 or 500 Hz) at its own rate would read every
+    # package at the same delay after it arrived, and RobotClock (ur_link), which times
+    # packages by their quickest reading, would carry that delay into every pose's time.
+    control_hz: float = 121.0
     stop_decel_m_s2: float = 4.0          # stopL / speedStop on a trip, a contact, stop()
     seek_accel_m_s2: float = 0.5
     move_tolerance_mm: float = 0.5        # a moveL counts as DONE within this of its target

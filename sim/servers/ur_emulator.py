@@ -33,6 +33,7 @@ Everything is bounded: sockets use short timeouts, each server has a lifetime
 from __future__ import annotations
 
 import logging
+import math
 import re
 import socket
 import struct
@@ -168,6 +169,9 @@ class _Snapshot:
             return self._core(name)
         return _default_value(typ)
 
+
+# How long after a backend grid instant the emulator ticks (see UREmulator._aligned_tick_s).
+_GRID_LEAD_S = 1e-4
 
 _POSE_SAMPLE_NAMES = frozenset({"timestamp", "actual_TCP_pose", "target_TCP_pose"})
 
@@ -818,10 +822,27 @@ class UREmulator:
         self._event("program_stopped", reason)
 
     # ------------------------------------------------------------------ controller tick
+    def _aligned_tick_s(self, after_s: float, period_s: float) -> float:
+        """The first tick time at or after ``after_s``: just past one of the backend's own time
+        steps when it has a grid of this period (``grid_ur()``), else ``after_s``.
+
+        Why: a backend on a time grid shows, at wall time t, its state at the grid instant
+        at or before t. Ticking at a fixed phase to that grid, every package would leave the
+        same fraction of a period after the instant it shows; a client that times packages
+        by their quickest arrival could never see that part of the delay."""
+        grid = getattr(self.backend, "grid_ur", None)
+        if grid is None:
+            return after_s
+        grid_period_s, anchor_s = grid()
+        if abs(grid_period_s - period_s) > 1e-9:
+            return after_s
+        k = math.ceil((after_s - anchor_s - _GRID_LEAD_S) / grid_period_s)
+        return anchor_s + k * grid_period_s + _GRID_LEAD_S
+
     def _tick_loop(self) -> None:
         period = 1.0 / self.tick_hz
-        next_t = time.monotonic()
-        end_t = next_t + self.lifetime_s
+        next_t = self._aligned_tick_s(time.monotonic(), period)
+        end_t = time.monotonic() + self.lifetime_s
         while not self._stop.is_set():
             now = time.monotonic()
             if now >= end_t:
@@ -849,7 +870,8 @@ class UREmulator:
                 self._send(s, data)
             next_t += period
             if next_t < time.monotonic() - 0.1:
-                next_t = time.monotonic()     # fell behind (busy machine): do not burst to catch up
+                # Fell behind (busy machine): do not burst to catch up.
+                next_t = self._aligned_tick_s(time.monotonic(), period)
             self._stop.wait(max(0.0, next_t - time.monotonic()))
 
     def _step(self, now: float) -> None:

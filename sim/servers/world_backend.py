@@ -205,6 +205,11 @@ class WorldBackend:
         expressed."""
         return np.asarray(self.cell._model.flange_to_tcp.to_ur(), float)
 
+    def grid_ur(self) -> tuple[float, float]:
+        """(period (s), a wall time (monotonic s) on the grid): the world's state changes only at
+        wall times anchor + k * period (its control grid)."""
+        return self.world.control_period_us / US_PER_S, self._offset_s
+
     def pose_sample_ur(self) -> tuple[float, np.ndarray]:
         """(wall time (monotonic s) of the world state, the TCP pose (ur units) in it), read together.
 
