@@ -11,9 +11,12 @@ Per step, matched by (phase, round, order) with the same angle and force:
 
 - ``force``: the held force, mean over the step's scans of |scan_force_n| (the mean contact
   force around each exposure, N).
-- ``depth``: the dent under the tip, per scan the mean depth over |x| <= the tip radius of
+- ``depth``: the dent around the tip, per scan the mean depth over |x| <= two tip radii of
   that scan's depth profile (profiles.scan_depths against the step's own reference scans),
-  then the mean over the scans (mm).
+  then the mean over the scans (mm). Two radii, not one: the probe body hides the profile
+  next to the tip from the scanner (at 90 deg x < ~2 mm, at 45 and 135 deg |x| < ~5 mm in
+  both runs), so within one radius a 45/135 deg step kept at most one grid sample at the
+  band's edge, and often none (its depth was NaN in both runs: counted as a disagreement).
 - ``sigma``: the per-scan standard deviation within the step (ddof 1), pooled over the two
   runs (sqrt of the mean of the two variances): the scatter of one scan, which is what
   noise and regulation ripple put into each exposure. ``N``: scans per step (the smaller
@@ -65,8 +68,11 @@ def run_session(plan: Path, cell: Path, out: Path, seed: int, dry_run: bool, tim
             "stderr_tail": proc.stderr[-2000:]}
 
 
+ROI_TIP_RADII = 2.0     # the depth band: |x| <= this many tip radii (see the module docstring)
+
+
 def _per_scan_roi_depth(result: Any, rec: Any, cell: Any, grid: Any, tip_radius_mm: float) -> np.ndarray:
-    """(S,) mean depth over |x| <= tip radius of each scan (mm, NaN if the scan saw none of it)."""
+    """(S,) mean depth over |x| <= ROI_TIP_RADII tip radii of each scan (mm, NaN if the scan saw none of it)."""
     from elastoprobe.controller.learning import profiles as prof
 
     p = rec.plan
@@ -76,7 +82,7 @@ def _per_scan_roi_depth(result: Any, rec: Any, cell: Any, grid: Any, tip_radius_
     scans = prof.step_scan_points(result.scans_xz_mm, result.scan_pose, tcp_to_scanner, base_to_object)
     refs = prof.step_scan_points(result.reference_xz_mm, result.reference_pose, tcp_to_scanner, base_to_object)
     depths = np.asarray(prof.scan_depths(scans, point, normal, tangent, grid, refs), dtype=float)
-    roi = np.abs(grid.x_mm) <= tip_radius_mm
+    roi = np.abs(grid.x_mm) <= ROI_TIP_RADII * tip_radius_mm
     with np.errstate(all="ignore"):
         import warnings
         with warnings.catch_warnings():
