@@ -100,3 +100,32 @@ def test_sparse_and_border_units_are_dropped():
     assert tg.source_unit.tolist() == [0]
     np.testing.assert_allclose(tg.points_mm[0, :2], [50.0, 50.0], atol=0.5)
     assert abs(tg.points_mm[0, 2]) < 0.1  # projected onto the surface, not left 1 mm above
+
+
+@pytest.mark.parametrize("noise_mm", [0.015, 0.03])
+def test_a_target_on_a_line_raster_gets_the_surface_normal_not_one_across_the_line(noise_mm):
+    """A laser-line raster of a tilted plane: profiles densely sampled (0.3 mm) 4 mm apart,
+    every line scanned in both headings (at the same place). The ``plane_k`` nearest neighbours of any point lie on
+    its own profile: a plane fit to them alone gave a normal across the line (the loopback
+    plan's ball target got (0, -1, 0), a horizontal 90 deg probe, refused)."""
+    from elastoprobe.controller.geometry import rotvec_to_matrix
+    from elastoprobe.controller.learning.cloud import curvature, estimate_normals
+
+    rng = np.random.default_rng(11)
+    xs, ys = np.arange(-40.0, 40.0, 0.3), np.arange(-40.0, 40.0, 4.0)
+    gx, gy = np.meshgrid(xs, ys)
+    flat = np.c_[gx.ravel(), gy.ravel(), np.zeros(gx.size)]
+    flat = np.vstack([flat, flat])                                     # both headings on the same line
+    flat[:, 2] += rng.normal(0.0, noise_mm, len(flat))
+    normal = np.array([0.2, 0.15, 1.0]) / np.linalg.norm([0.2, 0.15, 1.0])
+    axis = np.cross([0.0, 0.0, 1.0], normal)
+    rot = rotvec_to_matrix(axis / np.linalg.norm(axis) * np.arccos(normal[2]))
+    pts = flat @ rot.T + np.array([0.0, 0.0, 100.0])
+    nrm = estimate_normals(pts, k=16, viewpoint_mm=pts.mean(axis=0) + normal * 1000.0)
+    units = pts[rng.choice(len(pts), 30, replace=False)] + normal * 0.5
+    rules = TargetRules(tip_radius_mm=5.0, edge_clearance_radii=1.0, max_tilt_deg=25.0)
+    found = make_targets(units, pts, nrm, curvature(pts, k=16), rules=rules, reference_dir=np.array([0.0, 1.0, 0.0]))
+    inner = np.all(np.abs(found.points_mm[:, :2]) < 30.0, axis=1)     # away from the raster's border
+    assert inner.sum() >= 3
+    cos = np.asarray(found.normals)[inner] @ normal
+    assert np.min(cos) > np.cos(np.radians(5.0)), np.degrees(np.arccos(np.clip(cos, -1, 1)))

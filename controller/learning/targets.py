@@ -118,11 +118,27 @@ class _Surface:
         return float(np.linalg.norm(offset)) <= self.rules.border_offset * r
 
     def plane_at(self, i: int, near_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Project ``near_mm`` on the local plane fit around cloud point i -> (point, normal)."""
-        _, nb = self.tree.query(self.points[i], k=min(self.rules.plane_k, self.points.shape[0]))
-        pts = self.points[np.atleast_1d(nb)]
-        centroid = pts.mean(axis=0)
-        _, vecs = np.linalg.eigh(np.cov((pts - centroid).T))
+        """Project ``near_mm`` on the local plane fit around cloud point i -> (point, normal).
+
+        The neighbourhood is widened as the cloud's normals are (cloud._local_pca): the
+        ``plane_k`` nearest points of a laser-line raster can all lie on one profile, and a
+        line has no plane — its smallest-variance direction is any direction across it. On
+        the loopback plan's ball a target got the normal (0, -1, 0), the sweep direction,
+        from a point whose cloud normal was right: the 90 deg probe was planned horizontal,
+        the descent to it refused (probe within 1.4 mm of the object) and the session
+        aborted for 3 of 7 seeds in process."""
+        from .cloud import _LINE_RATIO, _MAX_WIDEN
+
+        n_pts = self.points.shape[0]
+        k = min(self.rules.plane_k, n_pts)
+        for widen in range(_MAX_WIDEN + 1):
+            _, nb = self.tree.query(self.points[i], k=k)
+            pts = self.points[np.atleast_1d(nb)]
+            centroid = pts.mean(axis=0)
+            vals, vecs = np.linalg.eigh(np.cov((pts - centroid).T))
+            if vals[1] >= _LINE_RATIO * vals[2] or k >= n_pts or widen == _MAX_WIDEN:
+                break
+            k = min(2 * k, n_pts)
         n = vecs[:, 0]
         if n @ self.normals[i] < 0:  # keep the cloud's outward orientation
             n = -n
