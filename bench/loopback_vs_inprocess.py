@@ -29,6 +29,16 @@ Per step, matched by (phase, round, order) with the same angle and force:
 
 Noise: the two runs do not share noise keys (real devices have none), so their differences
 are of the size the bound expects, not smaller.
+
+The in-process reference (``in_process_between_runs``, with ``--reference-seeds``): the same
+plan in process with other seeds, i.e. the same exact devices with other noise only. Each run
+builds its own cloud, so its targets land a few mm apart with slightly other normals (another
+physical approach): the step means move by more than the within-step scatter the bound is built
+from. Per step: ``sd`` of the step mean over the in-process runs that did the step (seed
+``--seed`` included, ``runs`` of them), ``max_pair_diff`` the largest difference between two of
+them, and ``within_3sd`` whether |loopback - in_process| <= 3 sqrt(2) sd (two independent runs
+differ by sqrt(2) sd). It answers "does the loopback differ from in process by more than in
+process differs from itself?"; the 3 sigma/sqrt(N) criterion above is reported unchanged.
 """
 from __future__ import annotations
 
@@ -166,6 +176,38 @@ def compare_sessions(lb_dir: Path, ip_dir: Path) -> dict[str, Any]:
             "steps_within": int(sum(within)), "all_within": bool(rows) and all(within), "steps": rows}
 
 
+def add_reference(result: dict[str, Any], ip_dir: Path, reference_dirs: list[Path]) -> None:
+    """Add ``in_process_between_runs`` to each row of ``result`` (see the module docstring)."""
+    key = lambda s: (s["phase"], s["round"], s["angle_deg"], s["force_n"])  # noqa: E731
+    runs: list[dict[tuple, dict[str, float]]] = []
+    for d in [ip_dir, *reference_dirs]:
+        try:
+            steps, _ = session_steps(d)
+        except Exception:  # noqa: BLE001 — a reference run that aborted before its journal has no steps
+            steps = []
+        means: dict[tuple, dict[str, float]] = {}
+        for st in steps:
+            with np.errstate(all="ignore"):
+                means.setdefault(key(st), {"force": float(np.nanmean(st["scan_force_n"])),
+                                           "depth": float(np.nanmean(st["scan_depth_mm"]))})
+        runs.append(means)
+    for row in result["steps"]:
+        k = (row["phase"], row["round"], row["angle_deg"], row["force_setpoint_n"])
+        out: dict[str, Any] = {}
+        for q in ("force", "depth"):
+            vals = np.array([r[k][q] for r in runs if k in r and math.isfinite(r[k][q])])
+            sd = float(vals.std(ddof=1)) if vals.size >= 2 else math.nan
+            diff = row[q]["diff"]
+            out[q] = {"runs": int(vals.size), "sd": round(sd, 4),
+                      "max_pair_diff": round(float(vals.max() - vals.min()), 4) if vals.size >= 2 else None,
+                      "within_3sd": bool(vals.size >= 3 and diff is not None and math.isfinite(diff)
+                                         and abs(diff) <= 3.0 * math.sqrt(2.0) * sd)}
+        row["in_process_between_runs"] = out
+    result["steps_within_in_process_spread"] = int(sum(r["in_process_between_runs"]["force"]["within_3sd"]
+                                                       and r["in_process_between_runs"]["depth"]["within_3sd"]
+                                                       for r in result["steps"]))
+
+
 def _finite(value: Any) -> Any:
     """NaN/inf (a quantity a step could not measure) -> null, recursively."""
     if isinstance(value, float):
@@ -187,6 +229,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sessions", type=Path, nargs=2, metavar=("LOOPBACK", "IN_PROCESS"),
                     help="compare two finished sessions instead of running them")
     ap.add_argument("--timeout-s", type=float, default=900.0)
+    ap.add_argument("--reference-seeds", type=int, nargs="*", default=[2, 3, 4, 5, 6, 7],
+                    help="in-process runs with these seeds: how far the in-process steps move between runs")
+    ap.add_argument("--reference-sessions", type=Path, nargs="*", default=None,
+                    help="finished in-process sessions to use as that reference instead of running them")
     args = ap.parse_args(argv)
     out: dict[str, Any] = {"seed": args.seed}
     if args.sessions:
@@ -200,6 +246,21 @@ def main(argv: list[str] | None = None) -> int:
         out["in_process_run"] = run_session(plan, cell, ip_dir, args.seed, True, args.timeout_s)
     out["sessions"] = {"loopback": str(lb_dir), "in_process": str(ip_dir)}
     out.update(compare_sessions(lb_dir, ip_dir))
+    if args.reference_sessions is not None:
+        refs = list(args.reference_sessions)
+    else:
+        refs = []
+        base = args.out or Path(tempfile.mkdtemp(prefix="elastoprobe-compare-ref-"))
+        base.mkdir(parents=True, exist_ok=True)
+        plan_cell = prepare_configs(base, args.host, args.plan, args.cell) if args.sessions else (plan, cell)
+        runs = out.setdefault("reference_runs", {})
+        for seed in args.reference_seeds:
+            d = base / f"in_process_seed{seed}"
+            runs[str(seed)] = run_session(plan_cell[0], plan_cell[1], d, seed, True, args.timeout_s)
+            refs.append(d)
+    if refs:
+        add_reference(out, ip_dir, refs)
+        out["reference_sessions"] = [str(d) for d in refs]
     print(json.dumps(_finite(out), allow_nan=False))
     return 0
 
