@@ -199,14 +199,16 @@ def test_scanner_bad_frames_and_silence_end_in_clear_device_errors() -> None:
             return got
 
         # Put the simulated arm above the ball (straight through the backend: no arm driver here).
-        rot = Pose.from_ur(rig.emulator.tcp_pose_ur()).rotation
+        # The backend's poses are its tool point's (the cell's TCP); the emulator would report
+        # the flange, since no program here set a TCP (setTcp).
+        rot = Pose.from_ur(rig.backend.tcp_pose_ur()).rotation
         rig.backend.move_linear(np.array(Pose(np.array([400.0, 0.0, 180.0]), rot).to_ur()), 0.3, 1.0)
         assert wait_for(lambda: not rig.backend.is_moving(), 10.0)
         good = burst(4)
         assert len(good) == 4
         # Judged against the truth: every served point lies on the ball (radius 65 mm, centre
         # (400, 0, 65) mm in the base frame) or on the table, through the pose and the mount.
-        base_scanner = Pose.from_ur(rig.emulator.tcp_pose_ur()).compose(rig.spec.tool.tcp_to_scanner.pose())
+        base_scanner = Pose.from_ur(rig.backend.tcp_pose_ur()).compose(rig.spec.tool.tcp_to_scanner.pose())
         for scan in good:
             ok = np.isfinite(scan.z_mm)
             assert ok.sum() > 100
