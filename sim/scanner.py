@@ -11,9 +11,12 @@ Per profile (at its exposure instant, from the world's true state):
 1. the fan is ray-cast against the undeformed object mesh and the table plane z = 0
    (:mod:`elastoprobe.sim.raycast`; the plane cut is cached and reused while the
    scanner moves within its own plane, e.g. while the probe holds or pushes);
-2. object hits move along their ray to the deformed surface: the ContactModel's
-   ``depth_profile_mm`` at the current force and creep state, along -n (and permanent
-   dents from earlier presses, also out of contact);
+2. each ray that hit the object is followed on to where it meets the deformed surface
+   (the undeformed surface displaced along -n by the ContactModel's ``depth_profile_mm``
+   at the current force and creep state, or by permanent dents from earlier presses, also
+   out of contact): a bracketed root find per ray (:func:`dented_hit_depth_mm`), since
+   the dent's depth at the point the ray reaches is not its depth where the ray met the
+   undeformed surface wherever the dent slopes and the ray is oblique;
 3. samples are lost: the probe cylinder or the tip sphere on the laser ray or on the
    camera's line of sight (the probe's shadow, on the side the probe is on), steep
    incidence beyond the material's ``steep_incidence_deg``, a per-material base
@@ -30,7 +33,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -79,6 +82,90 @@ class ProbeGeometry:
 class _Burst:
     exposures_us: list[int]
     correlated_shape: np.ndarray     # unit-RMS shape along the line, fixed for the burst
+
+
+# A ray more grazing than this (|cos| of the incidence on its face) is advanced as if at
+# this cosine: such samples are lost to steep incidence anyway (every material's limit is
+# under 80 deg), and it keeps the step along the ray bounded.
+_MIN_FACE_COS = 0.2
+_DENT_TOL_MM = 1e-4          # 0.1 um: far under any scanner's noise
+_DENT_ITERATIONS = 30        # bound of the root find (Illinois: a handful suffice)
+
+
+def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.ndarray, dirs: np.ndarray,
+                        face_normals: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where rays that met the undeformed surface at ``h0_mm`` (M,3) meet the dented one.
+
+    The dented surface is {q - d(q) n : q on the undeformed surface}, d = ``depth_at`` (mm,
+    along -n). Near each hit the undeformed surface is its face's plane (normal
+    ``face_normals``): the ray point h0 + s dir lies at depth d below the plane point
+    q = h0 + s dir + d n when s = -d (n . n_f) / (dir . n_f). The ray meets the dented
+    surface where f(d) = d - d(q(d)) = 0; the depth there is not the depth at h0 wherever
+    the dent slopes and the ray is oblique (the ray moves along t as it goes in). Where
+    the depth does not change over that step (a uniform sink, far from the tip) one check
+    settles it; elsewhere a root bracketed by 0 and the depth at h0 (or the deepest depth)
+    is found by the Illinois variant of regula falsi, vectorised — a plain fixed-point
+    step would diverge where a steep foam dent is seen at a low angle.
+
+    Returns (depth mm at the meeting point along -n, advance mm along each ray).
+    """
+    h0 = np.asarray(h0_mm, dtype=float)
+    cos_face = -np.maximum(np.abs(np.einsum("ij,ij->i", dirs, face_normals)), _MIN_FACE_COS)
+    along = -(face_normals @ n) / cos_face          # advance along the ray per mm of depth
+
+    def f_of(d: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        q = h0[rows] + (d * along[rows])[:, None] * dirs[rows] + d[:, None] * n
+        return d - depth_at(q)
+
+    d0 = np.asarray(depth_at(h0), dtype=float)
+    depth = d0.copy()
+    rows = np.flatnonzero(np.abs(d0) > _DENT_TOL_MM)
+    if rows.size == 0:
+        return depth, depth * along
+    f0 = f_of(d0[rows], rows)
+    open_ = np.abs(f0) > _DENT_TOL_MM
+    rows, f0, d_start = rows[open_], f0[open_], d0[rows][open_]
+    if rows.size == 0:
+        return depth, depth * along
+    # The bracket [lo, hi] with f(lo) <= 0 <= f(hi), from f(0) = -d0 and f(d0).
+    lo, hi = np.minimum(0.0, d_start), np.maximum(0.0, d_start)
+    f_zero = -d_start
+    f_lo = np.where(d_start > 0, f_zero, f0)
+    f_hi = np.where(d_start > 0, f0, f_zero)
+    deepest = float(np.max(np.abs(d0))) * 1.05 + _DENT_TOL_MM
+    for _ in range(8):
+        # The root lies beyond the pair (f(0) and f(d0) of one sign): step out past it by at
+        # least the deepest depth seen, keeping the old end as the other side. With d0 > 0
+        # only hi moves, with d0 < 0 (a raised rim) only lo.
+        below, above = f_hi < 0, f_lo > 0
+        moved = below | above
+        if not np.any(moved):
+            break
+        step = np.maximum(deepest, np.abs(np.where(below, f_hi, f_lo)))
+        probe = np.where(below, hi + step, lo - step)
+        f_probe = np.zeros(rows.size)
+        f_probe[moved] = f_of(probe[moved], rows[moved])
+        lo, f_lo, hi, f_hi = (np.where(below, hi, np.where(above, probe, lo)),
+                              np.where(below, f_hi, np.where(above, f_probe, f_lo)),
+                              np.where(above, lo, np.where(below, probe, hi)),
+                              np.where(above, f_lo, np.where(below, f_probe, f_hi)))
+    side = np.zeros(rows.size, dtype=int)         # Illinois: which end was replaced last
+    d = d_start.copy()
+    for _ in range(_DENT_ITERATIONS):
+        denom = f_hi - f_lo
+        safe = np.abs(denom) > 1e-15
+        d = np.where(safe, hi - f_hi * (hi - lo) / np.where(safe, denom, 1.0), 0.5 * (lo + hi))
+        f = f_of(d, rows)
+        if np.max(np.abs(f)) <= _DENT_TOL_MM:
+            break
+        up = f > 0
+        hi, f_hi = np.where(up, d, hi), np.where(up, f, f_hi)
+        lo, f_lo = np.where(up, lo, d), np.where(up, f_lo, f)
+        f_lo = np.where(up & (side == 1), 0.5 * f_lo, f_lo)
+        f_hi = np.where(~up & (side == -1), 0.5 * f_hi, f_hi)
+        side = np.where(up, 1, -1)
+    depth[rows] = d
+    return depth, depth * along
 
 
 class SimLineScanner:
@@ -217,18 +304,22 @@ class SimLineScanner:
         n_s = s.samples
         on_mesh, normals, steep_cos, drop_base, sigma, floor = self._face_terms(face)
         cos_inc = -np.einsum("ij,ij->i", dirs, normals)
-        # Deformation: move object hits along their ray onto the dented surface.
+        # Deformation: follow each object hit's ray on to the dented surface.
         r = r.copy()
         near_tip = np.zeros(n_s, dtype=bool)
-        depth = self._dent_depth_mm(snap, o, dirs, r, on_mesh & hit)
-        if depth is not None:
-            c = snap.contact
-            denom = -(dirs @ c.normal_obj) if c is not None else cos_inc
-            denom = np.maximum(np.abs(denom), 0.2)
-            r = np.where(on_mesh & hit, r + depth / denom, r)
-            peak = float(np.max(depth[on_mesh & hit])) if np.any(on_mesh & hit) else 0.0
-            if c is not None and peak > 0.05:
-                near_tip = on_mesh & hit & (depth > 0.3 * peak)
+        on_obj = on_mesh & hit
+        field = self._dent_field(snap, o, dirs, r, on_obj)
+        if field is not None:
+            depth_at, n_dent = field
+            rows = np.flatnonzero(on_obj)
+            h0 = o + r[rows, None] * dirs[rows]
+            depth_rows, advance = dented_hit_depth_mm(depth_at, h0, dirs[rows], normals[rows], n_dent)
+            r[rows] += advance
+            depth = np.zeros(n_s)
+            depth[rows] = depth_rows
+            peak = float(np.max(depth_rows)) if rows.size else 0.0
+            if snap.contact is not None and peak > 0.05:
+                near_tip = on_obj & (depth > 0.3 * peak)
         # Losses.
         lost = ~hit
         lost |= self._shadowed(o, dirs, r, snap, obj_scanner, hit)
@@ -275,45 +366,50 @@ class SimLineScanner:
             self.stats["cuts"] += 1
         return self._cut
 
-    def _dent_depth_mm(self, snap: WorldSnapshot, o: np.ndarray, dirs: np.ndarray, r: np.ndarray,
-                       on_obj: np.ndarray) -> np.ndarray | None:
-        """Depth (mm along -n) of the deformed or permanently dented surface at each object hit."""
+    def _dent_field(self, snap: WorldSnapshot, o: np.ndarray, dirs: np.ndarray, r: np.ndarray,
+                    on_obj: np.ndarray) -> tuple[Callable[[np.ndarray], np.ndarray], np.ndarray] | None:
+        """The dent in ``snap`` as (depth_at(points) -> depth mm along -n, n), or None without one.
+
+        ``depth_at`` takes object-frame points on (or displaced from) the undeformed surface
+        and gives the dent's depth at their position across the contact (x along t, and the
+        distance off the line), which is what the contact model defines."""
         w = self._world
         if not np.any(on_obj):
             return None
-        pts = o + np.where(on_obj, r, 0.0)[:, None] * dirs
         c = snap.contact
         if c is not None and c.model is not None:
-            rel = pts - c.point_obj
-            x = rel @ c.t_obj
             # The contact's lateral axis n x t, once per contact (its geometry is fixed from first touch).
             lc = self._lateral_cache
             if lc is None or lc[0] is not c:
                 lc = self._lateral_cache = (c, np.cross(c.normal_obj, c.t_obj))
-            lateral = rel @ lc[1]
+            model, point, t, lateral_axis = c.model, c.point_obj, c.t_obj, lc[1]
+            force_n, hold_s, n = snap.force_n, snap.hold_s, c.normal_obj
+        else:
+            if not w.presses:
+                return None
+            pts = o + np.where(on_obj, r, 0.0)[:, None] * dirs
+            centre = pts[on_obj].mean(axis=0)
+            press = min(w.presses, key=lambda p: float(np.linalg.norm(p.point_obj - centre)))
+            if float(np.min(np.linalg.norm(pts[on_obj] - press.point_obj, axis=1))) > 30.0:
+                return None
+            line = pts[on_obj][-1] - pts[on_obj][0]
+            n = press.normal_obj
+            t = line - float(line @ n) * n
+            if np.linalg.norm(t) < 1e-9:
+                return None
+            t = t / np.linalg.norm(t)
+            model = w.obj.contact_model(press.point_obj, n, t, 90.0, w.tip_radius_mm)
+            point, lateral_axis, force_n, hold_s = press.point_obj, np.cross(n, t), 0.0, math.inf
+
+        def depth_at(points_mm: np.ndarray) -> np.ndarray:
+            rel = points_mm - point
+            x = rel @ t
+            lateral = rel @ lateral_axis
             # The laser line runs through the tip; off the line (miscalibration) use the
             # distance from the tip with the sign of x (the dent is nearly axisymmetric).
-            x_eff = np.sign(x) * np.sqrt(x * x + lateral * lateral)
-            depth = c.model.depth_profile_mm(x_eff, snap.force_n, snap.hold_s)
-            return np.where(on_obj, depth, 0.0)
-        if not w.presses:
-            return None
-        centre = pts[on_obj].mean(axis=0)
-        press = min(w.presses, key=lambda p: float(np.linalg.norm(p.point_obj - centre)))
-        if float(np.min(np.linalg.norm(pts[on_obj] - press.point_obj, axis=1))) > 30.0:
-            return None
-        line = pts[on_obj][-1] - pts[on_obj][0]
-        n = press.normal_obj
-        t = line - float(line @ n) * n
-        if np.linalg.norm(t) < 1e-9:
-            return None
-        t = t / np.linalg.norm(t)
-        model = w.obj.contact_model(press.point_obj, n, t, 90.0, w.tip_radius_mm)
-        rel = pts - press.point_obj
-        x = rel @ t
-        lateral = rel @ np.cross(n, t)
-        depth = model.depth_profile_mm(np.sign(x) * np.sqrt(x * x + lateral * lateral), 0.0)
-        return np.where(on_obj, depth, 0.0)
+            return model.depth_profile_mm(np.sign(x) * np.sqrt(x * x + lateral * lateral), force_n, hold_s)
+
+        return depth_at, n
 
     def _shadowed(self, o: np.ndarray, dirs: np.ndarray, r: np.ndarray, snap: WorldSnapshot,
                   obj_scanner: Pose, hit: np.ndarray) -> np.ndarray:
