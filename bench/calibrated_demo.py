@@ -1,15 +1,17 @@
 """Benchmark: the demo on the miscalibrated cell, before and after calibration, against the calibrated cell.
 
-Three sessions of the same plan and seed (default config/plans/demo.yaml, seed 1):
+For every seed in ``--seeds`` (default 1; the run's --seed drives noise only) the same plan
+(default config/plans/demo.yaml) runs as CLI subprocesses on:
 
   (i)   ``calibrated``:        the default simulated cell (config/cells/sim.yaml: true = believed);
   (ii)  ``uncalibrated``:      a copy of config/cells/sim_miscalibrated.yaml with no calibration file
                                (the controller believes the nominal drawing; the world is off by
-                               the cell's miscalibration; the controller may notice — its
-                               placement check sees scans and sweeps disagree — and pause,
-                               asking for calibration: reported with the reason, no map);
+                               the cell's miscalibration; its placement check usually sees
+                               scans and sweeps disagree and pauses, asking for calibration
+                               (8 of 10 runs over 5 seeds and 2 draws; the other two mapped,
+                               at 0.40 and 0.0069): reported with the reason, no map);
   (iii) ``after_calibration``: another copy of it, after ``elastoprobe calibrate ft``, ``tcp``,
-                               ``scanner`` and ``object`` wrote its calibration file.
+                               ``scanner`` and ``object`` wrote its calibration file;
 
 and with ``--oracle`` also
 
@@ -17,15 +19,36 @@ and with ``--oracle`` also
                                truth (believed == true on the same physical cell as (ii)/(iii)):
                                what (iii) would score if calibration were exact.
 
-Each is scored by ``elastoprobe evaluate DIR --json`` against the simulator's ground truth.
-The goal (issue #6): (iii)'s ``region_map_error`` (the mislabelled fraction of the reachable
-scanned surface) within 10 % of (i)'s, relative: |e_iii - e_i| / e_i <= 0.10.
+The miscalibration is a property of the cell (simulation.miscalibration.seed in the cell
+file), not of the run: one cell is ONE draw of "a miscalibrated cell". ``--cell-seeds 0,1``
+makes copies of the miscalibrated cell with those cell-level seeds (each a different
+direction of the payload, tip, scanner-mount and placement errors), calibrates each once
+(``--calibration-seed``) and runs (ii) and (iii) on each for every seed; (iv) runs on the
+first draw only (it separates calibration error from run-to-run variation; the calibration
+itself is scored per draw by bench/calibration.py).
 
-Prints ONE JSON object: the three evaluations (region_map_error, worst IoU, boundary
-distances, profile RMSE, ...), the calibration summaries, the relative difference, the
-goal and whether it is met, and wall times. Every run is a CLI subprocess (what a user
-types). ``--out DIR`` keeps the sessions (default: a new temporary folder); ``--reuse``
-skips a run whose session already finished in DIR. A demo run takes minutes.
+Each session is scored by ``elastoprobe evaluate DIR --json`` against the simulator's ground
+truth. Printed: ONE JSON object with every case's per-seed headline (region_map_error, worst
+IoU, boundary distances mean/p90, regions found, profile RMSE, probes, robot hours), the
+aggregate per case (per-seed values, mean, sd, standard error of the mean), and comparisons
+of the means. The goal (issue #6): |mean(iii) - mean(i)| <= 10 % of mean(i), over the seeds
+(and draws, pooled, when there are several). Both verdicts are printed:
+``goal_met_strict`` (the issue's words) and ``goal_met_floored``, which also accepts a
+difference within the NOISE FLOOR = 2 standard errors of the difference of the means: both
+errors are a few mislabelled points out of ~40 000 and swing by more than 10 % between
+equivalent runs, so a smaller difference cannot be resolved by these seeds. The strict
+figure is never hidden.
+
+Caveat on the boundary distances: the reachable surface of the composite is the box top
+and the pillow; the box's walls are too steep to probe and are not scored, so the two
+regions touch only at a few points at the walls' foot. The boundary point sets hold a
+handful of points, and one mislabelled point near a wall's foot moves the mean by tens of
+mm: read them with region_map_error and IoU, not alone.
+
+Every run is a CLI subprocess (what a user types). ``--out DIR`` keeps the cells and sessions
+(default: a new temporary folder; sessions in DIR/seedN/CASE[_drawD]); ``--reuse`` skips a
+run whose session already finished there and a calibration already complete. A demo run
+takes about a minute of wall time here, a calibration a few minutes per cell.
 """
 from __future__ import annotations
 
