@@ -330,9 +330,8 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
         labels, k = _compact(labels)
         if k < 2:
             return labels, merges
-        with np.errstate(all="ignore"):
-            med = np.stack([np.nanmedian(cols[labels == j], axis=0) for j in range(k)])
-            logs = np.log(np.maximum(med, 1e-6))
+        med = _region_medians(cols, labels, k)
+        logs = np.log(np.maximum(med, 1e-6))
         best: tuple[float, int, int] | None = None
         for i in range(k):
             for j in range(i + 1, k):
@@ -399,6 +398,13 @@ def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.n
     return labels, sorted(set(relabelled))
 
 
+def _region_medians(columns: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
+    """(k, C) NaN-aware median of each column over each region's points (NaN: none seen)."""
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.stack([np.nanmedian(columns[labels == j], axis=0) for j in range(k)])
+
+
 def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray],
                              depth_columns: list[int]) -> tuple[np.ndarray, list[int]]:
     """Relabel a region that is only the blend between two others into those two.
@@ -422,8 +428,7 @@ def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbour
         labels, k = _compact(labels)
         if k < 3:
             return labels, relabelled
-        with np.errstate(all="ignore"):
-            med = np.stack([np.nanmedian(cols[labels == j], axis=0) for j in range(k)])
+        med = _region_medians(cols, labels, k)
         sizes = np.bincount(labels, minlength=k)
         done = True
         for band in np.argsort(sizes, kind="stable"):
