@@ -38,10 +38,11 @@ Prints ONE JSON object.
 from __future__ import annotations
 
 import argparse
-import math
 import json
+import math
 import os
 import random
+import re
 import shutil
 import signal
 import sqlite3
@@ -429,10 +430,17 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
             "journaled_other": _histogram(f.kind for f in other)}
 
 
+_RECOVERY_PREFIX = re.compile(r"during recovery from ([a-z_]+): ")
+
+
 def _paused_fault_ids(children: list[ChildRun], faults: list[Any], run_of_fault: dict[int, int],
                       run_of_pid: dict[int, int]) -> set[int]:
     """The last fault of each run whose child exited 3 on it (its pause reason names the
-    fault) and that a later child resumed."""
+    fault) and that a later child resumed.
+
+    A fault journaled while recovering from an earlier one ("during recovery from K: ...")
+    ends the run with the pause reason of the fault it interrupted (K): it counts as paused
+    on that reason too."""
     last_of_run: dict[int, Any] = {}
     for f in faults:
         last_of_run[run_of_fault[f.fault_id]] = f
@@ -443,7 +451,9 @@ def _paused_fault_ids(children: list[ChildRun], faults: list[Any], run_of_fault:
         if child.returncode != 3 or not child.pause_reason or last is None:
             continue
         reason = child.pause_reason
-        if reason.startswith(last.kind) or (last.kind == "disk_error" and reason.startswith("journal write failed")):
+        interrupted = _RECOVERY_PREFIX.match(last.message or "")
+        if (reason.startswith(last.kind) or (last.kind == "disk_error" and reason.startswith("journal write failed"))
+                or (interrupted is not None and reason.startswith(interrupted.group(1)))):
             paused.add(last.fault_id)
     return paused
 

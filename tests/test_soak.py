@@ -85,3 +85,25 @@ def test_overnight_soak(tmp_path: Path) -> None:
     assert result["faults_injected"] >= 15          # ~1 per 100 of ~3000 force steps
     assert result["rss_growth_mb_per_h"] is not None
     assert abs(result["rss_growth_mb_per_h"]) <= MAX_RSS_GROWTH_MB_PER_H
+
+
+def test_a_fault_during_recovery_counts_as_the_pause_it_caused() -> None:
+    # The CI run of cad5053 met it: a motion was refused at step 0, and while retracting a
+    # protective stop struck. The session journaled "during recovery from motion_refused:
+    # ..." and paused naming the fault it was recovering from; the judge matched pause
+    # reasons only against the journaled fault's own kind and called it unresolved.
+    from elastoprobe.controller.journal import FaultRecord
+
+    def fault(fault_id: int, kind: str, message: str) -> FaultRecord:
+        return FaultRecord(fault_id=fault_id, kind=kind, t_robot_s=83.0 + fault_id, t_wall_utc="", step_id=None,
+                           message=message, policy_action="pause", raw=None)
+
+    faults = [fault(3, "motion_refused", "collision: scanner comes within 3.7 mm"),
+              fault(4, "protective_stop", "during recovery from motion_refused: the robot is in a protective stop")]
+    paused = soak.ChildRun([], 101, 3, None, 1.0, 1.0, [], pause_reason="motion_refused: collision: scanner comes")
+    resumed = soak.ChildRun([], 102, 0, None, 1.0, 1.0, [])
+    got = soak._paused_fault_ids([paused, resumed], faults, {3: 1, 4: 1}, {101: 1, 102: 2})
+    assert got == {4}
+    # A pause naming another fault does not claim it.
+    other = soak.ChildRun([], 101, 3, None, 1.0, 1.0, [], pause_reason="force_spike: force 52 N")
+    assert soak._paused_fault_ids([other, resumed], faults, {3: 1, 4: 1}, {101: 1, 102: 2}) == set()
