@@ -265,7 +265,11 @@ class Session:
                 return acquire_cloud(self.executor, verts.min(axis=0), verts.max(axis=0),
                                      plan.cloud.sweep_spacing_mm, plan.cloud.sweep_height_mm,
                                      max_points=plan.cloud.max_points, seed=self.seed)
-            except ProbeFault as fault:
+            except (ProbeFault, DeviceError) as exc:
+                # A device call outside a guarded motion (the arm's status while planning a
+                # leg) is a fault of the sweep too: on the real cell the UR link's child
+                # died and was restarted with the arm stopped.
+                fault = exc if isinstance(exc, ProbeFault) else ProbeFault("device", str(exc))
                 self.handle_sweep_fault(fault, attempt)
                 attempt += 1
                 self.machine.fire("sweep")
@@ -480,6 +484,12 @@ class Session:
             self._handle_fault(ProbeFault("motion_refused", str(exc)), group)
         except ProbeFault as fault:
             self._handle_fault(fault, group)
+        except DeviceError as exc:
+            # A device call outside a guarded motion (e.g. the arm's status while planning
+            # the travel) failed: on the real cell the UR link's child died and was
+            # restarted with the arm stopped. A fault of the contact, handled by policy,
+            # not an internal error that ends the night.
+            self._handle_fault(ProbeFault("device", str(exc)), group)
         finally:
             overhead = cell.clock.now_s() - t_start - step_time
             if overhead > 0:

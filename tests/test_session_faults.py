@@ -249,3 +249,42 @@ def test_no_retries_left_skips_the_target(tmp_path: Path) -> None:
     finally:
         j.close()
     _assert_complete_data(out)
+
+
+def test_a_device_error_while_planning_the_travel_is_a_retried_fault_not_an_internal_error(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Seen on the loopback cell: the UR link's child died during a status read that plans
+    # the travel to a standoff (it was restarted with the arm stopped); the DeviceError
+    # escaped the contact and the session ended in an internal error (exit 1).
+    from elastoprobe.controller import probe
+    from elastoprobe.controller.errors import DeviceError
+
+    original_sync, original_probe = probe.ProbeExecutor._sync_validator, probe.ProbeExecutor.probe
+    state = {"calls": 0, "in_contact": False, "died_in_contact": False}
+
+    def contact(self: Any, *args: Any, **kwargs: Any) -> None:
+        state["in_contact"] = True
+        try:
+            original_probe(self, *args, **kwargs)
+        finally:
+            state["in_contact"] = False
+
+    def dies_in_the_sweep_and_in_a_contact(self: Any) -> None:
+        state["calls"] += 1
+        if state["calls"] == 3 or (state["in_contact"] and not state["died_in_contact"]):
+            state["died_in_contact"] = state["died_in_contact"] or state["in_contact"]
+            raise DeviceError("hardware status: DeviceError: UR link child died during state; restarted, arm stopped")
+        original_sync(self)
+
+    monkeypatch.setattr(probe.ProbeExecutor, "_sync_validator", dies_in_the_sweep_and_in_a_contact)
+    monkeypatch.setattr(probe.ProbeExecutor, "probe", contact)
+    plan = plan_for(copy_cell(SIM_CELL, tmp_path, "device-error-cell"), tmp_path, edits=dict(SURVEY_EDITS))
+    out = tmp_path / "session"
+    code, _ = _run(plan, out)
+    assert code == EXIT_DONE
+    faults = [e for e in _fault_events(out) if e["kind"] == "device"]
+    assert state["died_in_contact"]
+    assert len(faults) == 2 and all(f["action"] == "retry" and "child died" in f["message"] for f in faults), faults
+    assert faults[0].get("phase") == "cloud" and faults[1]["step"] is not None, faults
+    _assert_stopped_at_faults(out)
+    _assert_complete_data(out)
