@@ -93,7 +93,9 @@ _DENT_ITERATIONS = 30        # bound of the root find (Illinois: a handful suffi
 
 
 def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.ndarray, dirs: np.ndarray,
-                        face_normals: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                        face_normals: np.ndarray, n: np.ndarray,
+                        advance_at: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
+                        ) -> tuple[np.ndarray, np.ndarray]:
     """Where rays that met the undeformed surface at ``h0_mm`` (M,3) meet the dented one.
 
     The dented surface is {q - d(q) n : q on the undeformed surface}, d = ``depth_at`` (mm,
@@ -107,26 +109,42 @@ def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.
     is found by the Illinois variant of regula falsi, vectorised — a plain fixed-point
     step would diverge where a steep foam dent is seen at a low angle.
 
+    ``advance_at(d, rows)``, if given, replaces the face's plane by the mesh itself: the
+    advance (mm) along rows' rays at which the undeformed surface lies d mm further along
+    n, NaN where it cannot tell (the plane is used there). On a curved surface a deep dent
+    seen obliquely moves q off the hit face, and the plane misplaces it by ~ step^2 / 2R
+    (0.3 mm for a 5 mm sponge dent on the 65 mm ball).
+
     Returns (depth mm at the meeting point along -n, advance mm along each ray).
     """
     h0 = np.asarray(h0_mm, dtype=float)
     cos_face = -np.maximum(np.abs(np.einsum("ij,ij->i", dirs, face_normals)), _MIN_FACE_COS)
     along = -(face_normals @ n) / cos_face          # advance along the ray per mm of depth
 
-    def f_of(d: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        q = h0[rows] + (d * along[rows])[:, None] * dirs[rows] + d[:, None] * n
-        return d - depth_at(q)
+    def advance_of(d: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        plane = d * along[rows]
+        if advance_at is None:
+            return plane
+        exact = advance_at(d, rows)
+        return np.where(np.isfinite(exact), exact, plane)
+
+    def f_of(d: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(f(d), the advance along the ray at d) for rows."""
+        adv = advance_of(d, rows)
+        q = h0[rows] + adv[:, None] * dirs[rows] + d[:, None] * n
+        return d - depth_at(q), adv
 
     d0 = np.asarray(depth_at(h0), dtype=float)
     depth = d0.copy()
     rows = np.flatnonzero(np.abs(d0) > _DENT_TOL_MM)
     if rows.size == 0:
         return depth, depth * along
-    f0 = f_of(d0[rows], rows)
+    advance = depth * along
+    f0, advance[rows] = f_of(d0[rows], rows)
     open_ = np.abs(f0) > _DENT_TOL_MM
     rows, f0, d_start = rows[open_], f0[open_], d0[rows][open_]
     if rows.size == 0:
-        return depth, depth * along
+        return depth, advance
     # The bracket [lo, hi] with f(lo) <= 0 <= f(hi), from f(0) = -d0 and f(d0).
     lo, hi = np.minimum(0.0, d_start), np.maximum(0.0, d_start)
     f_zero = -d_start
@@ -144,7 +162,7 @@ def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.
         step = np.maximum(deepest, np.abs(np.where(below, f_hi, f_lo)))
         probe = np.where(below, hi + step, lo - step)
         f_probe = np.zeros(rows.size)
-        f_probe[moved] = f_of(probe[moved], rows[moved])
+        f_probe[moved] = f_of(probe[moved], rows[moved])[0]
         lo, f_lo, hi, f_hi = (np.where(below, hi, np.where(above, probe, lo)),
                               np.where(below, f_hi, np.where(above, f_probe, f_lo)),
                               np.where(above, lo, np.where(below, probe, hi)),
@@ -155,7 +173,7 @@ def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.
         denom = f_hi - f_lo
         safe = np.abs(denom) > 1e-15
         d = np.where(safe, hi - f_hi * (hi - lo) / np.where(safe, denom, 1.0), 0.5 * (lo + hi))
-        f = f_of(d, rows)
+        f, adv = f_of(d, rows)
         if np.max(np.abs(f)) <= _DENT_TOL_MM:
             break
         up = f > 0
@@ -165,7 +183,8 @@ def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.
         f_hi = np.where(~up & (side == -1), 0.5 * f_hi, f_hi)
         side = np.where(up, 1, -1)
     depth[rows] = d
-    return depth, depth * along
+    advance[rows] = adv
+    return depth, advance
 
 
 class SimLineScanner:
@@ -313,7 +332,8 @@ class SimLineScanner:
             depth_at, n_dent = field
             rows = np.flatnonzero(on_obj)
             h0 = o + r[rows, None] * dirs[rows]
-            depth_rows, advance = dented_hit_depth_mm(depth_at, h0, dirs[rows], normals[rows], n_dent)
+            advance_at = self._advance_on_cut(cut, o, x_ax, z_ax, rows, r[rows], n_dent)
+            depth_rows, advance = dented_hit_depth_mm(depth_at, h0, dirs[rows], normals[rows], n_dent, advance_at)
             r[rows] += advance
             depth = np.zeros(n_s)
             depth[rows] = depth_rows
@@ -331,6 +351,49 @@ class SimLineScanner:
             r = r + self._noise_rng.standard_normal(n_s) * sigma + shape * floor
         r = np.where(lost, np.nan, r)
         return r * np.sin(self._angles), r * np.cos(self._angles)
+
+    def _advance_on_cut(self, cut: PlaneCut, o: np.ndarray, x_ax: np.ndarray, z_ax: np.ndarray,
+                        rows: np.ndarray, r0_mm: np.ndarray, n: np.ndarray
+                        ) -> Callable[[np.ndarray, np.ndarray], np.ndarray] | None:
+        """For :func:`dented_hit_depth_mm`: the advance along the rays of ``rows`` (which met the
+        undeformed mesh at ranges ``r0_mm``) at which the mesh lies d mm further along n.
+
+        That is where the ray shifted by d n meets the mesh, found in the laser plane against
+        the cut's segments (exact for the mesh; the component of n off the laser plane, nonzero
+        only for a scanner turned about its line, is left out). NaN where the shifted ray
+        meets none of the segments near the hits (the caller uses the hit face's plane)."""
+        if rows.size == 0 or cut.p1.shape[0] == 0:
+            return None
+        a = np.column_stack([(cut.p1 - o) @ x_ax, (cut.p1 - o) @ z_ax])
+        b = np.column_stack([(cut.p2 - o) @ x_ax, (cut.p2 - o) @ z_ax])
+        ray = np.column_stack([np.sin(self._angles[rows]), np.cos(self._angles[rows])])
+        hits = r0_mm[:, None] * ray
+        # Only segments near the hits: q moves a few dent depths along the surface at most.
+        margin_mm = 25.0
+        lo, hi = hits.min(axis=0) - margin_mm, hits.max(axis=0) + margin_mm
+        near = np.all((np.minimum(a, b) <= hi) & (np.maximum(a, b) >= lo), axis=1)
+        a, e = a[near], b[near] - a[near]
+        if a.shape[0] == 0:
+            return None
+        n2 = np.array([float(n @ x_ax), float(n @ z_ax)])
+
+        def advance_at(d: np.ndarray, sub: np.ndarray) -> np.ndarray:
+            # Ray d n2 + r u against segment a + v e: r (u x e) = w x e, v (u x e) = w x u, w = a - d n2.
+            u = ray[sub]
+            w = a[None, :, :] - (d[:, None] * n2)[:, None, :]
+            ue = u[:, None, 0] * e[None, :, 1] - u[:, None, 1] * e[None, :, 0]
+            safe = np.abs(ue) > 1e-12
+            inv = 1.0 / np.where(safe, ue, 1.0)
+            r = (w[..., 0] * e[None, :, 1] - w[..., 1] * e[None, :, 0]) * inv
+            v = (w[..., 0] * u[:, None, 1] - w[..., 1] * u[:, None, 0]) * inv
+            ok = safe & (v >= -1e-9) & (v <= 1.0 + 1e-9) & (r > 0.0)
+            # Of several crossings, the one nearest the original hit (the dent is local).
+            gap = np.where(ok, np.abs(r - r0_mm[sub, None]), np.inf)
+            best = np.argmin(gap, axis=1)
+            found = np.isfinite(gap[np.arange(sub.size), best])
+            return np.where(found, r[np.arange(sub.size), best] - r0_mm[sub], np.nan)
+
+        return advance_at
 
     def _face_terms(self, face: np.ndarray) -> tuple[np.ndarray, ...]:
         """What each sample's hit face alone decides: (on the mesh, surface normal, cosine of the

@@ -221,3 +221,56 @@ def test_rays_meet_the_dented_surface(angle_deg, material, force_n):
     print(f"{material.name} {angle_deg} deg {force_n} N: peak {peak_mm:.3f} mm, max height error {err_um:.3f} um")
     assert peak_mm > 0.5
     assert err_um < 1.0
+
+
+def _mesh_below_mm(pts: np.ndarray, n: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Per point P: the s (mm) nearest 0 with P + s n on the mesh (NaN if the line misses it).
+    Brute-force Moller-Trumbore against every triangle: independent of the scanner's cut."""
+    v0, e1, e2 = triangles[:, 0], triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]
+    h = np.cross(n, e2)
+    a = np.einsum("ij,ij->i", e1, h)
+    ok = np.abs(a) > 1e-12
+    inv = np.where(ok, 1.0 / np.where(ok, a, 1.0), 0.0)
+    out = np.full(len(pts), np.nan)
+    for i, p in enumerate(pts):
+        sv = p - v0
+        u = inv * np.einsum("ij,ij->i", sv, h)
+        qv = np.cross(sv, e1)
+        v = inv * (qv @ n)
+        s = inv * np.einsum("ij,ij->i", e2, qv)
+        good = ok & (u >= -1e-9) & (v >= -1e-9) & (u + v <= 1.0 + 1e-9)
+        if good.any():
+            out[i] = s[good][np.argmin(np.abs(s[good]))]
+    return out
+
+
+@pytest.mark.parametrize("material,force_n", [(None, 20.0), (SPONGE, 12.0)])
+@pytest.mark.parametrize("angle_deg", [45.0, 90.0])
+def test_rays_meet_the_dented_surface_of_the_curved_ball(angle_deg, material, force_n):
+    # On the ball the faces the rays hit are tilted from the contact normal, and a deep dent
+    # seen obliquely moves the undeformed point beneath a ray off the face it hit: the hit
+    # face's plane drew the sponge dent up to 0.3 mm shallow (90 deg), the rubber 0.05 mm.
+    # Truth: from each rendered point P the line along +n meets the mesh at q = P + s n, and
+    # s must be the dent's depth at q.
+    base = make_cell(obj="rubber_ball").world.obj
+    obj = base if material is None else SimObject("ball", base.mesh, np.zeros(len(base.mesh.faces), dtype=int),
+                                                   [material.name], [material])
+    cell = make_cell(obj="rubber_ball", object=obj, scanner={"noise_scale": 0.0, "probe_shadow": False})
+    press(cell, np.array([0.0, 0.0, 130.0]), UP, angle_deg, force_n, travel_z_mm=250.0, settle_s=3.0)
+    snap = cell.world.snapshot_now()
+    x, z = cell.scanner.profile(snap, noise=False)
+    ok = np.isfinite(z)
+    local = np.column_stack([x[ok], np.zeros(int(ok.sum())), z[ok]])
+    pts = cell.base_to_object.inverse().compose(snap.tcp_pose).compose(cell.tcp_to_scanner).apply(local)
+    pts = pts[pts[:, 2] > 0.5]                   # the ball, not the table
+    c = snap.contact
+    s = _mesh_below_mm(pts, c.normal_obj, np.asarray(cell.world.obj.mesh.triangles))
+    q = pts + s[:, None] * c.normal_obj
+    rel = q - c.point_obj
+    along, lateral = rel @ c.t_obj, rel @ np.cross(c.normal_obj, c.t_obj)
+    depth = c.model.depth_profile_mm(np.sign(along) * np.hypot(along, lateral), snap.force_n, snap.hold_s)
+    assert np.isfinite(s).sum() > 100
+    err_um = float(np.nanmax(np.abs(s - depth))) * 1e3
+    print(f"ball {angle_deg} deg {force_n} N: peak {np.nanmax(depth):.3f} mm, max height error {err_um:.3f} um")
+    assert np.nanmax(depth) > 0.5
+    assert err_um < 1.0
