@@ -16,7 +16,9 @@ Per profile (at its exposure instant, from the world's true state):
    at the current force and creep state, or by permanent dents from earlier presses, also
    out of contact): a bracketed root find per ray (:func:`dented_hit_depth_mm`), since
    the dent's depth at the point the ray reaches is not its depth where the ray met the
-   undeformed surface wherever the dent slopes and the ray is oblique;
+   undeformed surface wherever the dent slopes and the ray is oblique; the undeformed
+   point beneath a ray point is found on the plane cut of step 1, so curved and faceted
+   surfaces are exact too;
 3. samples are lost: the probe cylinder or the tip sphere on the laser ray or on the
    camera's line of sight (the probe's shadow, on the side the probe is on), steep
    incidence beyond the material's ``steep_incidence_deg``, a per-material base
@@ -84,9 +86,10 @@ class _Burst:
     correlated_shape: np.ndarray     # unit-RMS shape along the line, fixed for the burst
 
 
-# A ray more grazing than this (|cos| of the incidence on its face) is advanced as if at
-# this cosine: such samples are lost to steep incidence anyway (every material's limit is
-# under 80 deg), and it keeps the step along the ray bounded.
+# Where the undeformed point beneath a ray cannot be found on the cut (no segment near the
+# hits), the hit face's plane stands in; a ray more grazing on it than this |cos| is advanced
+# as if at this cosine, which keeps that step bounded (the shipped materials lose samples
+# beyond 55-75 deg, i.e. |cos| under 0.26-0.57, so they are lost anyway).
 _MIN_FACE_COS = 0.2
 _DENT_TOL_MM = 1e-4          # 0.1 um: far under any scanner's noise
 _DENT_ITERATIONS = 30        # bound of the root find (Illinois: a handful suffice)
@@ -364,34 +367,56 @@ class SimLineScanner:
         meets none of the segments near the hits (the caller uses the hit face's plane)."""
         if rows.size == 0 or cut.p1.shape[0] == 0:
             return None
-        a = np.column_stack([(cut.p1 - o) @ x_ax, (cut.p1 - o) @ z_ax])
-        b = np.column_stack([(cut.p2 - o) @ x_ax, (cut.p2 - o) @ z_ax])
-        ray = np.column_stack([np.sin(self._angles[rows]), np.cos(self._angles[rows])])
-        hits = r0_mm[:, None] * ray
-        # Only segments near the hits: q moves a few dent depths along the surface at most.
-        margin_mm = 25.0
-        lo, hi = hits.min(axis=0) - margin_mm, hits.max(axis=0) + margin_mm
-        near = np.all((np.minimum(a, b) <= hi) & (np.maximum(a, b) >= lo), axis=1)
-        a, e = a[near], b[near] - a[near]
-        if a.shape[0] == 0:
-            return None
+        seg_a = np.column_stack([(cut.p1 - o) @ x_ax, (cut.p1 - o) @ z_ax])
+        seg_b = np.column_stack([(cut.p2 - o) @ x_ax, (cut.p2 - o) @ z_ax])
+        rays = np.column_stack([np.sin(self._angles[rows]), np.cos(self._angles[rows])])
         n2 = np.array([float(n @ x_ax), float(n @ z_ax)])
+        prepared: dict[str, np.ndarray] = {}
+
+        def prepare(sub: np.ndarray) -> None:
+            # Once per profile, for the rays the root find asks about first (those in the dent):
+            # each near segment's offset across the ray (p x u) and range along it (p . u) at its
+            # start, and their changes along it. The ray shifted by d n2, d n2 + r u, is the line
+            # p x u = d (n2 x u): a segment meets it where its offset passes that value, at
+            # r = p . u - d (n2 . u).
+            ray = rays[sub]
+            hits = r0_mm[sub, None] * ray
+            # Only segments near these hits: q moves a few dent depths along the surface at most.
+            margin_mm = 25.0
+            lo, hi = hits.min(axis=0) - margin_mm, hits.max(axis=0) + margin_mm
+            near = np.all((np.minimum(seg_a, seg_b) <= hi) & (np.maximum(seg_a, seg_b) >= lo), axis=1)
+            a, e = seg_a[near], seg_b[near] - seg_a[near]
+            d_off = e[None, :, 0] * ray[:, None, 1] - e[None, :, 1] * ray[:, None, 0]
+            parallel = np.abs(d_off) <= 1e-12
+            prepared.update(
+                rows=sub.copy(),
+                off_a=a[None, :, 0] * ray[:, None, 1] - a[None, :, 1] * ray[:, None, 0],
+                inv_off=np.where(parallel, np.nan, 1.0 / np.where(parallel, 1.0, d_off)),   # NaN: never crossed
+                rng_a=ray @ a.T, d_rng=ray @ e.T,
+                k=n2[0] * ray[:, 1] - n2[1] * ray[:, 0], along_n=ray @ n2)
 
         def advance_at(d: np.ndarray, sub: np.ndarray) -> np.ndarray:
-            # Ray d n2 + r u against segment a + v e: r (u x e) = w x e, v (u x e) = w x u, w = a - d n2.
-            u = ray[sub]
-            w = a[None, :, :] - (d[:, None] * n2)[:, None, :]
-            ue = u[:, None, 0] * e[None, :, 1] - u[:, None, 1] * e[None, :, 0]
-            safe = np.abs(ue) > 1e-12
-            inv = 1.0 / np.where(safe, ue, 1.0)
-            r = (w[..., 0] * e[None, :, 1] - w[..., 1] * e[None, :, 0]) * inv
-            v = (w[..., 0] * u[:, None, 1] - w[..., 1] * u[:, None, 0]) * inv
-            ok = safe & (v >= -1e-9) & (v <= 1.0 + 1e-9) & (r > 0.0)
+            if not prepared:
+                prepare(sub)
+            known = prepared["rows"]
+            if sub.size == known.size and np.array_equal(sub, known):
+                pick: slice | np.ndarray = slice(None)
+            else:
+                pick = np.searchsorted(known, sub)          # the root find narrows its rows
+                if np.any(pick >= known.size) or not np.array_equal(known[np.minimum(pick, known.size - 1)], sub):
+                    prepare(sub)
+                    pick = slice(None)
+            P = prepared
+            if P["off_a"].shape[1] == 0:
+                return np.full(sub.size, np.nan)
+            frac = ((d * P["k"][pick])[:, None] - P["off_a"][pick]) * P["inv_off"][pick]
+            r = P["rng_a"][pick] + frac * P["d_rng"][pick] - (d * P["along_n"][pick])[:, None]
+            ok = (frac >= -1e-9) & (frac <= 1.0 + 1e-9) & (r > 0.0)
             # Of several crossings, the one nearest the original hit (the dent is local).
             gap = np.where(ok, np.abs(r - r0_mm[sub, None]), np.inf)
             best = np.argmin(gap, axis=1)
-            found = np.isfinite(gap[np.arange(sub.size), best])
-            return np.where(found, r[np.arange(sub.size), best] - r0_mm[sub], np.nan)
+            idx = np.arange(sub.size)
+            return np.where(np.isfinite(gap[idx, best]), r[idx, best] - r0_mm[sub], np.nan)
 
         return advance_at
 
