@@ -335,7 +335,7 @@ class SimLineScanner:
             depth_at, n_dent = field
             rows = np.flatnonzero(on_obj)
             h0 = o + r[rows, None] * dirs[rows]
-            advance_at = self._advance_on_cut(cut, o, x_ax, z_ax, rows, r[rows], n_dent)
+            advance_at = self._advance_on_cut(cut, o, x_ax, y_ax, z_ax, rows, r[rows], normals[rows], n_dent)
             depth_rows, advance = dented_hit_depth_mm(depth_at, h0, dirs[rows], normals[rows], n_dent, advance_at)
             r[rows] += advance
             depth = np.zeros(n_s)
@@ -355,22 +355,30 @@ class SimLineScanner:
         r = np.where(lost, np.nan, r)
         return r * np.sin(self._angles), r * np.cos(self._angles)
 
-    def _advance_on_cut(self, cut: PlaneCut, o: np.ndarray, x_ax: np.ndarray, z_ax: np.ndarray,
-                        rows: np.ndarray, r0_mm: np.ndarray, n: np.ndarray
+    def _advance_on_cut(self, cut: PlaneCut, o: np.ndarray, x_ax: np.ndarray, y_ax: np.ndarray, z_ax: np.ndarray,
+                        rows: np.ndarray, r0_mm: np.ndarray, face_normals: np.ndarray, n: np.ndarray
                         ) -> Callable[[np.ndarray, np.ndarray], np.ndarray] | None:
         """For :func:`dented_hit_depth_mm`: the advance along the rays of ``rows`` (which met the
         undeformed mesh at ranges ``r0_mm``) at which the mesh lies d mm further along n.
 
         That is where the ray shifted by d n meets the mesh, found in the laser plane against
-        the cut's segments (exact for the mesh; the component of n off the laser plane, nonzero
-        only for a scanner turned about its line, is left out). NaN where the shifted ray
-        meets none of the segments near the hits (the caller uses the hit face's plane)."""
+        the cut's segments: exact for the mesh when n lies in the laser plane (the probe's
+        plane). Where it does not (a turned scanner; a permanent dent's normal seen from another
+        probe) the point beneath leaves the plane by d (n . y); across the plane the surface is
+        taken to rise as the hit face does, which folds that part of the shift into the plane.
+        NaN where the shifted ray meets none of the segments near the hits (the caller then
+        uses the hit face's plane)."""
         if rows.size == 0 or cut.p1.shape[0] == 0:
             return None
         seg_a = np.column_stack([(cut.p1 - o) @ x_ax, (cut.p1 - o) @ z_ax])
         seg_b = np.column_stack([(cut.p2 - o) @ x_ax, (cut.p2 - o) @ z_ax])
         rays = np.column_stack([np.sin(self._angles[rows]), np.cos(self._angles[rows])])
-        n2 = np.array([float(n @ x_ax), float(n @ z_ax)])
+        # The shift in the plane per mm of depth, per ray: n's in-plane part, plus, for its
+        # part across the plane, the in-plane step that keeps to the hit face's slope there.
+        nf2 = np.column_stack([face_normals @ x_ax, face_normals @ z_ax])
+        nf2_sq = np.einsum("ij,ij->i", nf2, nf2)
+        fold = np.where(nf2_sq > 1e-6, float(n @ y_ax) * (face_normals @ y_ax) / np.maximum(nf2_sq, 1e-6), 0.0)
+        n2 = np.array([float(n @ x_ax), float(n @ z_ax)])[None, :] + fold[:, None] * nf2
         prepared: dict[str, np.ndarray] = {}
 
         def prepare(sub: np.ndarray) -> None:
@@ -393,7 +401,8 @@ class SimLineScanner:
                 off_a=a[None, :, 0] * ray[:, None, 1] - a[None, :, 1] * ray[:, None, 0],
                 inv_off=np.where(parallel, np.nan, 1.0 / np.where(parallel, 1.0, d_off)),   # NaN: never crossed
                 rng_a=ray @ a.T, d_rng=ray @ e.T,
-                k=n2[0] * ray[:, 1] - n2[1] * ray[:, 0], along_n=ray @ n2)
+                k=n2[sub, 0] * ray[:, 1] - n2[sub, 1] * ray[:, 0],
+                along_n=np.einsum("ij,ij->i", ray, n2[sub]))
 
         def advance_at(d: np.ndarray, sub: np.ndarray) -> np.ndarray:
             if not prepared:

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from elastoprobe.controller.geometry import Pose
 from elastoprobe.sim.materials import Material
 from elastoprobe.sim.objects import SimObject
 from elastoprobe.sim.raycast import PlaneSlicer, cast_fan, plane_hits
@@ -309,3 +310,34 @@ def test_user_object_shoulder_profile_matches_the_true_profile(shoulder_xy_mm, a
     err_um = float(np.max(np.abs(s[near] - truth[near]))) * 1e3
     print(f"shoulder {shoulder_xy_mm} {angle_deg} deg: peak {np.max(truth[near]):.3f} mm, max error {err_um:.3f} um")
     assert err_um < 2.0
+
+
+@pytest.mark.parametrize("turn_deg", [3.0, 8.0])
+@pytest.mark.parametrize("angle_deg", [45.0, 90.0])
+def test_rays_meet_the_dented_surface_with_the_scanner_turned_about_its_line(angle_deg, turn_deg):
+    # A scanner turned about its line (a mounting error): the laser plane no longer contains
+    # the contact normal, so the undeformed point beneath a ray point leaves the plane by
+    # d (n . y); it must still be found on the surface (here the flat top), not by dropping
+    # the out-of-plane part of the shift (that drew this dent 1-3.4 um off).
+    cell = make_cell(obj="rubber_ball", object=slab(SPONGE), scanner={"noise_scale": 0.0, "probe_shadow": False})
+    a = math.radians(turn_deg)
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(a), -math.sin(a)], [0.0, math.sin(a), math.cos(a)]])
+    mount = cell.scanner._tcp_to_scanner
+    cell.scanner._tcp_to_scanner = Pose(mount.position_mm, mount.rotation @ turn)
+    press(cell, CENTRE, UP, angle_deg, 12.0, travel_z_mm=200.0, settle_s=3.0)
+    snap = cell.world.snapshot_now()
+    x, z = cell.scanner.profile(snap, noise=False)
+    ok = np.isfinite(z)
+    local = np.column_stack([x[ok], np.zeros(int(ok.sum())), z[ok]])
+    pts = cell.base_to_object.inverse().compose(snap.tcp_pose).compose(cell.scanner._tcp_to_scanner).apply(local)
+    pts = pts[np.abs((pts - CENTRE) @ UP) < 40.0]
+    c = snap.contact
+    rel = pts - c.point_obj
+    below_mm = -(rel @ UP)                   # the slab is flat: the undeformed top is the plane z = 50
+    q_rel = rel + below_mm[:, None] * UP
+    along, lateral = q_rel @ c.t_obj, q_rel @ np.cross(c.normal_obj, c.t_obj)
+    depth = c.model.depth_profile_mm(np.sign(along) * np.hypot(along, lateral), snap.force_n, snap.hold_s)
+    assert pts.shape[0] > 100 and np.max(np.abs(lateral)) > 5.0 and np.max(depth) > 0.1
+    err_um = float(np.max(np.abs(below_mm - depth))) * 1e3
+    print(f"turned {turn_deg} deg, {angle_deg} deg: peak seen {np.max(depth):.3f} mm, max height error {err_um:.3f} um")
+    assert err_um < 1.0
