@@ -81,9 +81,11 @@ def cmd_check(args: argparse.Namespace) -> int:
         if travel is not None:
             print(f"  travel by ordering: {travel[0]:.0f} mm -> {travel[1]:.0f} mm "
                   f"(saved {travel[0] - travel[1]:.0f} mm)")
-        else:
+        elif inputs.plan.sampling.units > 0:
             print("  travel saved by ordering: known once the neural gas has placed the targets "
-                  "(the plan lists no explicit targets)")
+                  f"(the plan lists {len(inputs.plan.targets)} explicit targets)")
+        else:
+            print(f"  travel saved by ordering: nothing to order ({len(inputs.plan.targets)} explicit targets)")
     return EXIT_DONE
 
 

@@ -254,12 +254,21 @@ class CloudSpec(Spec):
 
 
 class SamplingSpec(Spec):
-    units: int = Field(60, ge=4, le=5000)
+    # 0: no neural gas, the plan's explicit targets are the survey (a fixed-point plan such
+    # as the loopback comparison, where two runs must press the same points).
+    units: int = Field(60, ge=0, le=5000)
     steps_per_unit: int = Field(200, ge=10, le=100_000)
     geometry_weight: float = Field(1.0, ge=0, le=100)
     edge_clearance_mm: float = Field(15.0, ge=0, le=200)
     max_tilt_deg: float = Field(60.0, gt=0, le=90)
     reference_direction: Vec3 = (1.0, 0.0, 0.0)
+
+    @field_validator("units")
+    @classmethod
+    def _units(cls, v: int) -> int:
+        if 0 < v < 4:
+            raise ValueError("units must be 0 (explicit targets only) or at least 4")
+        return v
 
 
 class SurveySpec(Spec):
@@ -478,6 +487,9 @@ def load_session_inputs(plan_path: str | Path, cell_path: str | Path | None = No
                 errors.append(plan_doc.error(("phases", phase, "forces_n", i),
                                              f"force {f} N is not above the contact threshold "
                                              f"{lim.contact_force_n} N"))
+    if plan.sampling.units == 0 and not plan.targets:
+        errors.append(plan_doc.error(("sampling", "units"),
+                                     "units: 0 means explicit targets only, but the plan lists no targets:"))
     base_to_object = cell.object.base_to_object.pose()
     for i, target in enumerate(plan.targets):
         p_base = base_to_object.apply(np.array(target.point_mm))

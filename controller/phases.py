@@ -322,20 +322,32 @@ def phase_sampling(ctx: PhaseContext) -> None:
         plan = s.inputs.plan
         pts, nrm = ctx.cloud_mm, ctx.cloud_normals
         assert pts is not None and nrm is not None
-        curv = cl.curvature(pts, k=16)
-        feats, weights = ng.geometry_aware_inputs(pts, nrm, curv,
-                                                  normal_weight_mm=10.0 * plan.sampling.geometry_weight)
-        result = ng.train_neural_gas(feats, n_units=plan.sampling.units,
-                                     n_steps=max(200, plan.sampling.units * plan.sampling.steps_per_unit // 16),
-                                     batch_size=256, seed=s.seed, sample_weights=weights)
-        units = np.asarray(result.units)[:, :3].astype(np.float64)
-        radius = s.inputs.cell.tool.tip_radius_mm
-        rules = tg.TargetRules(tip_radius_mm=radius, edge_clearance_radii=plan.sampling.edge_clearance_mm / radius,
-                               max_tilt_deg=plan.sampling.max_tilt_deg)
-        ref = np.array(plan.sampling.reference_direction)
-        found = tg.make_targets(units, pts, nrm, curv, rules=rules, reference_dir=ref)
-        t_dirs = np.asarray(found.t)
-        pts_t, nrm_t = np.asarray(found.points_mm), np.asarray(found.normals)
+        if plan.sampling.units > 0:
+            curv = cl.curvature(pts, k=16)
+            feats, weights = ng.geometry_aware_inputs(pts, nrm, curv,
+                                                      normal_weight_mm=10.0 * plan.sampling.geometry_weight)
+            result = ng.train_neural_gas(feats, n_units=plan.sampling.units,
+                                         n_steps=max(200, plan.sampling.units * plan.sampling.steps_per_unit // 16),
+                                         batch_size=256, seed=s.seed, sample_weights=weights)
+            units = np.asarray(result.units)[:, :3].astype(np.float64)
+            ng_qe: float | None = float(result.quantization_error)
+            radius = s.inputs.cell.tool.tip_radius_mm
+            rules = tg.TargetRules(tip_radius_mm=radius,
+                                   edge_clearance_radii=plan.sampling.edge_clearance_mm / radius,
+                                   max_tilt_deg=plan.sampling.max_tilt_deg)
+            found = tg.make_targets(units, pts, nrm, curv, rules=rules,
+                                    reference_dir=np.array(plan.sampling.reference_direction))
+            t_dirs = np.asarray(found.t).reshape(-1, 3)
+            pts_t, nrm_t = np.asarray(found.points_mm).reshape(-1, 3), np.asarray(found.normals).reshape(-1, 3)
+            found_edge = np.asarray(found.edge_flag, bool).reshape(-1)
+        else:
+            # Explicit targets only: the same points whatever the cloud (config validation
+            # insists the plan lists some).
+            units = np.zeros((0, 3))
+            ng_qe = None
+            t_dirs, pts_t, nrm_t = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3))
+            found_edge = np.zeros(0, bool)
+        n_found = len(pts_t)
         for k, extra in enumerate(plan.targets):
             n = np.asarray(extra.normal, float) / np.linalg.norm(extra.normal)
             pts_t = np.vstack([pts_t, extra.point_mm])
@@ -345,12 +357,12 @@ def phase_sampling(ctx: PhaseContext) -> None:
         keep = _reachable(ctx, pts_t, nrm_t, t_dirs)
         pts_t, nrm_t, t_dirs = pts_t[keep], nrm_t[keep], t_dirs[keep]
         edge = np.zeros(len(pts_t), bool)
-        edge[: int(np.sum(keep[: len(found.points_mm)]))] = np.asarray(found.edge_flag)[keep[: len(found.points_mm)]]
+        edge[: int(np.sum(keep[:n_found]))] = found_edge[keep[:n_found]]
         ctx.targets = {i: ProbeTarget(i, pts_t[i], nrm_t[i], t_dirs[i]) for i in range(len(pts_t))}
         sv = plan.phases.survey
         steps = _plan_steps(ctx, _ordered(ctx, list(ctx.targets)), sv.angles_deg, sv.forces_n, 0)
         j.commit_phase("sampling", 0, {"n_units": int(len(units)), "n_targets": int(len(pts_t)),
-                                       "dropped_unreachable": int((~keep).sum()), "ng_qe": float(result.quantization_error)},
+                                       "dropped_unreachable": int((~keep).sum()), "ng_qe": ng_qe},
                        {"units": units.astype(np.float64), "target_points_mm": pts_t, "target_normals": nrm_t,
                         "target_t": t_dirs, "target_index": np.arange(len(pts_t)), "edge_flag": edge.astype(np.int8)},
                        steps)
