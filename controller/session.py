@@ -561,16 +561,17 @@ class Session:
         if self.machine.can("fault"):
             self.machine.fire("fault")
         self.machine.fire("recover")
-        recovered = self._recover(fault)
-        if not recovered and action in ("retry", "skip_target"):
+        failed = self._recover(fault)
+        if failed is not None and action in ("retry", "skip_target"):
             action = "pause"
         if action == "skip_target":
             for rec in open_steps:
                 j.skip_step(rec.step_id, f"{fault.kind}: {fault.message}")
+        why = f"{fault.kind}: {fault.message}" + (f"; recovery failed: {failed}" if failed is not None else "")
         if action == "pause":
-            raise SessionPaused(f"{fault.kind}: {fault.message}")
+            raise SessionPaused(why)
         if action == "abort":
-            raise SessionAborted(f"{fault.kind}: {fault.message}")
+            raise SessionAborted(why)
         # Back to a known place before the next contact.
         self.machine.fire("retract")
         if fault.kind == "object_moved":
@@ -612,26 +613,33 @@ class Session:
         if self.machine.can("fault"):
             self.machine.fire("fault")
         self.machine.fire("recover")
-        if not self._recover(fault) and action == "retry":
+        failed = self._recover(fault)
+        if failed is not None and action == "retry":
             action = "pause"
+        why = (f"{fault.kind} {SWEEP_FAULT_PREFIX}: {fault.message}"
+               + (f"; recovery failed: {failed}" if failed is not None else ""))
         if action == "pause":
-            raise SessionPaused(f"{fault.kind} {SWEEP_FAULT_PREFIX}: {fault.message}")
+            raise SessionPaused(why)
         if action == "abort":
-            raise SessionAborted(f"{fault.kind} {SWEEP_FAULT_PREFIX}: {fault.message}")
+            raise SessionAborted(why)
         # The machine has no "sweep" from retracting: the sweep runs again from there.
         self.machine.fire("retract")
 
-    def _recover(self, fault: ProbeFault) -> bool:
-        """Make the arm movable again: protective-stop recovery, re-arm, retract. Never clears an e-stop."""
+    def _recover(self, fault: ProbeFault) -> str | None:
+        """Make the arm movable again: protective-stop recovery, re-arm, retract. Never clears an e-stop.
+
+        None when the arm is movable again, else why not (for the pause reason: the operator
+        at the cell reads it first).
+        """
         assert self.cell is not None
         arm = self.cell.arm
         status = self._await_connection()
         if status is None:
-            return False
+            return "the arm did not reconnect within 10 s"
         if status.emergency_stop:
-            return False
+            return "the emergency stop is still engaged (release it at the cell, then resume)"
         if status.protective_stop and not arm.recover_protective_stop():
-            return False
+            return "the protective stop could not be cleared from the dashboard"
         self.executor.acknowledged_trip = arm.trip()
         try:
             self.executor.safe_retract()
@@ -645,16 +653,16 @@ class Session:
                                       t_robot_s=self.cell.clock.now_s(), policy_action="pause",
                                       raw=exc.trip.raw if isinstance(exc, ProbeFault) and exc.trip else None)
             self._log("recovery_failed", kind=kind, message=str(exc), during=fault.kind)
-            return False
+            return f"{kind} while retracting: {exc}"
         finally:
             self.executor.acknowledged_trip = None
         # Re-arm only after the state change (retracted), below the hysteresis level.
         for _ in range(50):
             if arm.rearm():
-                return True
+                return None
             self.cell.clock.sleep_s(0.1)
             self.cell.ft.read_block()
-        return False
+        return "the force limits could not be re-armed within 5 s of retracting (the F/T still reads over them)"
 
     # ------------------------------------------------------------------ operator, budget, progress
     def _check_operator(self) -> None:

@@ -173,6 +173,9 @@ def test_pausing_faults_emergency_stop_disk_error_and_pause_policy_resume_to_the
     j = Journal.open_readonly(out)
     try:
         assert j.session()["status"] == "paused"
+        # The pause reason tells the operator what stands in the way, not only what happened.
+        reason = j.session()["status_reason"]
+        assert reason.startswith("emergency_stop: ") and "recovery failed: the emergency stop is still engaged" in reason, reason
         f = j.faults()[-1]
         assert (f.kind, f.step_id, f.policy_action) == ("emergency_stop", 2, "pause")
         assert j.step(2).status != "done" and j.step(0).status == "done"
