@@ -268,17 +268,45 @@ class ProbeExecutor:
         """Up to travel height, across, then down to the standoff; every leg validated.
 
         If the direct route is refused (e.g. the wrist would swing the scanner into a
-        keep-out), go by the park pose, where the arm started the session.
+        keep-out), go by the park pose, where the arm started the session. If that is
+        refused too, turn the tool about its axis at travel height first (120 or 240 deg,
+        either way) and go from there: a change of approach that turns the tool half
+        over about its axis (45 -> 135 deg) can need the last wrist joint past its limit
+        on the geodesic, while the same end pose is reached within it the other way round.
         """
         self._sync_validator()
         self._unwind_wrist()
-        try:
-            self._travel_legs(self._route(self.cell.arm.status().tcp_pose, standoff))
-        except MotionRefused:
-            if self.park_pose is None:
-                raise
-            here = self.cell.arm.status().tcp_pose
-            self._travel_legs(self._route(here, self.park_pose) + self._route(self.park_pose, standoff))
+        here = self.cell.arm.status().tcp_pose
+        routes = [lambda: self._route(here, standoff)]
+        if self.park_pose is not None:
+            park = self.park_pose
+            routes.append(lambda: self._route(here, park) + self._route(park, standoff))
+        for turns in (1, -1, 2, -2):
+            routes.append(lambda turns=turns: self._turned_route(here, standoff, turns))
+        refused: MotionRefused | None = None
+        for route in routes:
+            try:
+                self._travel_legs(route())
+                return
+            except MotionRefused as exc:
+                refused = refused or exc       # the direct route's reason is the telling one
+        assert refused is not None
+        raise refused
+
+    def _turned_route(self, here: Pose, standoff: Pose, turns: int,
+                      turn_rad: float = np.radians(120.0)) -> list[tuple[Pose, Pose]]:
+        """Up to travel height, ``turns`` x 120 deg about the tool axis (sign = direction),
+        then the usual route to the standoff."""
+        travel_z = self.object_top_z_mm + self.s.clearance_mm
+        top = Pose(np.array([*here.position_mm[:2], max(travel_z, here.position_mm[2])]), here.rotation)
+        legs: list[tuple[Pose, Pose]] = [(here, top)] if top.distance_to(here)[0] > 0.05 else []
+        start = top
+        for k in range(1, abs(turns) + 1):
+            turned = Pose(top.position_mm,
+                          top.rotation @ rotvec_to_matrix(np.array([0.0, 0.0, np.sign(turns) * k * turn_rad])))
+            legs.append((start, turned))
+            start = turned
+        return legs + self._route(start, standoff)
 
     def _sync_validator(self) -> None:
         """Plan from the joints the arm really has: moves made without validation (a

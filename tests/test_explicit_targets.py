@@ -35,3 +35,24 @@ def test_units_zero_plan_probes_only_its_listed_points(tmp_path: Path) -> None:
     assert angles == sorted(set(plan.phases.survey.angles_deg) | set(plan.phases.characterize.angles_deg))
     assert len(steps) == len(listed) * (len(plan.phases.survey.forces_n)
                                         + len(plan.phases.characterize.angles_deg) * len(plan.phases.characterize.forces_n))
+
+
+def test_a_half_turn_of_the_tool_between_approaches_is_travelled_not_refused(tmp_path: Path) -> None:
+    """The ball's top with the scan direction along +y: from the 45 deg approach to 135 deg
+    the tool turns half over about its axis, and the geodesic straight move (and the one
+    by the park pose) wanted the last wrist joint past +360 deg; every 135 deg step was
+    refused as 'no joint path'. The travel now turns the tool at travel height first."""
+    text = PLAN.read_text().replace("reference_direction: [0.0, -1.0, 0.0]", "reference_direction: [0.0, 1.0, 0.0]")
+    assert "[0.0, 1.0, 0.0]" in text
+    text = text.replace("cell: ../cells/", f"cell: {ROOT / 'config' / 'cells'}/")
+    text = text.replace("simulated_object: ../objects/", f"simulated_object: {ROOT / 'config' / 'objects'}/")
+    plan_path = tmp_path / "plan.yaml"
+    plan_path.write_text(text)
+    out = tmp_path / "session"
+    assert main(["run", str(plan_path), "--cell", str(CELL), "--seed", "1", "--dry-run", "--out", str(out),
+                 "--quiet"]) == 0
+    with Journal.open_readonly(out) as j:
+        refused = [f for f in j.faults() if f.kind == "motion_refused"]
+        angles = sorted(r.plan.angle_deg for r in j.steps(statuses=["done"]))
+    assert not refused, [(f.step_id, f.message) for f in refused]
+    assert angles == [45.0, 45.0, 90.0, 90.0, 90.0, 90.0, 135.0, 135.0]
