@@ -489,7 +489,7 @@ def load_session_inputs(plan_path: str | Path, cell_path: str | Path | None = No
                                              f"{lim.contact_force_n} N"))
     if plan.sampling.units == 0 and not plan.targets:
         errors.append(plan_doc.error(("sampling", "units"),
-                                     "units: 0 means explicit targets only, but the plan lists no targets:"))
+                                     "units: 0 means explicit targets only, but the plan has no targets: list"))
     base_to_object = cell.object.base_to_object.pose()
     for i, target in enumerate(plan.targets):
         p_base = base_to_object.apply(np.array(target.point_mm))

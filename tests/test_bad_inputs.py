@@ -48,7 +48,7 @@ PLANS = {
     "target_outside_workspace.yaml": (5, 15, "outside the cell workspace"),
     "top_level_list.yaml": (1, 1, "should be an object"),
     "units_below_four.yaml": (3, 10, "0 (explicit targets only) or at least 4"),
-    "units_zero_without_targets.yaml": (5, 10, "the plan lists no targets"),
+    "units_zero_without_targets.yaml": (5, 10, "the plan has no targets: list"),
     "unknown_nested_key.yaml": (3, 3, "unknown key 'scans_per_stepp'"),
     "unknown_top_key.yaml": (2, 1, "unknown key 'forcez'"),
     "wrong_type_bool_word.yaml": (5, 14, "valid number"),
