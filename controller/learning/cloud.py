@@ -344,6 +344,16 @@ def register_mesh_to_cloud(mesh: object, cloud_points: np.ndarray, init: Pose | 
     trials = [icp(coarse, mesh_pts, s, 15, 1e-3, mesh_nrm, trim_fraction, tree=tree) for s in starts]
     best_start = min(trials, key=lambda tr: tr[1])[0]
     pose, rms, _ = icp(cloud, mesh_pts, best_start, max_iter, 1e-5, mesh_nrm, trim_fraction, tree=tree)
+    # Trimming keeps parts only the cloud has (table remnants, clutter) out of the fit, but
+    # on a scene of large planes it can also drop the few edge points that stop a slide
+    # along them: the fit then rests at a pose slid along the planes (7.7 mm on the box on
+    # the pillow) with an RMS nearly as good. Refine again trimming less, and keep whichever
+    # fits best by the same measure (max_iter 0: the RMS at that pose, trimmed as above).
+    for lighter in (0.5 * trim_fraction, 0.25 * trim_fraction):
+        candidate, _, _ = icp(cloud, mesh_pts, pose, max_iter, 1e-5, mesh_nrm, lighter, tree=tree)
+        _, candidate_rms, _ = icp(cloud, mesh_pts, candidate, 0, 1e-5, mesh_nrm, trim_fraction, tree=tree)
+        if candidate_rms < rms:
+            pose, rms = candidate, candidate_rms
     return pose.inverse(), rms
 
 
