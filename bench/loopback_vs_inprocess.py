@@ -65,6 +65,7 @@ from typing import Any
 
 import numpy as np
 from scipy.stats import binom, norm
+from scipy.stats import t as student_t
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -74,7 +75,7 @@ def prepare_configs(out_dir: Path, host: str, plan: Path, cell: Path,
     """Copy plan and cell into ``out_dir`` with the cell on ``host`` and absolute object paths.
 
     ``scanner_corr_floor_mm`` (a diagnostic): both runs' object gets this burst-correlated
-    scanner noise on every material instead of its own (see ``without_burst_noise``).
+    scanner noise on every material instead of its own (the diagnostic in the module docstring).
     """
     objects = ROOT / "config" / "objects"
     cell_text = cell.read_text().replace("127.0.0.2", host).replace("file: ../objects/", f"file: {objects}/")
@@ -259,8 +260,6 @@ def add_reference(result: dict[str, Any], ip_dir: Path, reference_dirs: list[Pat
         row["in_process_between_runs"] = out
     # diff / (sqrt(2) sd), sd from `runs` runs, is Student-t with runs - 1 degrees of freedom
     # for two runs of the same system: the chance it passes 3.
-    from scipy.stats import t as student_t
-
     result["between_runs_exceedances"] = {
         q: exceedances([not r["in_process_between_runs"][q]["within_3sd"] for r in result["steps"]],
                        [2.0 * float(student_t.sf(3.0, max(1, r["in_process_between_runs"][q]["runs"] - 1)))
