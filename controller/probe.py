@@ -293,10 +293,15 @@ class ProbeExecutor:
         assert refused is not None
         raise refused
 
-    def _turned_route(self, here: Pose, standoff: Pose, turns: int,
-                      turn_rad: float = np.radians(120.0)) -> list[tuple[Pose, Pose]]:
+    def _turned_route(self, here: Pose, standoff: Pose, turns: int) -> list[tuple[Pose, Pose]]:
         """Up to travel height, ``turns`` x 120 deg about the tool axis (sign = direction),
         then the usual route to the standoff."""
+        legs, turned = self._wrist_turn_legs(here, turns, np.radians(120.0))
+        return legs + self._route(turned, standoff)
+
+    def _wrist_turn_legs(self, here: Pose, turns: int, turn_rad: float) -> tuple[list[tuple[Pose, Pose]], Pose]:
+        """Up to travel height, then ``abs(turns)`` straight turns of ``turn_rad`` about the
+        tool axis (the sign of ``turns`` their direction) -> (legs, the pose they end at)."""
         travel_z = self.object_top_z_mm + self.s.clearance_mm
         top = Pose(np.array([*here.position_mm[:2], max(travel_z, here.position_mm[2])]), here.rotation)
         legs: list[tuple[Pose, Pose]] = [(here, top)] if top.distance_to(here)[0] > 0.05 else []
@@ -306,7 +311,7 @@ class ProbeExecutor:
                           top.rotation @ rotvec_to_matrix(np.array([0.0, 0.0, np.sign(turns) * k * turn_rad])))
             legs.append((start, turned))
             start = turned
-        return legs + self._route(start, standoff)
+        return legs, start
 
     def _sync_validator(self) -> None:
         """Plan from the joints the arm really has: moves made without validation (a
@@ -331,16 +336,9 @@ class ProbeExecutor:
         if abs(q[5]) <= max_wrist_rad or not hasattr(self.validator, "seed_joints"):
             return
         here = arm.status().tcp_pose
-        travel_z = self.object_top_z_mm + self.s.clearance_mm
-        top = Pose(np.array([*here.position_mm[:2], max(travel_z, here.position_mm[2])]), here.rotation)
         saved = np.array(self.validator.seed_joints, dtype=float)   # type: ignore[attr-defined]
-        for sign in (-1.0, 1.0):
-            legs: list[tuple[Pose, Pose]] = [(here, top)] if top.distance_to(here)[0] > 0.05 else []
-            start = top
-            for k in (1, 2, 3):
-                turned = Pose(top.position_mm, top.rotation @ rotvec_to_matrix(np.array([0.0, 0.0, sign * k * leg_rad])))
-                legs.append((start, turned))
-                start = turned
+        for sign in (-1, 1):
+            legs, _ = self._wrist_turn_legs(here, 3 * sign, leg_rad)
             try:
                 for a, b in legs:
                     self.validator.validate_path(a, b)

@@ -201,6 +201,23 @@ def _local_pca(points_mm: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     return evals, normals
 
 
+def local_plane(points_mm: np.ndarray, tree: cKDTree, i: int, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plane fit to the k nearest points of point i, widened as :func:`_local_pca` widens a
+    neighbourhood that is one profile line -> (centroid (3,), eigenvalues (3,) ascending,
+    eigenvectors (3,3) as columns; the first is the plane's normal, unoriented)."""
+    n_pts = points_mm.shape[0]
+    k = min(k, n_pts)
+    for widen in range(_MAX_WIDEN + 1):
+        _, nb = tree.query(points_mm[i], k=k)
+        pts = points_mm[np.atleast_1d(nb)]
+        centroid = pts.mean(axis=0)
+        vals, vecs = np.linalg.eigh(np.cov((pts - centroid).T))
+        if vals[1] >= _LINE_RATIO * vals[2] or k >= n_pts or widen == _MAX_WIDEN:
+            break
+        k = min(2 * k, n_pts)
+    return centroid, vals, vecs
+
+
 def orient_normals(points_mm: np.ndarray, normals: np.ndarray, viewpoint_mm: np.ndarray | None = None
                    ) -> np.ndarray:
     """Flip normals toward ``viewpoint_mm`` or, without one, away from the points' centroid."""

@@ -127,18 +127,9 @@ class _Surface:
         from a point whose cloud normal was right: the 90 deg probe was planned horizontal,
         the descent to it refused (probe within 1.4 mm of the object) and the session
         aborted for 3 of 7 seeds in process."""
-        from .cloud import _LINE_RATIO, _MAX_WIDEN
+        from .cloud import local_plane
 
-        n_pts = self.points.shape[0]
-        k = min(self.rules.plane_k, n_pts)
-        for widen in range(_MAX_WIDEN + 1):
-            _, nb = self.tree.query(self.points[i], k=k)
-            pts = self.points[np.atleast_1d(nb)]
-            centroid = pts.mean(axis=0)
-            vals, vecs = np.linalg.eigh(np.cov((pts - centroid).T))
-            if vals[1] >= _LINE_RATIO * vals[2] or k >= n_pts or widen == _MAX_WIDEN:
-                break
-            k = min(2 * k, n_pts)
+        centroid, _, vecs = local_plane(self.points, self.tree, i, self.rules.plane_k)
         n = vecs[:, 0]
         if n @ self.normals[i] < 0:  # keep the cloud's outward orientation
             n = -n
