@@ -19,6 +19,7 @@ from pydantic import Field, field_validator, model_validator
 
 from .errors import InputError, InputErrors
 from .geometry import NINE_ANGLES_DEG, Pose, rotvec_to_matrix
+from .learning.regions import MIN_CONTRAST
 from .safety import SafetyLimits
 from .yamlio import Spec, YamlDoc, load_validated
 
@@ -274,6 +275,8 @@ class SamplingSpec(Spec):
 class SurveySpec(Spec):
     angles_deg: list[AngleDeg] = [90.0]
     forces_n: list[ForceN] = [4.0, 12.0]
+    # Two regions are two materials only when their survey dents differ by this factor.
+    min_contrast: float = Field(MIN_CONTRAST, ge=1.0, le=100.0)
 
     @field_validator("forces_n")
     @classmethod

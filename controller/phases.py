@@ -445,7 +445,8 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
         pts = np.array([ctx.targets[i].point_mm for i in ids])
         # Neighbours along the scanned surface (cells on the cloud), never across a fold.
         edges = ctx.surface_neighbours(pts)
-        rmap = rg.cluster_regions(feats, edges, names, seed=s.seed)
+        rmap = rg.cluster_regions(feats, edges, names, seed=s.seed,
+                                  min_contrast=s.inputs.plan.phases.survey.min_contrast)
         labels = {i: int(l) for i, l in zip(ids, rmap.labels)}
         chosen = _characterize_choice(ctx, labels, rmap.n_regions, pts, ids)
         ch = s.inputs.plan.phases.characterize

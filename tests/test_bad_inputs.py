@@ -33,6 +33,7 @@ PLANS = {
     "force_not_increasing.yaml": (4, 15, "strictly increasing"),
     "limit_looser_than_cell.yaml": (5, 16, "looser than the cell's 45.0"),
     "merge_key.yaml": (4, 3, "merge keys"),
+    "min_contrast_below_one.yaml": (4, 19, "greater than or equal to 1"),
     "missing_name.yaml": (1, 1, "missing required key 'name'"),
     "nan_value.yaml": (3, 13, "NaN and infinity are not allowed"),
     "non_utf8.yaml": (1, 10, "not valid UTF-8"),

@@ -35,7 +35,8 @@ def test_survey_to_scored_map_and_boundary_proposals():
     edges = np.array([(i * N + j, (i + 1) * N + j) for i in range(N - 1) for j in range(N)]
                      + [(i * N + j, i * N + j + 1) for i in range(N) for j in range(N - 1)])
     true_units = truth_of(pos)
-    e_mpa = np.where(true_units == 1, 2.5, 0.8) * (1 + 0.05 * rng.normal(size=N * N))
+    # Dents 2.9x apart: two materials at the default contrast (2.5x).
+    e_mpa = np.where(true_units == 1, 4.0, 0.8) * (1 + 0.05 * rng.normal(size=N * N))
     d = np.stack([[hertz_normal_mm(X_MM, f, e) for f in FORCES_N] for e in e_mpa])
     d += rng.normal(0, NOISE_MM, d.shape)
     feats, names = survey_features(d, X_MM, FORCES_N)

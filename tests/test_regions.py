@@ -46,6 +46,8 @@ def survey(seed, e_mpa_of_point, noise_mm=0.02, variability=0.05):
 N = 8
 POS, EDGES = grid_graph(N)
 TRUE_TWO = (POS[:, 0] >= 40.0).astype(int)        # right half is the stiffer material
+# Hertz dents scale as E^(-2/3): 4.0 and 0.8 MPa dent 2.9x apart, above MIN_CONTRAST (2.5x).
+E_STIFF_MPA, E_SOFT_MPA = 4.0, 0.8
 
 
 def test_features_have_names_and_physical_values():
@@ -61,7 +63,7 @@ def test_features_have_names_and_physical_values():
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_two_materials_give_two_regions(seed):
-    feats, names = survey(seed, np.where(TRUE_TWO == 1, 2.0, 0.8))
+    feats, names = survey(seed, np.where(TRUE_TWO == 1, E_STIFF_MPA, E_SOFT_MPA))
     rm = cluster_regions(feats, EDGES, names, seed=0)
     assert rm.n_regions == 2
     # Region 0 is the stiffest (shallowest dent), so ids are stable: 0 = right half here.
@@ -72,6 +74,16 @@ def test_two_materials_give_two_regions(seed):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
+def test_materials_closer_than_min_contrast_are_told_apart_only_when_the_plan_asks(seed):
+    """2.0 and 0.8 MPa dent 1.84x apart: one region at the default contrast (2.5x), two
+    when the plan lowers it (phases.survey.min_contrast: 1.5)."""
+    feats, names = survey(seed, np.where(TRUE_TWO == 1, 2.0, 0.8))
+    assert cluster_regions(feats, EDGES, names, seed=0).n_regions == 1
+    fine = cluster_regions(feats, EDGES, names, seed=0, min_contrast=1.5)
+    assert fine.n_regions == 2 and np.mean(fine.labels == 1 - TRUE_TWO) >= 0.97
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
 def test_homogeneous_gives_one_region(seed):
     feats, names = survey(seed, np.full(N * N, 1.2))
     rm = cluster_regions(feats, EDGES, names, seed=0)
@@ -79,9 +91,9 @@ def test_homogeneous_gives_one_region(seed):
 
 
 def test_planted_island_is_removed_and_recorded():
-    e = np.where(TRUE_TWO == 1, 2.0, 0.8)
+    e = np.where(TRUE_TWO == 1, E_STIFF_MPA, E_SOFT_MPA)
     island = 2 * N + 2                                  # an interior point of the soft half
-    e[island] = 2.0
+    e[island] = E_STIFF_MPA
     feats, names = survey(4, e)
     rm = cluster_regions(feats, EDGES, names, seed=0)
     assert rm.n_regions == 2
@@ -93,9 +105,9 @@ def test_planted_island_is_removed_and_recorded():
 
 
 def test_new_points_labelled_and_map_serialises():
-    feats, names = survey(5, np.where(TRUE_TWO == 1, 2.0, 0.8))
+    feats, names = survey(5, np.where(TRUE_TWO == 1, E_STIFF_MPA, E_SOFT_MPA))
     rm = cluster_regions(feats, EDGES, names, seed=0)
-    new_feats, _ = survey(6, [0.8, 2.0])
+    new_feats, _ = survey(6, [E_SOFT_MPA, E_STIFF_MPA])
     # New point N*N sits next to point 0 (soft), N*N+1 next to the last point (stiff).
     new_edges = np.vstack([EDGES, [[0, N * N], [N * N - 1, N * N + 1]]])
     new_labels = label_new_points(rm, new_feats, new_edges)
@@ -107,7 +119,7 @@ def test_new_points_labelled_and_map_serialises():
 
 
 def test_noise_based_merge_joins_indistinguishable_clusters():
-    feats, names = survey(7, np.where(TRUE_TWO == 1, 2.0, 0.8))
+    feats, names = survey(7, np.where(TRUE_TWO == 1, E_STIFF_MPA, E_SOFT_MPA))
     huge_noise = np.nanstd(feats, axis=0) * 10
     rm = cluster_regions(feats, EDGES, names, seed=0, feature_noise=huge_noise)
     assert rm.n_regions == 1 and rm.stats["merged"] == 1
@@ -173,3 +185,22 @@ def test_probes_on_a_seam_between_two_materials_are_not_a_third_region():
     peak2[band] = 0.3 * (1 + 0.05 * rng.normal(size=band.sum()))
     rmap2 = cluster_regions(np.column_stack([peak2, 2.5 * peak2]), edges, ["peak_mm@2N", "peak_mm@6N"], seed=0)
     assert rmap2.n_regions == 3 and rmap2.stats["transition_band_points"] == []
+
+
+@pytest.mark.parametrize("round_", [0, 1])
+def test_box_top_clamped_by_its_walls_is_one_region(round_):
+    """Recorded survey of the composite (perfectly calibrated draw 0 of the miscalibrated
+    cell, run seed 2, rounds 0 and 1): the box top dents 0.10 mm at 4 N by its walls and
+    0.21 mm at its centre (a plate clamped at its edges), the foam 1.65 mm. The mixture
+    cuts the top into centre and rim (medians 1.9x apart); at the old contrast (1.5x) that
+    was a third region, at the default the map is the box and the foam."""
+    from pathlib import Path
+
+    data = np.load(Path(__file__).parent / "data" / "regions" / "box_top_trend.npz")
+    feats, edges, pts = (data[f"round{round_}_{k}"] for k in ("feats", "edges", "pts"))
+    names = [str(n) for n in data[f"round{round_}_names"]]
+    on_box = pts[:, 2] > 100.0                                   # the box top is 60 mm above the foam
+    rm = cluster_regions(feats, edges, names, seed=2)
+    assert rm.n_regions == 2
+    assert np.all(rm.labels == np.where(on_box, 0, 1))           # region 0: the stiffer, the box
+    assert cluster_regions(feats, edges, names, seed=2, min_contrast=1.5).n_regions == 3

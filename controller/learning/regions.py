@@ -13,8 +13,8 @@ slope), and the surface graph (neighbour pairs of the neural-gas units).
    mixture may split a material whose features are not Gaussian). Then clusters whose
    median peak depths differ by less than a factor ``min_contrast`` at every survey
    force are merged: BIC finds any structure, including the smooth drift of one
-   material's visible dent with the local geometry (rims, slopes, tilt), which is not a
-   different elasticity. A homogeneous object gives one region.
+   material's visible dent with the local geometry (rims, slopes, tilt) and its support
+   (a plate clamped at its edges), which is not a different elasticity. A homogeneous object gives one region.
 3. Spatial coherence on the surface graph: a few passes of iterated conditional
    modes (each point takes the region maximising its feature log-likelihood plus
    ``beta`` per neighbour already in that region: ambiguous points follow their
@@ -35,14 +35,16 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.special import logsumexp
 
 _MAX_ICM_PASSES = 20
 # Regions of different elasticity differ in survey depth by at least this factor (the
-# composite's box and foam: ~10x); geometry moves one material's visible dent by ~1.3x.
-MIN_CONTRAST = 1.5
+# composite's box and foam: ~10x; the user object's halves: ~25x). Within one material
+# the dent varies by more than geometry's ~1.3x: how the material is supported matters.
+# The composite's box top, clamped by its walls, dents 2.3x deeper at its centre than
+# 15 mm from a wall; neural-gas units gather by the walls, so the mixture often cuts the
+# top into a centre and a rim with medians ~1.9x apart. A plan probing materials that
+# differ by less sets phases.survey.min_contrast lower.
+MIN_CONTRAST = 2.5
 _MAX_ISLAND_PASSES = 10
 
 
@@ -178,6 +180,8 @@ class RegionMap:
 
     def posterior(self, features: np.ndarray) -> np.ndarray:
         """(M,K) region probabilities from the features alone."""
+        from scipy.special import logsumexp
+
         ll = self.loglik(features)
         return np.exp(ll - logsumexp(ll, axis=1, keepdims=True))
 
@@ -369,6 +373,9 @@ def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.n
                     min_island_points: int) -> tuple[np.ndarray, list[int]]:
     """Relabel connected same-label components smaller than ``min_island_points`` to the
     majority label of the points bordering them; isolated points (no neighbours) are kept."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     labels = labels.copy()
     n = labels.shape[0]
     relabelled: list[int] = []

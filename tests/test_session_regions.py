@@ -1,0 +1,39 @@
+"""The plan's region settings reach the session's clustering (a real tiny run on the simulated cell)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from ruamel.yaml import YAML
+
+from elastoprobe.controller.journal import Journal
+
+from test_session_util import TINY_PLAN, child_env, run_cli
+
+
+def test_plan_min_contrast_decides_whether_box_and_foam_are_two_regions(tmp_path: Path) -> None:
+    """Box and foam dent ~10x apart: two regions at the default contrast; a plan that asks
+    for 100x before calling two regions different gets one, merged by contrast."""
+    yaml = YAML()
+    doc = yaml.load(TINY_PLAN.read_text(encoding="utf-8"))
+    for key in ("cell", "simulated_object"):
+        doc[key] = str((TINY_PLAN.parent / doc[key]).resolve())
+    env = child_env(tmp_path / "locks")
+    found = {}
+    for contrast in (None, 100.0):
+        if contrast is not None:
+            doc["phases"]["survey"]["min_contrast"] = contrast
+        plan = tmp_path / f"tiny_{contrast}.yaml"
+        with plan.open("w", encoding="utf-8") as f:
+            yaml.dump(doc, f)
+        out = tmp_path / f"session_{contrast}"
+        child = run_cli(["run", str(plan), "--out", str(out), "--seed", "1", "--quiet"], env)
+        assert child.returncode == 0, child.stderr[-2000:]
+        j = Journal.open_readonly(out)
+        try:
+            rec = j.phase("regions", 0)
+            assert rec is not None
+            found[contrast] = (rec.outputs["n_regions"], rec.outputs["stats"].get("merged_by_contrast", 0))
+        finally:
+            j.close()
+    assert found[None][0] == 2
+    assert found[100.0] == (1, 1)
