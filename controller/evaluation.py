@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
-from .geometry import scan_direction
+from .geometry import INTERIOR_ANGLES_DEG, scan_direction
 from .journal import Journal
 from .learning import evaluate as ev
 from .learning.models import RegionModel
@@ -28,10 +28,11 @@ def _inputs_of(j: Journal) -> Any:
 
 
 def _held_out_angles(trained: list[float]) -> list[float]:
-    """Interior angles between trained ones (within 25..155), e.g. 35, 60, 120, 145."""
+    """Interior angles between trained ones (within INTERIOR_ANGLES_DEG), e.g. 35, 60, 120, 145."""
+    lo, hi = INTERIOR_ANGLES_DEG
     a = sorted(trained)
     mids = [(x + y) / 2.0 for x, y in zip(a, a[1:])]
-    return [m for m in mids if 25.0 <= m <= 155.0 and all(abs(m - t) > 1.0 for t in a)]
+    return [m for m in mids if lo <= m <= hi and all(abs(m - t) > 1.0 for t in a)]
 
 
 def _held_out_forces(trained: list[float]) -> list[float]:

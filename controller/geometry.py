@@ -11,6 +11,10 @@ from dataclasses import dataclass
 import numpy as np
 
 NINE_ANGLES_DEG: tuple[float, ...] = (10.0, 25.0, 45.0, 75.0, 90.0, 105.0, 135.0, 155.0, 170.0)
+# Approach angles (from the surface, 90 = along the normal) inside this range are the
+# interior ones; outside it the approach grazes the surface, and on a surface wider than
+# the tool the F/T sensor and flange meet it before the tip does.
+INTERIOR_ANGLES_DEG: tuple[float, float] = (25.0, 155.0)
 
 
 def rotvec_to_matrix(rotvec_rad: np.ndarray) -> np.ndarray:

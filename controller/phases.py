@@ -17,10 +17,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .geometry import scan_direction
+from .geometry import INTERIOR_ANGLES_DEG, scan_direction
 from .journal import StepPlan
 from .learning import profiles as prof
-from .probe import ProbeTarget, StepData, standoff_pose
+from .probe import ProbeTarget, StepData
 from .session import SessionAborted
 
 if TYPE_CHECKING:
@@ -188,8 +188,9 @@ def _targets_from_arrays(arrays: dict[str, np.ndarray], first_index: int = 0) ->
 
 
 def _plan_steps(ctx: PhaseContext, target_ids: list[int], angles_deg: list[float], forces_n: list[float],
-                start_order: int) -> list[StepPlan]:
-    """Steps for targets in the given order: per target, per angle, increasing force."""
+                start_order: int, angles_by_target: dict[int, list[float]] | None = None) -> list[StepPlan]:
+    """Steps for targets in the given order: per target, per angle (``angles_by_target``'s
+    when it names the target), increasing force."""
     j = ctx.session.journal
     assert j is not None
     step_id = j.next_step_id()
@@ -197,7 +198,7 @@ def _plan_steps(ctx: PhaseContext, target_ids: list[int], angles_deg: list[float
     steps = []
     for ti in target_ids:
         tgt = ctx.targets[ti]
-        for a in angles_deg:
+        for a in (angles_by_target or {}).get(ti, angles_deg):
             for f in sorted(forces_n):
                 steps.append(StepPlan(step_id=step_id, target_index=ti, point_mm=tgt.point_mm, normal=tgt.normal,
                                       t=tgt.t, angle_deg=float(a), force_n=float(f), order_index=order))
@@ -354,7 +355,7 @@ def phase_sampling(ctx: PhaseContext) -> None:
             nrm_t = np.vstack([nrm_t, n])
             t_dirs = np.vstack([t_dirs, scan_direction(n, np.array(plan.sampling.reference_direction))])
         pts_t, nrm_t, t_dirs = canonical(pts_t, 6), canonical(nrm_t, 9), canonical(t_dirs, 9)
-        keep = _reachable(ctx, pts_t, nrm_t, t_dirs)
+        keep = _reachable(ctx, pts_t, nrm_t, t_dirs, "sampling")
         pts_t, nrm_t, t_dirs = pts_t[keep], nrm_t[keep], t_dirs[keep]
         edge = np.zeros(len(pts_t), bool)
         edge[: int(np.sum(keep[:n_found]))] = found_edge[keep[:n_found]]
@@ -375,22 +376,43 @@ def phase_sampling(ctx: PhaseContext) -> None:
     ctx.edge_flag.update({int(i): bool(f) for i, f in zip(rec.arrays["target_index"], flags)})
 
 
-def _reachable(ctx: PhaseContext, pts: np.ndarray, nrm: np.ndarray, t_dirs: np.ndarray) -> np.ndarray:
-    """Targets whose standoff pose has IK within the joint limits at every planned angle."""
+def _reachable(ctx: PhaseContext, pts: np.ndarray, nrm: np.ndarray, t_dirs: np.ndarray, what: str) -> np.ndarray:
+    """Targets the probe can work at: the standoff pose has IK within the joint limits at
+    every planned angle, and the contact search at the survey angles touches the object
+    with nothing but the probe's tip. A target by the foot of a wall, where the scanner
+    would meet the wall on the way down, is dropped here rather than refused at run time
+    (a refused motion is a fault in the night's record and a wasted trip)."""
     s = ctx.session
-    cell = s.cell
-    assert cell is not None
     plan = s.inputs.plan
-    angles = sorted(set(plan.phases.survey.angles_deg) | set(plan.phases.characterize.angles_deg))
-    radius, standoff = s.inputs.cell.tool.tip_radius_mm, plan.probing.standoff_mm
-    b2o = cell.base_to_object
-    keep = np.zeros(len(pts), bool)
+    survey = sorted(set(plan.phases.survey.angles_deg))
+    angles = sorted(set(survey) | set(plan.phases.characterize.angles_deg))
     validator = s.executor.validator
+    keep = np.zeros(len(pts), bool)
+    unreachable = collides = 0
     for i in range(len(pts)):
-        p, n, t = b2o.apply(pts[i]), b2o.apply_vector(nrm[i]), b2o.apply_vector(t_dirs[i])
-        poses = [standoff_pose(p, n, t, a, radius, standoff) for a in angles]
-        keep[i] = validator.reachable_at_all_angles(poses)   # type: ignore[attr-defined]
+        target = ProbeTarget(-1, pts[i], nrm[i], t_dirs[i])
+        if not validator.reachable_at_all_angles(   # type: ignore[attr-defined]
+                [s.executor.contact_search_path(target, a)[0] for a in angles]):
+            unreachable += 1
+        elif not _search_clear(ctx, target, survey):
+            collides += 1
+        else:
+            keep[i] = True
+    if unreachable or collides:
+        s._log("targets_dropped", what=what, unreachable=unreachable, contact_search_collides=collides)
     return keep
+
+
+def _search_clear(ctx: PhaseContext, target: ProbeTarget, angles: list[float]) -> bool:
+    """Whether the contact search at every one of ``angles`` is free of collisions (the tip may touch)."""
+    return len(_clear_angles(ctx, target, angles)) == len(angles)
+
+
+def _clear_angles(ctx: PhaseContext, target: ProbeTarget, angles: list[float]) -> list[float]:
+    """The ``angles`` at which the contact search is free of collisions (the tip may touch)."""
+    ex = ctx.session.executor
+    return [a for a in angles
+            if ex.validator.collision(*ex.contact_search_path(target, a), contact_allowed=True) is None]  # type: ignore[attr-defined]
 
 
 def _survey_profiles(ctx: PhaseContext, target_ids: list[int]) -> tuple[list[int], np.ndarray, np.ndarray]:
@@ -448,9 +470,10 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
         rmap = rg.cluster_regions(feats, edges, names, seed=s.seed,
                                   min_contrast=s.inputs.plan.phases.survey.min_contrast)
         labels = {i: int(l) for i, l in zip(ids, rmap.labels)}
-        chosen = _characterize_choice(ctx, labels, rmap.n_regions, pts, ids)
+        chosen, angles_by_target = _characterize_choice(ctx, labels, rmap.n_regions, pts, ids)
         ch = s.inputs.plan.phases.characterize
-        steps = _plan_steps(ctx, _ordered(ctx, chosen), ch.angles_deg, ch.forces_n, _next_order(ctx)) if chosen else []
+        steps = _plan_steps(ctx, _ordered(ctx, chosen), ch.angles_deg, ch.forces_n, _next_order(ctx),
+                            angles_by_target) if chosen else []
         j.commit_phase("regions", round_, {"n_regions": int(rmap.n_regions), "feature_names": names,
                                            "stats": rg._jsonable(rmap.stats), "characterize_targets": chosen},
                        {"labelled_targets": np.array(ids, dtype=np.int64), "labels": rmap.labels.astype(np.int64),
@@ -464,12 +487,23 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
 
 
 def _characterize_choice(ctx: PhaseContext, labels: dict[int, int], n_regions: int, pts: np.ndarray,
-                         ids: list[int]) -> list[int]:
-    """Up to points_per_region interior targets per region that has fewer characterized points."""
+                         ids: list[int]) -> tuple[list[int], dict[int, list[float]]]:
+    """Up to points_per_region interior targets per region that has fewer characterized
+    points, and the angles each is characterized at.
+
+    A target qualifies when the contact search is clear at every interior angle of the
+    plan (geometry.INTERIOR_ANGLES_DEG); at a grazing angle a flat surface wider than the
+    tool meets the F/T sensor or flange, and that angle is left out for that target
+    (logged) instead of being refused at run time.
+    """
     s = ctx.session
     j = s.journal
     assert j is not None
     per = s.inputs.plan.phases.characterize.points_per_region
+    angles = list(s.inputs.plan.phases.characterize.angles_deg)
+    lo, hi = INTERIOR_ANGLES_DEG
+    interior_angles = [a for a in angles if lo <= a <= hi]
+    clear_at: dict[int, list[float]] = {}
     already = {r.plan.target_index for r in j.steps(phase=CHARACTERIZE)}
     lab = np.array([labels[i] for i in ids])
     chosen: list[int] = []
@@ -491,12 +525,19 @@ def _characterize_choice(ctx: PhaseContext, labels: dict[int, int], n_regions: i
             interior = -np.array([np.linalg.norm(pts[k] - centre) for k in cand])
         picked: list[int] = []
         for k in [cand[i] for i in np.argsort(-interior)]:
-            if all(np.linalg.norm(pts[k] - pts[p]) > 20.0 for p in picked):
+            if not all(np.linalg.norm(pts[k] - pts[p]) > 20.0 for p in picked):
+                continue
+            clear = _clear_angles(ctx, ctx.targets[ids[k]], angles)
+            if clear and all(a in clear for a in interior_angles):
                 picked.append(k)
+                clear_at[ids[k]] = clear
             if len(picked) == need:
                 break
         chosen += [ids[k] for k in picked]
-    return chosen
+    blocked = {t: [a for a in angles if a not in clear_at[t]] for t in chosen}
+    if any(blocked.values()):
+        s._log("angles_blocked", targets={str(t): b for t, b in blocked.items() if b})
+    return chosen, {t: clear_at[t] for t in chosen}
 
 
 def region_dataset(ctx: PhaseContext, region: int) -> dict[str, np.ndarray]:
@@ -591,7 +632,7 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
         first = max(ctx.targets) + 1 if ctx.targets else 0
         t_dirs = canonical(np.array([scan_direction(n, np.array(plan.sampling.reference_direction))
                                      for n in new_nrm]), 9) if len(new_pts) else np.zeros((0, 3))
-        keep = _reachable(ctx, new_pts, new_nrm, t_dirs) if len(new_pts) else np.zeros(0, bool)
+        keep = _reachable(ctx, new_pts, new_nrm, t_dirs, f"densify[{round_}]") if len(new_pts) else np.zeros(0, bool)
         new_pts, new_nrm, t_dirs = new_pts[keep], new_nrm[keep], t_dirs[keep]
         idx = np.arange(first, first + len(new_pts))
         for k, i in enumerate(idx):

@@ -168,12 +168,9 @@ class ProbeExecutor:
         (the arm is stopped; the caller unloads/retracts via :meth:`safe_retract`).
         """
         s = self.s
-        b2o = self.cell.base_to_object
-        p = b2o.apply(target.point_mm)
-        n = b2o.apply_vector(target.normal)
-        t = b2o.apply_vector(target.t)
-        standoff = standoff_pose(p, n, t, angle_deg, s.tip_radius_mm, s.standoff_mm)
+        standoff, deepest = self.contact_search_path(target, angle_deg)
         d = standoff.rotation[:, 2]
+        n = self.cell.base_to_object.apply_vector(target.normal)
 
         self.machine.fire("go_to_target")
         self._travel_to(standoff)
@@ -186,7 +183,6 @@ class ProbeExecutor:
         # Contact search: the path from standoff to the deepest allowed point is validated
         # with the tip allowed to touch the object.
         search_mm = s.standoff_mm + s.search_distance_mm
-        deepest = Pose(standoff.position_mm + d * search_mm, standoff.rotation)
         self.validator.validate_path(standoff, deepest, contact_allowed=True)
         motion = self.cell.arm.seek_contact(d, s.contact_speed_mm_s, s.contact_force_n, search_mm)
         state = self._wait(motion, timeout_s=search_mm / s.contact_speed_mm_s * 2.0 + 5.0)
@@ -219,6 +215,17 @@ class ProbeExecutor:
                 reference_pose=ref_poses, robot_time_s=round(self.cell.clock.now_s() - step_start_s, 6)))
         self.machine.fire("unload")
         self._unload_and_retract(n)
+
+    def contact_search_path(self, target: ProbeTarget, angle_deg: float) -> tuple[Pose, Pose]:
+        """(standoff, deepest) TCP poses (base frame) of the contact search at one angle: the
+        probe starts ``standoff_mm`` back along its axis and may go ``search_distance_mm``
+        past the nominal surface before it gives up."""
+        s = self.s
+        b2o = self.cell.base_to_object
+        standoff = standoff_pose(b2o.apply(target.point_mm), b2o.apply_vector(target.normal),
+                                 b2o.apply_vector(target.t), angle_deg, s.tip_radius_mm, s.standoff_mm)
+        search_mm = s.standoff_mm + s.search_distance_mm
+        return standoff, Pose(standoff.position_mm + standoff.rotation[:, 2] * search_mm, standoff.rotation)
 
     def scan_while_moving(self, start: Pose, end: Pose, speed_mm_s: float) -> tuple[list[Scan], np.ndarray]:
         """Travel to ``start``, then scan continuously while moving in a straight line to ``end``.

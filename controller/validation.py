@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import SessionInputs
+from .config import SessionInputs, effective_motion_limits
 from .devices import Cell
 from .errors import MotionRefused
 from .geometry import Pose
@@ -41,13 +41,20 @@ class PathValidator:
         if joints is None:
             raise MotionRefused(f"no joint path for the straight move to {np.round(end.position_mm, 1).tolist()} mm "
                                 f"(unreachable, outside the joint limits, or through a singularity)")
-        if self.checker is not None:
-            allowance = self.contact_allowance_mm if contact_allowed else 0.0
-            hits = self.checker.check_path(start, end, ignore_tip_mm=allowance)   # type: ignore[attr-defined]
-            if hits:
-                first = hits[0]
-                raise MotionRefused(f"collision: {first.message}")
+        collision = self.collision(start, end, contact_allowed)
+        if collision is not None:
+            raise MotionRefused(f"collision: {collision}")
         self.seed_joints = np.asarray(joints[-1], dtype=float)
+
+    def collision(self, start: Pose, end: Pose, contact_allowed: bool = False) -> str | None:
+        """The first collision along the straight TCP path (a message), None when clear.
+        Geometry only: no inverse kinematics, and the validator's state is unchanged, so
+        planning can ask about moves long before they are made."""
+        if self.checker is None:
+            return None
+        allowance = self.contact_allowance_mm if contact_allowed else 0.0
+        hits = self.checker.check_path(start, end, ignore_tip_mm=allowance)   # type: ignore[attr-defined]
+        return hits[0].message if hits else None
 
     def reachable_at_all_angles(self, poses: list[Pose]) -> bool:
         """IK exists within the joint limits for every pose (e.g. every angle of a target)."""
@@ -70,5 +77,6 @@ def build_validator(inputs: SessionInputs, cell: Cell, object_mesh: object) -> P
     workspace = Box("workspace", np.array(lim.workspace.min_mm), np.array(lim.workspace.max_mm))
     checker = SceneChecker(shapes, mesh_base, keep_out, workspace)
     pr = inputs.plan.probing
-    allowance = pr.standoff_mm + lim.search_distance_mm + spec.tool.tip_radius_mm
+    # The probe may touch along the contact search: as far as the plan's (tightened) search goes.
+    allowance = pr.standoff_mm + effective_motion_limits(inputs)["search_distance_mm"] + spec.tool.tip_radius_mm
     return PathValidator(arm_model_for(inputs), checker, cell.arm.status().joints_rad, allowance)
