@@ -202,12 +202,14 @@ def headline(run: dict[str, Any]) -> dict[str, Any]:
     ev = run["evaluation"]
     if ev is None:
         return {"status": run.get("status"), "reason": run.get("reason"), "region_map_error": None}
-    keys = ("region_map_error", "worst_region_iou", "boundary_mm_mean", "boundary_mm_p90", "profile_rmse_mm",
-            "regions_found", "regions_true", "probes", "robot_hours")
+    keys = ("region_map_error", "mislabelled_points", "mislabelled_max_from_true_boundary_mm", "worst_region_iou",
+            "boundary_mm_mean", "boundary_mm_p90", "profile_rmse_mm", "regions_found", "regions_true", "probes",
+            "robot_hours")
     return {k: ev.get(k) for k in keys}
 
 
-AGG_KEYS = ("region_map_error", "worst_region_iou", "boundary_mm_mean", "boundary_mm_p90", "regions_found")
+AGG_KEYS = ("region_map_error", "mislabelled_points", "mislabelled_max_from_true_boundary_mm", "worst_region_iou",
+            "boundary_mm_mean", "boundary_mm_p90", "regions_found")
 
 
 def aggregate(per_seed: dict[int, dict[str, Any]]) -> dict[str, Any]:

@@ -160,6 +160,10 @@ class SimGroundTruth:
     def region_names(self) -> list[str]:
         return list(self._obj.region_names)
 
+    def boundary_distance_mm(self, points_mm: np.ndarray) -> np.ndarray:
+        """(N,) distance (mm) of each point to the nearest boundary between materials (inf: none)."""
+        return self._obj.boundary_distance_mm(np.atleast_2d(points_mm))[0]
+
 
 def _random_unit(rng: np.random.Generator) -> np.ndarray:
     v = rng.normal(size=3)

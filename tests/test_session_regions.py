@@ -37,3 +37,14 @@ def test_plan_min_contrast_decides_whether_box_and_foam_are_two_regions(tmp_path
             j.close()
     assert found[None][0] == 2
     assert found[100.0] == (1, 1)
+
+    # One region where there are two: every point of the smaller material is mislabelled,
+    # up to the farthest one from the seam; the evaluation counts and places them.
+    from elastoprobe.controller.evaluation import evaluate_session
+
+    one, two = evaluate_session(tmp_path / "session_100.0"), evaluate_session(tmp_path / "session_None")
+    assert one["regions_found"] == 1 and one["mislabelled_points"] > 1000
+    assert one["mislabelled_points"] == round(one["region_map_error"] * one["scored_points"])
+    assert one["mislabelled_max_from_true_boundary_mm"] > 50.0
+    assert two["mislabelled_points"] == round(two["region_map_error"] * two["scored_points"])
+    assert two["mislabelled_points"] < one["mislabelled_points"]
