@@ -1,20 +1,26 @@
 """Issue #6's last goal: the demo on the miscalibrated cell, after calibration, maps the object
 as well as the calibrated cell does, judged by ``elastoprobe evaluate`` against the
 simulator's ground truth (bench/calibrated_demo.py runs the sessions: seeds 1-3, two
-miscalibration draws; about 25 min here).
+miscalibration draws, and an exact calibration of draw 0; about 25 min here).
 
-Figures (revision 3ff8a64 + the bench docstring, seeds 1-5, draws 0 and 1,
-``--oracle``): region_map_error per seed
-  calibrated cell:            6.5e-5, 0, 0, 0, 0                   mean 1.3e-5 (sem 1.3e-5)
-  after calibration, draw 0:  1.23e-4, 4.9e-5, 2.5e-5, 7.4e-5, 1.71e-4  mean 8.8e-5
-  after calibration, draw 1:  4.7e-5, 9.4e-5, 2.4e-5, 4.7e-5, 1.41e-4   mean 7.1e-5
-  exact calibration, draw 0:  1.47e-4, 4.9e-5, 4.9e-5, 4.9e-5, 0.127 (a third region on seed 5)
-  uncalibrated: 8 of 10 runs pause asking for calibration; 1 pauses on a force-rate guard;
-                the 2 that finish score 0.396 (one region) and 0.0069.
-Every after-calibration run finds the two regions with worst IoU >= 0.9996, but its mean
-error is ~6x the calibrated cell's (a few points out of ~40 000 versus almost none): the
-10 % goal is not met, strictly nor within the noise floor (difference 6.7e-5, floor
-4.1e-5 = 2 standard errors of the difference). Those two stay declared xfails.
+Figures (revision 682725a, seeds 1-5, draws 0 and 1, ``--oracle``): region_map_error per seed
+  calibrated cell:            6.5e-5, 0, 0, 0, 0                        mean 1.3e-5
+  after calibration, draw 0:  1.23e-4, 4.9e-5, 2.5e-5, 7.4e-5, 1.71e-4  mean 8.84e-5
+  after calibration, draw 1:  4.7e-5, 9.4e-5, 2.4e-5, 4.7e-5, 1.41e-4   mean 7.06e-5
+  exact calibration, draw 0:  1.47e-4, 4.9e-5, 4.9e-5, 4.9e-5, 1.47e-4  mean 8.82e-5
+  uncalibrated: 8 of 10 runs pause asking for calibration; the 2 that finish score 0.396
+                (one region) and 0.0069.
+Every after-calibration run finds the two regions with worst IoU >= 0.9996. Its errors are
+1-7 points of ~40 000, each within 1.4 mm of the seam at the foot of the box wall (draw 0:
+0.3 mm; the calibrated cell: 0.35 mm), closer than the sweep lines are apart (4 mm): ties
+at the seam, not a misplaced boundary. After calibration scores what an exact calibration of the same
+physical cell scores (8.84e-5 vs 8.82e-5: 0.2 %); both sit 5-6x above the calibrated
+cell's mean because that is another physical cell: its scanner mount sees fewer points
+right at the wall's foot (the probe shadows ~30 % of its laser line), so it has fewer
+ties to lose. Against the calibrated cell the 10 % goal is not met, strictly nor within
+the noise floor (difference 6.65e-5, floor 4.1e-5): those two stay declared xfails.
+(Revision 3cb23fe scored 0.095 and 0.152 on draw 0 seeds 2 and 3: the box top split into
+a third region, centre and rim; fixed by regions.MIN_CONTRAST = 2.5.)
 """
 from __future__ import annotations
 
@@ -36,7 +42,7 @@ def comparison(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     out = tmp_path_factory.mktemp("calibrated_demo")
     proc = subprocess.run([sys.executable, str(ROOT / "bench" / "calibrated_demo.py"), "--out", str(out),
                            "--seeds", ",".join(map(str, SEEDS)), "--cell-seeds", ",".join(map(str, DRAWS)),
-                           "--parallel", "2"], capture_output=True, text=True, timeout=7000, cwd=ROOT)
+                           "--parallel", "2", "--oracle"], capture_output=True, text=True, timeout=7000, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return json.loads(proc.stdout)
 
@@ -71,15 +77,31 @@ def test_after_calibration_every_run_finds_the_two_materials(comparison: dict) -
 
 @pytest.mark.slow
 @pytest.mark.timeout(7200)
-@pytest.mark.xfail(strict=False, reason="seeds 1-5, two draws: mean 7.95e-5 after calibration vs 1.3e-5 "
-                                        "calibrated (5.1x relative); see the module docstring")
+def test_after_calibration_maps_as_an_exact_calibration_of_the_same_cell_does(comparison: dict) -> None:
+    """What calibration can change: draw 0 after calibration against draw 0 with the simulator's
+    own truth as its calibration file, within 10 % or the noise floor; every mislabelled
+    point within half the sweep spacing (2 mm) of the true seam: a tie, not a misplaced
+    boundary."""
+    assert comparison["comparisons"]["after_calibration_draw0_vs_perfect_calibration"]["floored_met"], \
+        json.dumps(comparison["comparisons"])
+    for draw in DRAWS:
+        for seed in SEEDS:
+            h = comparison["per_seed"][f"after_calibration_draw{draw}"][str(seed)]
+            assert h["mislabelled_max_from_true_boundary_mm"] <= 2.0, json.dumps(h)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(7200)
+@pytest.mark.xfail(strict=False, reason="seeds 1-5, two draws: mean 7.95e-5 after calibration vs 1.3e-5 on the "
+                                        "calibrated cell (5.1x), 8.82e-5 exact calibration of the same "
+                                        "cell; see the module docstring")
 def test_region_map_error_within_ten_percent_of_the_calibrated_cell_strict(comparison: dict) -> None:
     assert comparison["goal_met_strict"], json.dumps(comparison["comparisons"])
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(7200)
-@pytest.mark.xfail(strict=False, reason="the difference (6.7e-5) exceeds the noise floor (4.1e-5, 2 standard "
+@pytest.mark.xfail(strict=False, reason="the difference (6.65e-5) exceeds the noise floor (4.1e-5, 2 standard "
                                         "errors) on seeds 1-5; see the module docstring")
 def test_region_map_error_within_ten_percent_or_the_noise_floor(comparison: dict) -> None:
     assert comparison["goal_met_floored"], json.dumps(comparison["comparisons"])

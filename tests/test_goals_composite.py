@@ -24,5 +24,5 @@ def test_demo_plan_maps_the_box_and_the_pillow(tmp_path: Path, seed: int) -> Non
     assert ev["boundary_mm_mean"] is not None and ev["boundary_mm_mean"] <= 10.0
     assert ev["boundary_mm_p90"] <= 20.0
     # The boundary lies on the fold at the foot of the box wall: what is mislabelled is a
-    # tie there, within the scanner's noise of the seam.
-    assert ev["mislabelled_max_from_true_boundary_mm"] <= 1.0
+    # tie there, closer to the seam than half the sweep spacing (4 mm).
+    assert ev["mislabelled_max_from_true_boundary_mm"] <= 2.0
