@@ -394,18 +394,13 @@ def _reachable(ctx: PhaseContext, pts: np.ndarray, nrm: np.ndarray, t_dirs: np.n
         if not validator.reachable_at_all_angles(   # type: ignore[attr-defined]
                 [s.executor.contact_search_path(target, a)[0] for a in angles]):
             unreachable += 1
-        elif not _search_clear(ctx, target, survey):
+        elif len(_clear_angles(ctx, target, survey)) < len(survey):
             collides += 1
         else:
             keep[i] = True
     if unreachable or collides:
         s._log("targets_dropped", what=what, unreachable=unreachable, contact_search_collides=collides)
     return keep
-
-
-def _search_clear(ctx: PhaseContext, target: ProbeTarget, angles: list[float]) -> bool:
-    """Whether the contact search at every one of ``angles`` is free of collisions (the tip may touch)."""
-    return len(_clear_angles(ctx, target, angles)) == len(angles)
 
 
 def _clear_angles(ctx: PhaseContext, target: ProbeTarget, angles: list[float]) -> list[float]:

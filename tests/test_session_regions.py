@@ -1,4 +1,5 @@
-"""The plan's region settings reach the session's clustering (a real tiny run on the simulated cell)."""
+"""The plan's region settings reach the session's clustering, and the evaluation counts and
+places what a wrong map mislabels (real tiny runs on the simulated cell)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -28,13 +29,10 @@ def test_plan_min_contrast_decides_whether_box_and_foam_are_two_regions(tmp_path
         out = tmp_path / f"session_{contrast}"
         child = run_cli(["run", str(plan), "--out", str(out), "--seed", "1", "--quiet"], env)
         assert child.returncode == 0, child.stderr[-2000:]
-        j = Journal.open_readonly(out)
-        try:
+        with Journal.open_readonly(out) as j:
             rec = j.phase("regions", 0)
-            assert rec is not None
-            found[contrast] = (rec.outputs["n_regions"], rec.outputs["stats"].get("merged_by_contrast", 0))
-        finally:
-            j.close()
+        assert rec is not None
+        found[contrast] = (rec.outputs["n_regions"], rec.outputs["stats"].get("merged_by_contrast", 0))
     assert found[None][0] == 2
     assert found[100.0] == (1, 1)
 

@@ -13,8 +13,9 @@ slope), and the surface graph (neighbour pairs of the neural-gas units).
    mixture may split a material whose features are not Gaussian). Then clusters whose
    median peak depths differ by less than a factor ``min_contrast`` at every survey
    force are merged: BIC finds any structure, including the smooth drift of one
-   material's visible dent with the local geometry (rims, slopes, tilt) and its support
-   (a plate clamped at its edges), which is not a different elasticity. A homogeneous object gives one region.
+   material's visible dent with the local geometry (rims, slopes, tilt) and with its
+   support (a plate clamped at its edges), which is not a different elasticity. A
+   homogeneous object gives one region.
 3. Spatial coherence on the surface graph: a few passes of iterated conditional
    modes (each point takes the region maximising its feature log-likelihood plus
    ``beta`` per neighbour already in that region: ambiguous points follow their
