@@ -406,8 +406,8 @@ def _reachable(ctx: PhaseContext, pts: np.ndarray, nrm: np.ndarray, t_dirs: np.n
 def _clear_angles(ctx: PhaseContext, target: ProbeTarget, angles: list[float]) -> list[float]:
     """The ``angles`` at which the contact search is free of collisions (the tip may touch)."""
     ex = ctx.session.executor
-    return [a for a in angles
-            if ex.validator.collision(*ex.contact_search_path(target, a), contact_allowed=True) is None]  # type: ignore[attr-defined]
+    collision = ex.validator.collision   # type: ignore[attr-defined]
+    return [a for a in angles if collision(*ex.contact_search_path(target, a), contact_allowed=True) is None]
 
 
 def _survey_profiles(ctx: PhaseContext, target_ids: list[int]) -> tuple[list[int], np.ndarray, np.ndarray]:
@@ -529,10 +529,10 @@ def _characterize_choice(ctx: PhaseContext, labels: dict[int, int], n_regions: i
             if len(picked) == need:
                 break
         chosen += [ids[k] for k in picked]
-    blocked = {t: [a for a in angles if a not in clear_at[t]] for t in chosen}
+    blocked = {str(t): [a for a in angles if a not in clear] for t, clear in clear_at.items()}
     if any(blocked.values()):
-        s._log("angles_blocked", targets={str(t): b for t, b in blocked.items() if b})
-    return chosen, {t: clear_at[t] for t in chosen}
+        s._log("angles_blocked", targets={t: b for t, b in blocked.items() if b})
+    return chosen, clear_at
 
 
 def region_dataset(ctx: PhaseContext, region: int) -> dict[str, np.ndarray]:

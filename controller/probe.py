@@ -113,6 +113,12 @@ class ProbeSettings:
     reference_scans: int = 10
     scan_timeout_factor: float = 3.0
 
+    @property
+    def search_mm(self) -> float:
+        """How far the contact search may travel from the standoff (mm): the standoff itself
+        plus ``search_distance_mm`` past the nominal surface."""
+        return self.standoff_mm + self.search_distance_mm
+
 
 @dataclass
 class _Recorder:
@@ -182,7 +188,7 @@ class ProbeExecutor:
         self.machine.fire("reference_ok")
         # Contact search: the path from standoff to the deepest allowed point is validated
         # with the tip allowed to touch the object.
-        search_mm = s.standoff_mm + s.search_distance_mm
+        search_mm = s.search_mm
         self.validator.validate_path(standoff, deepest, contact_allowed=True)
         motion = self.cell.arm.seek_contact(d, s.contact_speed_mm_s, s.contact_force_n, search_mm)
         state = self._wait(motion, timeout_s=search_mm / s.contact_speed_mm_s * 2.0 + 5.0)
@@ -224,8 +230,7 @@ class ProbeExecutor:
         b2o = self.cell.base_to_object
         standoff = standoff_pose(b2o.apply(target.point_mm), b2o.apply_vector(target.normal),
                                  b2o.apply_vector(target.t), angle_deg, s.tip_radius_mm, s.standoff_mm)
-        search_mm = s.standoff_mm + s.search_distance_mm
-        return standoff, Pose(standoff.position_mm + standoff.rotation[:, 2] * search_mm, standoff.rotation)
+        return standoff, Pose(standoff.position_mm + standoff.rotation[:, 2] * s.search_mm, standoff.rotation)
 
     def scan_while_moving(self, start: Pose, end: Pose, speed_mm_s: float) -> tuple[list[Scan], np.ndarray]:
         """Travel to ``start``, then scan continuously while moving in a straight line to ``end``.

@@ -13,8 +13,8 @@ Figures (revision 682725a, seeds 1-5, draws 0 and 1, ``--oracle``): region_map_e
 Every after-calibration run finds the two regions with worst IoU >= 0.9996. Its errors are
 1-7 points of ~40 000, each within 1.4 mm of the seam at the foot of the box wall (draw 0:
 0.3 mm; the calibrated cell: 0.35 mm), closer than the sweep lines are apart (4 mm): ties
-at the seam, not a misplaced boundary. After calibration scores what an exact calibration of the same
-physical cell scores (8.84e-5 vs 8.82e-5: 0.2 %); both sit 5-6x above the calibrated
+at the seam, not a misplaced boundary. After calibration scores what an exact calibration
+of the same physical cell scores (8.84e-5 vs 8.82e-5: 0.2 %); both sit 5-6x above the calibrated
 cell's mean because that is another physical cell: its scanner mount sees fewer points
 right at the wall's foot (the probe shadows ~30 % of its laser line), so it has fewer
 ties to lose. Against the calibrated cell the 10 % goal is not met, strictly nor within

@@ -6,6 +6,7 @@ from pathlib import Path
 
 from ruamel.yaml import YAML
 
+from elastoprobe.controller.evaluation import evaluate_session
 from elastoprobe.controller.journal import Journal
 
 from test_session_util import TINY_PLAN, child_env, run_cli
@@ -38,8 +39,6 @@ def test_plan_min_contrast_decides_whether_box_and_foam_are_two_regions(tmp_path
 
     # One region where there are two: every point of the smaller material is mislabelled,
     # up to the farthest one from the seam; the evaluation counts and places them.
-    from elastoprobe.controller.evaluation import evaluate_session
-
     one, two = evaluate_session(tmp_path / "session_100.0"), evaluate_session(tmp_path / "session_None")
     assert one["regions_found"] == 1 and one["mislabelled_points"] > 1000
     assert one["mislabelled_points"] == round(one["region_map_error"] * one["scored_points"])
