@@ -1,0 +1,265 @@
+"""Hostile object files and meshes (issue #15, cases 1, 2, 3, 8 and the mesh warning of 9).
+
+``check`` loads and validates everything ``run`` will load (cell, plan, object, mesh) with
+the same messages; a bad object or mesh is exit 2 with ``path:line:col``, never a
+traceback, and ``run`` refuses it before a session directory is made. An object that
+does not fit the cell's workspace is refused at ``check`` and ``run``, and motion
+validation itself is bounded whatever the path.
+"""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from elastoprobe.controller.cli import main
+
+REPO = Path(__file__).resolve().parent.parent
+OBJECTS = REPO / "config" / "objects"
+SIM_CELL = REPO / "config" / "cells" / "sim.yaml"
+CLI = [sys.executable, "-m", "elastoprobe.controller.cli"]
+
+
+def _user_object(tmp: Path, edits: dict[str, str] | None = None, ply: bytes | None = None) -> Path:
+    """A copy of the shipped user object (YAML + PLY) in ``tmp``, with line edits and other PLY bytes."""
+    text = (OBJECTS / "user_object.yaml").read_text()
+    for old, new in (edits or {}).items():
+        assert old in text, old
+        text = text.replace(old, new)
+    (tmp / "obj.yaml").write_text(text)
+    (tmp / "user_object.ply").write_bytes(ply if ply is not None else (OBJECTS / "user_object.ply").read_bytes())
+    return tmp / "obj.yaml"
+
+
+def _plan(tmp: Path, obj: Path) -> Path:
+    text = (REPO / "config" / "plans" / "user_object.yaml").read_text()
+    text = text.replace("cell: ../cells/sim.yaml", f"cell: {SIM_CELL}")
+    text = text.replace("simulated_object: ../objects/user_object.yaml", f"simulated_object: {obj}")
+    (tmp / "plan.yaml").write_text(text)
+    return tmp / "plan.yaml"
+
+
+def _mesh_bytes(vertices: np.ndarray | None = None, faces: np.ndarray | None = None) -> bytes:
+    """The shipped user mesh (binary PLY with face colours) with other vertices or faces."""
+    m = trimesh.load(str(OBJECTS / "user_object.ply"), process=False)
+    v = m.vertices if vertices is None else vertices
+    f = m.faces if faces is None else faces
+    colors = np.asarray(m.visual.face_colors)
+    colors = colors[: len(f)] if len(f) <= len(colors) else np.vstack([colors, colors[: len(f) - len(colors)]])
+    out = trimesh.Trimesh(v, f, face_colors=colors, process=False)
+    return out.export(file_type="ply")
+
+
+def _vertex_block_offset(data: bytes) -> int:
+    return data.index(b"end_header\n") + len(b"end_header\n")
+
+
+def _run_cli(args: list[str], timeout_s: float = 300.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(CLI + args, capture_output=True, text=True, timeout=timeout_s)
+
+
+def _check_and_run_refuse(capsys: pytest.CaptureFixture[str], plan: Path, tmp: Path, where: str,
+                          text: str) -> str:
+    """``check`` and ``run`` both exit 2 with the same first line, naming ``where`` and ``text``;
+    ``run`` leaves no session behind."""
+    assert main(["check", str(plan)]) == 2
+    err_check = capsys.readouterr().err
+    out = tmp / "session"
+    assert main(["run", str(plan), "--out", str(out), "--quiet"]) == 2
+    err_run = capsys.readouterr().err
+    for err in (err_check, err_run):
+        assert "Traceback" not in err
+        assert where in err, err
+        assert text in err, err
+    assert err_check.splitlines()[0] == err_run.splitlines()[0]
+    assert not (out / "journal.sqlite").exists()
+    return err_check
+
+
+# ----------------------------------------------------------------------------- case 1
+BROKEN_OBJECTS = {
+    # label: (edits of user_object.yaml, PLY bytes or None, "file:line:col" suffix, message part)
+    "missing mesh": ({"file: user_object.ply": "file: gone.ply"}, None, "obj.yaml:12:9", "does not exist"),
+    "E_mpa zero": ({"E_mpa: 12.0": "E_mpa: 0.0"}, None, "obj.yaml:22:12", "greater than 0"),
+    "E_mpa negative": ({"E_mpa: 12.0": "E_mpa: -3.0"}, None, "obj.yaml:22:12", "greater than 0"),
+    "nu 0.5": ({"nu: 0.45": "nu: 0.5"}, None, "obj.yaml:23:9", "less than 0.5"),
+    "unknown material": ({"{material: sponge,": "{material: spunge,"}, None, "obj.yaml:17:19",
+                         "unknown material 'spunge'"),
+    "corrupt PLY header": ({}, b"ply\nformat binary_little_endian 1.0\nelement vertex 12\x00\xff\n",
+                           "obj.yaml:12:9", "cannot read mesh"),
+}
+
+
+@pytest.mark.parametrize("label", sorted(BROKEN_OBJECTS))
+def test_case1_check_reads_the_object_as_run_does(label: str, tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    edits, ply, where, text = BROKEN_OBJECTS[label]
+    obj = _user_object(tmp_path, edits, ply)
+    plan = _plan(tmp_path, obj)
+    _check_and_run_refuse(capsys, plan, tmp_path, f"{tmp_path / where}: ", text)
+
+
+# ----------------------------------------------------------------------------- case 2
+def _nan_vertex() -> bytes:
+    m = trimesh.load(str(OBJECTS / "user_object.ply"), process=False)
+    v = np.array(m.vertices)
+    v[7] = [np.nan, 0.0, 1.0]
+    return _mesh_bytes(vertices=v)
+
+
+def _random_vertex_block() -> bytes:
+    data = bytearray((OBJECTS / "user_object.ply").read_bytes())
+    start = _vertex_block_offset(bytes(data))
+    rng = np.random.default_rng(15)
+    data[start:start + 522 * 12] = rng.integers(0, 256, 522 * 12, dtype=np.uint8).tobytes()
+    return bytes(data)
+
+
+def _one_point() -> bytes:
+    m = trimesh.load(str(OBJECTS / "user_object.ply"), process=False)
+    return _mesh_bytes(vertices=np.tile(m.vertices[0], (len(m.vertices), 1)))
+
+
+BAD_MESHES = {
+    "NaN vertex": (_nan_vertex, "not finite"),
+    "random vertex block": (_random_vertex_block, "mesh"),
+    "all vertices in one point": (_one_point, "degenerate"),
+}
+
+
+@pytest.mark.parametrize("label", sorted(BAD_MESHES))
+def test_case2_bad_mesh_data_is_refused_before_numpy_sees_it(label: str, tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    make, text = BAD_MESHES[label]
+    obj = _user_object(tmp_path, ply=make())
+    plan = _plan(tmp_path, obj)
+    _check_and_run_refuse(capsys, plan, tmp_path, f"{obj}:12:9: ", text)
+
+
+@pytest.mark.timeout(600)
+def test_case2_resume_with_a_mesh_broken_since_refuses_and_keeps_the_session(tmp_path: Path) -> None:
+    from elastoprobe.controller.journal import Journal
+
+    obj = _user_object(tmp_path)
+    plan = _plan(tmp_path, obj)
+    text = plan.read_text().replace("units: 24", "units: 0").replace("phases:", "targets:\n  - {point_mm: [30.0, 0.0, 40.0]}\nphases:")
+    plan.write_text(text)
+    out = tmp_path / "s"
+    # A session that pauses at once (finish_by in the past), then the mesh is damaged.
+    plan.write_text(plan.read_text() + "finish_by: 2000-01-01T00:00:00+00:00\n")
+    first = _run_cli(["run", str(plan), "--out", str(out), "--quiet"])
+    assert first.returncode == 3, first.stderr[-2000:]
+    (tmp_path / "user_object.ply").write_bytes(_nan_vertex())
+    before = (out / "journal.sqlite").read_bytes()
+    again = _run_cli(["resume", str(out), "--quiet"])
+    assert again.returncode == 2, again.stderr[-2000:]
+    assert "Traceback" not in again.stderr and "not finite" in again.stderr
+    assert (out / "journal.sqlite").read_bytes() == before
+    with Journal.open_readonly(out) as j:
+        assert j.session()["status"] == "paused"
+
+
+# ----------------------------------------------------------------------------- case 3
+def test_case3_an_object_larger_than_the_workspace_is_refused_at_check(tmp_path: Path,
+                                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    obj = _user_object(tmp_path, {"scale_mm_per_unit: 1.0": "scale_mm_per_unit: 1000"})
+    plan = _plan(tmp_path, obj)
+    err = _check_and_run_refuse(capsys, plan, tmp_path, ": ", "does not fit the cell's workspace")
+    assert "120000 x 90000 x 40000 mm" in err
+
+
+@pytest.mark.timeout(900)
+def test_case3_run_of_an_oversized_object_ends_with_a_reason(tmp_path: Path) -> None:
+    obj = _user_object(tmp_path, {"scale_mm_per_unit: 1.0": "scale_mm_per_unit: 1000"})
+    plan = _plan(tmp_path, obj)
+    proc = _run_cli(["run", str(plan), "--out", str(tmp_path / "s"), "--quiet"], timeout_s=600)
+    assert proc.returncode == 2 and "does not fit the cell's workspace" in proc.stderr, proc.stderr[-2000:]
+
+
+def test_case3_motion_validation_is_bounded_for_any_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A straight move 100 m long is refused by the workspace before any inverse kinematics,
+    and the joint path of a move no arm can make is never sampled point by point."""
+    from elastoprobe.controller import kinematics, validation
+    from elastoprobe.controller.collision import SceneChecker, boxes_from_cell
+    from elastoprobe.controller.config import load_session_inputs
+    from elastoprobe.controller.errors import MotionRefused
+    from elastoprobe.controller.geometry import probe_tcp_pose
+
+    inputs = load_session_inputs(REPO / "config" / "plans" / "demo.yaml")
+    model = validation.arm_model_for(inputs)
+    seed = np.radians(inputs.cell.robot.home_joints_deg)
+    sampled: list[int] = []
+    real = kinematics._valid_branches
+
+    def counting(model, flange, hint):   # type: ignore[no-untyped-def]
+        sampled.append(len(flange))
+        return real(model, flange, hint)
+
+    monkeypatch.setattr(kinematics, "_valid_branches", counting)
+    down = np.array([0.0, 0.0, 1.0])
+    a = probe_tcp_pose(np.array([400.0, -50_000.0, 300.0]), down, np.array([1.0, 0.0, 0.0]), 90.0)
+    b = probe_tcp_pose(np.array([400.0, 50_000.0, 300.0]), down, np.array([1.0, 0.0, 0.0]), 90.0)
+    assert kinematics.linear_path_joints(model, a, b, seed) is None
+    assert max(sampled, default=0) <= 1000
+    workspace, keep_out = boxes_from_cell(inputs.cell.limits)
+    validator = validation.PathValidator(model, SceneChecker([], None, keep_out, workspace), seed, 10.0)
+    sampled.clear()
+    with pytest.raises(MotionRefused, match="workspace"):
+        validator.validate_path(a, b)
+    assert sampled == []
+
+
+# ----------------------------------------------------------------------------- case 8
+def test_case8_a_nul_byte_is_reported_at_its_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    lines = SIM_CELL.read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln.startswith("  max_force_n:"))
+    lines[k] = lines[k][:6] + "\x00" + lines[k][6:]
+    cell = tmp_path / "cell.yaml"
+    cell.write_text("\n".join(lines) + "\n")
+    assert main(["check", str(REPO / "config" / "plans" / "demo.yaml"), "--cell", str(cell)]) == 2
+    err = capsys.readouterr().err
+    assert f"{cell}:{k + 1}:7: " in err, err
+    assert "NUL" in err or "#x0000" in err
+
+
+# ----------------------------------------------------------------------------- case 9 (meshes)
+def _holed_mesh() -> tuple[bytes, np.ndarray]:
+    """The user mesh with the faces around its top-most vertex removed: a hole in the top."""
+    m = trimesh.load(str(OBJECTS / "user_object.ply"), process=False)
+    top = int(np.argmax(m.vertices[:, 2]))
+    keep = ~np.any(m.faces == top, axis=1)
+    return _mesh_bytes(faces=m.faces[keep]), m.vertices[top]
+
+
+def _non_manifold_mesh() -> bytes:
+    """The user mesh with a fin: a third face on one of its edges."""
+    m = trimesh.load(str(OBJECTS / "user_object.ply"), process=False)
+    a, b = m.faces[0][:2]
+    apex = len(m.vertices)
+    v = np.vstack([m.vertices, m.vertices[a] + [0.0, 0.0, 15.0]])
+    return _mesh_bytes(vertices=v, faces=np.vstack([m.faces, [[a, b, apex]]]))
+
+
+def test_case9_holes_and_non_manifold_edges_are_a_warning_that_says_where(tmp_path: Path,
+                                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    ply, top = _holed_mesh()
+    plan = _plan(tmp_path, _user_object(tmp_path, ply=ply))
+    assert main(["check", str(plan)]) == 0
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.err
+    assert "hole" in captured.err and "warning" in captured.err, captured.err
+    assert f"{top[2]:.0f}" in captured.err          # where: the hole's place (mm) is named
+    plan = _plan(tmp_path, _user_object(tmp_path, ply=_non_manifold_mesh()))
+    assert main(["check", str(plan)]) == 0
+    err = capsys.readouterr().err
+    assert "non-manifold" in err and "warning" in err, err
+
+
+def test_the_shipped_objects_give_no_mesh_warning(capsys: pytest.CaptureFixture[str]) -> None:
+    for plan in ("demo.yaml", "rubber_ball.yaml", "user_object.yaml"):
+        assert main(["check", str(REPO / "config" / "plans" / plan)]) == 0
+        assert "warning" not in capsys.readouterr().err
