@@ -6,7 +6,9 @@ POSIX), then ``fsync`` the directory so the rename itself survives a power cut.
 A kill -9 at any moment leaves the target untouched or fully replaced, plus at most
 one stray ``.<name>.*.tmp`` file, which :func:`remove_stale_temps` clears.
 
-Used for models, report files, exported data and generated docs.
+Used for models, report files, exported data and generated docs. This module is the one
+place where the product writes files: an OS error (read-only or full disk, a file where
+a directory should be) leaves it as :class:`~.errors.DiskError` naming the path.
 """
 from __future__ import annotations
 
@@ -23,7 +25,35 @@ from typing import Any
 
 import numpy as np
 
+from .errors import DiskError
+
 _TMP_SUFFIX = ".tmp"
+
+
+def ensure_dir(path: str | os.PathLike[str]) -> Path:
+    """Create ``path`` (and its parents) if needed; DiskError naming it when it cannot be a
+    writable directory (a file there, a read-only or full disk, no permission)."""
+    d = Path(path)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise DiskError("is a file, not a directory", path=str(d)) from None
+    except NotADirectoryError:
+        raise DiskError("a part of this path is a file, not a directory", path=str(d)) from None
+    except OSError as exc:
+        raise DiskError.from_os_error(exc, str(d), "cannot create this directory") from None
+    if not os.access(d, os.W_OK | os.X_OK) or _read_only(d):
+        raise DiskError.from_os_error(OSError(30 if _read_only(d) else 13,
+                                              "Read-only file system" if _read_only(d) else "Permission denied"),
+                                      str(d), "cannot write here")
+    return d
+
+
+def _read_only(path: Path) -> bool:
+    try:
+        return bool(os.statvfs(path).f_flag & os.ST_RDONLY)
+    except OSError:
+        return False
 
 
 def _tmp_prefix(target: Path) -> str:
@@ -47,7 +77,10 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes, mode: int = 0o
     """
     target = Path(path)
     directory = target.parent if str(target.parent) else Path(".")
-    fd, tmp_name = tempfile.mkstemp(prefix=_tmp_prefix(target), suffix=_TMP_SUFFIX, dir=directory)
+    try:
+        fd, tmp_name = tempfile.mkstemp(prefix=_tmp_prefix(target), suffix=_TMP_SUFFIX, dir=directory)
+    except OSError as exc:
+        raise DiskError.from_os_error(exc, str(target)) from None
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
@@ -55,12 +88,14 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes, mode: int = 0o
             os.fchmod(f.fileno(), mode)
             os.fsync(f.fileno())
         os.replace(tmp_name, target)
-    except BaseException:
+    except BaseException as exc:
         # Never leave the temporary behind on an ordinary error (a kill -9 can, by design).
         try:
             os.unlink(tmp_name)
         except FileNotFoundError:
             pass
+        if isinstance(exc, OSError):
+            raise DiskError.from_os_error(exc, str(target)) from None
         raise
     fsync_dir(directory)
     return target

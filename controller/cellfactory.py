@@ -16,6 +16,66 @@ from .errors import InputError
 
 
 @dataclass
+class ObjectModel:
+    """The object a session works on, loaded and checked once (``check`` and ``run`` alike).
+
+    ``mesh``: the nominal surface (object frame, mm) for planning and collision checks;
+    ``simulated``: the simulator's object when the file describes one (objects/*.yaml),
+    else None; ``warnings``: what the user should know (holes, non-manifold edges)."""
+
+    mesh: Any
+    simulated: Any = None
+    warnings: list[str] = field(default_factory=list)
+
+
+def load_object_model(inputs: SessionInputs) -> ObjectModel:
+    """Load the plan's object as the session will, and check it against the cell.
+
+    Every problem is an InputError at the file and line that brought it in: a bad object
+    file or mesh (sim/objects.py, controller/meshcheck.py), an object that does not fit
+    the cell's workspace, or simulated physics that is not valid at the plan's largest force.
+    """
+    from .meshcheck import bounds_problem, mesh_findings, read_mesh
+
+    path = inputs.object_file()
+    where = (inputs.plan_doc, ("simulated_object",)) if inputs.plan.simulated_object and inputs.cell.kind != "ur" \
+        else (inputs.cell_doc, ("object", "file"))
+    if path.suffix.lower() in (".yaml", ".yml"):
+        from elastoprobe.sim.objects import load_object
+
+        sim_object = load_object(path)
+        model = ObjectModel(mesh=sim_object.mesh, simulated=sim_object, warnings=list(sim_object.load_warnings))
+    else:
+        try:
+            mesh = read_mesh(path)
+        except ValueError as exc:
+            raise where[0].error(where[1], f"{path}: {exc}") from None
+        findings = mesh_findings(mesh, table_z_mm=None)
+        if findings.errors:
+            raise where[0].error(where[1], f"{path}: " + "; ".join(findings.errors))
+        model = ObjectModel(mesh=mesh, warnings=[f"{path}: {w}" for w in findings.warnings])
+    ws = inputs.cell.limits.workspace
+    problem = bounds_problem(inputs.cell.object.base_to_object.pose().apply(model.mesh.vertices), ws.min_mm,
+                             ws.max_mm)
+    if problem is not None:
+        raise where[0].error(where[1], f"{path}: {problem} (check the mesh's scale_mm_per_unit and the cell's "
+                                       f"object placement)")
+    if model.simulated is not None and inputs.cell.kind != "ur":    # simulated and loopback cells
+        check_physics(inputs, model.simulated)
+    return model
+
+
+def check_physics(inputs: SessionInputs, sim_object: Any) -> None:
+    """The simulated object's contact models must be valid at the plan's largest force."""
+    plan = inputs.plan
+    problems = sim_object.validity_report(max(max(plan.phases.survey.forces_n), max(plan.phases.characterize.forces_n)),
+                                          inputs.cell.tool.tip_radius_mm)
+    if problems:
+        raise InputError("the simulated object's physics is not valid at this plan's largest force: "
+                         + "; ".join(problems), path=str(inputs.plan_path))
+
+
+@dataclass
 class BuiltCell:
     """A cell and what the controller knows of the object's shape (object frame, mm)."""
 
@@ -32,20 +92,22 @@ class BuiltCell:
             restore(presses)
 
 
-def build_cell(inputs: SessionInputs, seed: int, dry_run: bool = False) -> BuiltCell:
-    """Build the cell a session runs on."""
+def build_cell(inputs: SessionInputs, seed: int, dry_run: bool = False,
+               model: ObjectModel | None = None) -> BuiltCell:
+    """Build the cell a session runs on (``model``: the object loaded by :func:`load_object_model`,
+    loaded here when not given)."""
     kind = inputs.cell.kind
     if kind == "simulated" or dry_run:
-        return _simulated(inputs, seed)
+        return _simulated(inputs, seed, model)
     # The real drivers: ur_rtde in a supervised child, the Net F/T stream and the
     # check-and-stop path in the hardware process, the serial scanner. A loopback cell
     # first starts the simulated servers that speak those protocols.
     from .drivers.real_cell import build_real_cell
 
-    return build_real_cell(inputs, seed)
+    return build_real_cell(inputs, seed, object_mesh=(model or load_object_model(inputs)).mesh)
 
 
-def _simulated(inputs: SessionInputs, seed: int) -> BuiltCell:
+def _simulated(inputs: SessionInputs, seed: int, model: ObjectModel | None) -> BuiltCell:
     from elastoprobe.sim.cell import SimCell, params_from_cell
 
     obj = inputs.object_file()
@@ -55,13 +117,12 @@ def _simulated(inputs: SessionInputs, seed: int) -> BuiltCell:
     # The world is built from the cell FILE (its miscalibration, drawn from the cell's own
     # seed, included); the controller's side from ``inputs.cell``, the file corrected by
     # its calibration file (config.load_session_inputs).
+    if model is None or model.simulated is None:
+        model = load_object_model(inputs)
+    if inputs.cell.kind == "ur":              # a dry run of a real cell: its physics was not checked yet
+        check_physics(inputs, model.simulated)
     cell_file = inputs.cell_file if inputs.cell_file is not None else inputs.cell
-    cell = SimCell(params_from_cell(cell_file, obj, seed=seed, believed=inputs.cell))
-    problems = cell.validity_report(max(max(inputs.plan.phases.survey.forces_n),
-                                        max(inputs.plan.phases.characterize.forces_n)))
-    if problems:
-        raise InputError("the simulated object's physics is not valid at this plan's largest force: "
-                         + "; ".join(problems), path=str(inputs.plan_path))
+    cell = SimCell(params_from_cell(cell_file, model.simulated, seed=seed, believed=inputs.cell))
     return BuiltCell(cell=cell, object_mesh=cell.world.obj.mesh, warnings=calibration_warnings(inputs))
 
 

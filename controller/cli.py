@@ -53,11 +53,22 @@ def _finite_float(value: str) -> float:
 
 
 # --------------------------------------------------------------------------- commands
+def _load_object(inputs):   # type: ignore[no-untyped-def]
+    """The plan's object, loaded and checked as the session loads it; warnings on stderr."""
+    from .cellfactory import load_object_model
+
+    model = load_object_model(inputs)
+    for warning in model.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
+    return model
+
+
 def cmd_check(args: argparse.Namespace) -> int:
     from .config import load_session_inputs
     from .estimate import estimate_plan
 
     inputs = load_session_inputs(args.plan, args.cell)
+    _load_object(inputs)
     est = estimate_plan(inputs)
     report = {
         "plan": inputs.plan.name,
@@ -142,7 +153,9 @@ def _progress_printer(quiet: bool) -> Callable[[object], None]:
 def _run_session(inputs, out_dir: Path, seed: int, dry_run: bool, resume: bool, quiet: bool) -> int:  # type: ignore[no-untyped-def]
     from .session import Session
 
-    session = Session(inputs, out_dir, seed, dry_run=dry_run, on_progress=_progress_printer(quiet))
+    model = _load_object(inputs)
+    session = Session(inputs, out_dir, seed, dry_run=dry_run, on_progress=_progress_printer(quiet),
+                      object_model=model)
     code = session.run(resume=resume)
     if sys.stderr.isatty() and not quiet:
         print(file=sys.stderr)
@@ -261,6 +274,16 @@ def cmd_train(args: argparse.Namespace) -> int:
     return EXIT_DONE
 
 
+def cmd_salvage(args: argparse.Namespace) -> int:
+    from .salvage import salvage
+
+    out = Path(args.out)
+    report = salvage(Path(args.dir), out)
+    for line in report.lines(out):
+        print(line)
+    return EXIT_DONE
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from elastoprobe.calibration.runner import run_calibration
 
@@ -295,7 +318,11 @@ COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "status": cmd_status,
     "pause": cmd_pause,
     "stop": cmd_stop,
+    "salvage": cmd_salvage,
 }
+# Commands that only compute from a session (no arm): a pause or stop ends them at once,
+# with nothing half-written (their files are written atomically), exit 3: run them again.
+INTERRUPTIBLE = {"evaluate", "predict", "report", "export", "train", "salvage", "check"}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -355,6 +382,11 @@ def build_parser() -> argparse.ArgumentParser:
     tr = sub.add_parser("train", help="refit the region models from the journal's measurements")
     tr.add_argument("dir", type=_existing_dir)
 
+    sa = sub.add_parser("salvage", help="copy every intact part of a damaged session into a new session "
+                                        "directory, from which resume continues")
+    sa.add_argument("dir", type=_existing_dir)
+    sa.add_argument("--out", required=True, help="the new session directory (must not hold a journal)")
+
     ca = sub.add_parser("calibrate", help="calibrate the F/T payload, probe tip, scanner mount or object pose")
     ca.add_argument("kind", choices=["ft", "tcp", "scanner", "object"])
     ca.add_argument("--cell", help="cell file (default: the simulated cell)")
@@ -376,18 +408,43 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from .journal import JournalCorruption
+    from .signals import OperatorFlags, OperatorInterrupt
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    flags = OperatorFlags().install() if args.command in INTERRUPTIBLE else None
     try:
-        return COMMANDS[args.command](args)
+        if flags is None:
+            return COMMANDS[args.command](args)
+        with flags.interruptible():
+            return COMMANDS[args.command](args)
+    except OperatorInterrupt as exc:
+        print(f"elastoprobe {args.command}: {exc}; nothing was half-written, run it again", file=sys.stderr)
+        return EXIT_PAUSED
     except InputError as exc:
         print(exc.format(), file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except JournalCorruption as exc:
+        session = getattr(args, "dir", None) or getattr(args, "out", None) or "DIR"
+        print(f"elastoprobe: {session}: {exc}\n  nothing was written to it; salvage what is intact into a new "
+              f"session directory and continue there:\n    elastoprobe salvage {session} --out NEW_DIR\n"
+              f"    elastoprobe resume NEW_DIR", file=sys.stderr)
         return EXIT_BAD_INPUT
     except ElastoprobeError as exc:
         print(f"elastoprobe: {exc}", file=sys.stderr)
         return exc.exit_code
     except BrokenPipeError:
         return EXIT_DONE
+    except OSError as exc:
+        # A file the command had to write or read that the disk refused (read-only, full,
+        # a file where a directory should be): the path and why, never a traceback.
+        where = exc.filename if exc.filename is not None else getattr(args, "dir", None) or "elastoprobe"
+        print(f"{where}: {exc.strerror or exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    finally:
+        if flags is not None:
+            flags.restore()
 
 
 if __name__ == "__main__":   # pragma: no cover

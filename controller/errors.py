@@ -52,6 +52,19 @@ class InputErrors(InputError):
         return "\n".join(e.format() for e in self.errors)
 
 
+class DiskError(InputError):
+    """A path cannot be written: a read-only disk, a full one, a file where a directory
+    should be (exit 2 from a command; a pause inside a session, which resumes once the
+    disk is fixed). The message names the path."""
+
+    @classmethod
+    def from_os_error(cls, exc: OSError, path: str, doing: str = "cannot write") -> "DiskError":
+        why = exc.strerror or type(exc).__name__
+        hint = {30: " (the disk is mounted read-only)", 28: " (the disk is full)",
+                13: " (no permission)"}.get(exc.errno or 0, "")
+        return cls(f"{doing}: {why}{hint}", path=path)
+
+
 class DeviceError(ElastoprobeError):
     """A device misbehaved: lost connection, timeout, bad frame, refused command."""
 

@@ -25,7 +25,8 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from .atomic import fsync_dir
+from .atomic import ensure_dir, fsync_dir
+from .errors import DiskError
 from .journal import STEP_ARRAYS_OPTIONAL, STEP_ARRAYS_REQUIRED, Journal, StepRecord, to_json
 
 FORMAT = "elastoprobe.session.hdf5/1"
@@ -285,10 +286,17 @@ def export_hdf5(session_dir: str | os.PathLike[str], out_path: str | os.PathLike
 
     d = Path(session_dir)
     out = Path(out_path) if out_path is not None else d / "export.h5"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-    os.close(fd)
     j = Journal.open_readonly(d)
+    try:
+        ensure_dir(out.parent)
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
+        os.close(fd)
+    except OSError as exc:
+        j.close()
+        raise DiskError.from_os_error(exc, str(out)) from None
+    except BaseException:
+        j.close()
+        raise
     try:
         with h5py.File(tmp_name, "w") as f:
             f.attrs.update({"format": FORMAT, "exported_utc": _utc_now(), "session_dir": str(d.resolve()),
@@ -303,8 +311,10 @@ def export_hdf5(session_dir: str | os.PathLike[str], out_path: str | os.PathLike
         with open(tmp_name, "rb+") as fh:
             os.fsync(fh.fileno())
         os.replace(tmp_name, out)
-    except BaseException:
+    except BaseException as exc:
         Path(tmp_name).unlink(missing_ok=True)
+        if isinstance(exc, OSError):       # h5py and the file system say "full" or "read-only" so
+            raise DiskError.from_os_error(exc, str(out)) from None
         raise
     finally:
         j.close()

@@ -35,9 +35,10 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
-from .atomic import json_default
-from .errors import ElastoprobeError, InputError
+from .atomic import ensure_dir, json_default
+from .errors import DiskError, ElastoprobeError, InputError
 from .locking import SessionLock
+from .signals import deferred_interrupts
 
 SCHEMA_VERSION = 1
 JOURNAL_NAME = "journal.sqlite"
@@ -70,7 +71,11 @@ class JournalError(ElastoprobeError):
 
 
 class JournalCorruption(JournalError):
-    """Stored data fails its checksum or is incomplete: the journal cannot be trusted there."""
+    """Stored data fails its checksum, or SQLite finds the file damaged: the journal cannot be
+    trusted there (exit 2: the journal is the input of ``resume``; ``elastoprobe salvage``
+    copies what is intact into a new one)."""
+
+    exit_code = 2
 
 
 class StepStateError(JournalError):
@@ -79,6 +84,29 @@ class StepStateError(JournalError):
 
 class InputsChanged(InputError):
     """The plan or cell file differs from the one the session started with (resume refuses)."""
+
+
+def _is_damage(exc: sqlite3.DatabaseError) -> bool:
+    """Whether SQLite's error means the file's content is damaged (not busy, locked or a failing disk)."""
+    if not isinstance(exc, sqlite3.OperationalError):
+        return True              # "database disk image is malformed", "file is not a database", ...
+    text = str(exc).lower()
+    return any(w in text for w in ("malformed", "no such table", "no such column", "could not decode",
+                                   "not a database", "corrupt"))
+
+
+def _damage_error(exc: sqlite3.DatabaseError, path: Path) -> JournalError:
+    if _is_damage(exc):
+        return JournalCorruption(f"{path}: SQLite finds the file damaged ({exc})")
+    return JournalError(f"{path}: {exc}")
+
+
+def _json(text: Any, what: str) -> Any:
+    """A JSON column, or JournalCorruption naming it."""
+    try:
+        return json.loads(text)
+    except (TypeError, ValueError) as exc:
+        raise JournalCorruption(f"journal: {what} is not valid JSON (stored data is damaged: {exc})") from None
 
 
 # ============================================================================ crash hook
@@ -138,7 +166,11 @@ def _array_digest(dtype: str, shape: str, data: bytes) -> str:
 
 def decode_array(dtype: str, shape: str, sha256: str, data: bytes, what: str) -> np.ndarray:
     """Inverse of :func:`encode_array`; raises :class:`JournalCorruption` on a bad checksum."""
-    if data is None or _array_digest(dtype, shape, bytes(data)) != sha256:
+    try:
+        intact = data is not None and _array_digest(dtype, shape, bytes(data)) == sha256
+    except (TypeError, UnicodeEncodeError):
+        intact = False
+    if not intact:
         raise JournalCorruption(f"journal: checksum mismatch in {what} (stored data is damaged)")
     return np.frombuffer(bytes(data), dtype=np.dtype(dtype)).reshape(json.loads(shape)).copy()
 
@@ -353,6 +385,16 @@ def check_local_filesystem(path: str | os.PathLike[str], mounts_text: str | None
                          path=os.fspath(path))
 
 
+def _writable(directory: Path) -> bool:
+    """Whether files can be created in ``directory`` (not a read-only mount, write permission)."""
+    try:
+        if os.statvfs(directory).f_flag & os.ST_RDONLY:
+            return False
+    except OSError:
+        return False
+    return os.access(directory, os.W_OK)
+
+
 def check_free_disk(path: str | os.PathLike[str], min_free_bytes: int) -> int:
     """Free bytes at ``path``; InputError when below ``min_free_bytes``."""
     free = shutil.disk_usage(os.fspath(path)).free
@@ -542,9 +584,7 @@ class Journal:
         """Open and configure a connection; the file must already be a journal of a known schema
         (checked before anything is written to it, so a foreign SQLite file stays untouched)."""
         if readonly:
-            uri = "file:" + urllib.parse.quote(str(path)) + "?mode=ro"
-            conn = sqlite3.connect(uri, uri=True, isolation_level=None, timeout=10.0)
-            conn.execute("PRAGMA query_only=ON")
+            conn = Journal._reader(path)
         else:
             conn = sqlite3.connect(str(path), isolation_level=None, timeout=10.0)
         try:
@@ -564,7 +604,40 @@ class Journal:
         return conn
 
     @staticmethod
+    def _reader(path: Path) -> sqlite3.Connection:
+        """A read-only connection. On a disk where SQLite cannot make the shared-memory index
+        a WAL reader needs (read-only media or mount, a full disk), the file is opened as
+        immutable — nothing can be writing it there — unless a write-ahead log lies beside
+        it (a session killed there), which cannot be read without that index."""
+        base = "file:" + urllib.parse.quote(str(path)) + "?mode=ro"
+        if _writable(path.parent):
+            conn = sqlite3.connect(base, uri=True, isolation_level=None, timeout=10.0)
+            try:
+                conn.execute("PRAGMA schema_version").fetchone()
+                conn.execute("PRAGMA query_only=ON")
+                return conn
+            except sqlite3.OperationalError as exc:
+                conn.close()
+                if "disk i/o" not in str(exc).lower() and "unable to open" not in str(exc).lower():
+                    raise _damage_error(exc, path) from None
+            except sqlite3.DatabaseError as exc:
+                conn.close()
+                raise JournalCorruption(f"{path}: not a readable session journal ({exc})") from None
+        wal = Path(str(path) + "-wal")
+        if wal.exists() and wal.stat().st_size > 0:
+            raise DiskError("the journal's write-ahead log cannot be read where SQLite cannot write its index "
+                            "(read-only or full disk): copy the session directory to a writable disk, or free "
+                            "space", path=str(path.parent))
+        conn = sqlite3.connect(base + "&immutable=1", uri=True, isolation_level=None, timeout=10.0)
+        conn.execute("PRAGMA query_only=ON")
+        return conn
+
+    @staticmethod
     def _prepare_dir(session_dir: Path, min_free_bytes: int, mounts_text: str | None) -> None:
+        ensure_dir(session_dir)
+        journal = session_dir / JOURNAL_NAME
+        if journal.exists() and not os.access(journal, os.W_OK):
+            raise DiskError("cannot write the journal (no permission)", path=str(journal))
         check_local_filesystem(session_dir, mounts_text)
         check_free_disk(session_dir, min_free_bytes)
 
@@ -581,7 +654,6 @@ class Journal:
         if not isinstance(meta, SessionMeta):
             meta = SessionMeta(**dict(meta))
         d = Path(session_dir)
-        d.mkdir(parents=True, exist_ok=True)
         cls._prepare_dir(d, min_free_bytes, mounts_text)
         held = SessionLock(d).acquire() if lock else None
         try:
@@ -589,7 +661,10 @@ class Journal:
             if path.exists():
                 raise InputError("this directory already holds a session journal; resume it "
                                  "(elastoprobe resume DIR) or choose another --out", path=str(path))
-            cls._build(d, meta)
+            try:
+                cls._build(d, meta)
+            except sqlite3.OperationalError as exc:   # the disk refused the new file
+                raise DiskError(f"cannot create the journal: {exc}", path=str(path)) from None
             conn = cls._connect(path, readonly=False)
             journal = cls(d, conn, readonly=False, lock=held, run_id=None)
             journal._start_run("create")
@@ -600,7 +675,9 @@ class Journal:
             raise
 
     @classmethod
-    def _build(cls, d: Path, meta: SessionMeta) -> None:
+    def _build(cls, d: Path, meta: SessionMeta, fill: Callable[[sqlite3.Connection], None] | None = None) -> None:
+        """Build a journal in a temporary file and rename it into place; ``fill`` adds rows in
+        the same transaction (a salvage copies a damaged journal's intact parts)."""
         tmp = d / (JOURNAL_NAME + ".init")
         for suffix in ("", "-wal", "-shm", "-journal"):
             Path(str(tmp) + suffix).unlink(missing_ok=True)
@@ -619,6 +696,8 @@ class Journal:
                          "VALUES (1,?,?,?,'created',?)", (now, meta.plan_name, int(meta.seed), now))
             for key, value in meta.provenance.items():
                 conn.execute("INSERT INTO provenance VALUES (?,?,?)", (key, to_json(value), now))
+            if fill is not None:
+                fill(conn)
             conn.execute("COMMIT")
             conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
         finally:
@@ -633,7 +712,11 @@ class Journal:
     @classmethod
     def open(cls, session_dir: str | os.PathLike[str], *, lock: bool = True,
              min_free_bytes: int = DEFAULT_MIN_FREE_BYTES, mounts_text: str | None = None) -> "Journal":
-        """Reopen a session's journal for writing (resume). Takes the session lock."""
+        """Reopen a session's journal for writing (resume). Takes the session lock.
+
+        The whole journal is checked first, through a reader (SQLite's integrity check
+        and every checksum, :meth:`verify`): a damaged journal raises JournalCorruption
+        naming the damage, and nothing is written to it."""
         d = Path(session_dir)
         path = d / JOURNAL_NAME
         if not path.exists():
@@ -641,6 +724,7 @@ class Journal:
         cls._prepare_dir(d, min_free_bytes, mounts_text)
         held = SessionLock(d).acquire() if lock else None
         try:
+            cls.open_readonly(d, check="full").close()
             conn = cls._connect(path, readonly=False)
             journal = cls(d, conn, readonly=False, lock=held, run_id=None)
             journal._start_run("resume")
@@ -652,14 +736,27 @@ class Journal:
             raise
 
     @classmethod
-    def open_readonly(cls, session_dir: str | os.PathLike[str]) -> "Journal":
-        """A reader for another process (status, report): never blocks the writer, never writes."""
+    def open_readonly(cls, session_dir: str | os.PathLike[str], check: str = "full") -> "Journal":
+        """A reader for another process (status, report): never blocks the writer, never writes.
+
+        ``check="full"`` (the default) verifies the whole journal first (:meth:`verify`,
+        about one read of the file) and raises JournalCorruption naming what is damaged;
+        ``"none"`` leaves that to the reads themselves (each verifies what it reads), for
+        polls of a running session."""
+        if check not in ("full", "none"):
+            raise ValueError(f"check must be 'full' or 'none', not {check!r}")
         d = Path(session_dir)
         path = d / JOURNAL_NAME
         if not path.exists():
             raise InputError("no session journal here (expected journal.sqlite)", path=str(d))
         conn = cls._connect(path, readonly=True)
-        return cls(d, conn, readonly=True, lock=None, run_id=None)
+        journal = cls(d, conn, readonly=True, lock=None, run_id=None)
+        if check == "full":
+            problems = journal.verify()
+            if problems:
+                journal.close()
+                raise JournalCorruption(describe_damage(problems))
+        return journal
 
     @staticmethod
     def _check_schema(conn: sqlite3.Connection, path: Path) -> None:
@@ -678,6 +775,16 @@ class Journal:
             raise JournalError(f"{path}: journal schema version {version} is newer than this "
                                f"elastoprobe understands ({SCHEMA_VERSION}); upgrade elastoprobe")
         # Older versions would be migrated here; version 1 is the first.
+
+    def abandon(self) -> None:
+        """Close without writing anything (the journal is damaged or its disk fails), release the lock."""
+        if self._conn is not None:
+            with contextlib.suppress(sqlite3.Error):
+                self._conn.close()
+            self._conn = None   # type: ignore[assignment]
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
 
     def close(self, end_status: str | None = None) -> None:
         """End the run (recording ``end_status``), close the connection, release the lock."""
@@ -721,8 +828,15 @@ class Journal:
         """``with journal.transaction() as c:`` — one ``BEGIN IMMEDIATE`` … ``COMMIT``.
 
         Nested uses join the outermost transaction (so a caller can group, e.g., a step
-        commit with its transition). Any exception rolls everything back.
+        commit with its transition). Any exception rolls everything back. An operator's
+        pause or stop never lands inside (signals.deferred_interrupts).
         """
+        with deferred_interrupts():
+            with self._transaction() as c:
+                yield c
+
+    @contextlib.contextmanager
+    def _transaction(self) -> Iterator[sqlite3.Connection]:
         if self.readonly:
             raise JournalError("journal opened read-only")
         if self._conn is None:
@@ -738,10 +852,12 @@ class Journal:
         self._depth = 1
         try:
             yield self._conn
-        except BaseException:
+        except BaseException as exc:
             self._depth = 0
             with contextlib.suppress(sqlite3.Error):   # never mask the original error
                 self._conn.execute("ROLLBACK")
+            if isinstance(exc, sqlite3.DatabaseError) and _is_damage(exc):
+                raise _damage_error(exc, self.path) from None
             raise
         self._depth = 0
         try:
@@ -756,8 +872,10 @@ class Journal:
     def _q(self, sql: str, args: Sequence[Any] = ()) -> list[sqlite3.Row]:
         if self._conn is None:
             raise JournalError("journal is closed")
-        cur = self._conn.execute(sql, args)
-        return cur.fetchall()
+        try:
+            return self._conn.execute(sql, args).fetchall()
+        except sqlite3.DatabaseError as exc:
+            raise _damage_error(exc, self.path) from None
 
     # ------------------------------------------------------------------ session & provenance
     def session(self) -> dict[str, Any]:
@@ -773,7 +891,7 @@ class Journal:
                       (status, _utc_now(), reason))
 
     def provenance(self) -> dict[str, Any]:
-        return {k: json.loads(v) for k, v in self._q("SELECT key, value FROM provenance ORDER BY key")}
+        return {k: _json(v, f"provenance {k!r}") for k, v in self._q("SELECT key, value FROM provenance ORDER BY key")}
 
     def set_provenance(self, key: str, value: Any) -> None:
         """Add or update a provenance entry (device identities once connected, seeds, ...).
@@ -864,7 +982,7 @@ class Journal:
         steps = [_plan_from_row(r).canonical() for r in step_rows]
         if len(steps) != n_steps or _phase_digest(outputs_json, sums, steps) != digest:
             raise JournalCorruption(f"journal: {what} does not match its hash (outputs or planned steps damaged)")
-        return PhaseRecord(name=name, round=round, status=status, outputs=json.loads(outputs_json),
+        return PhaseRecord(name=name, round=round, status=status, outputs=_json(outputs_json, f"{what} outputs"),
                            outputs_hash=digest, arrays=arrays, step_ids=[s["step_id"] for s in steps],
                            committed_utc=committed, completed_utc=completed)
 
@@ -988,7 +1106,7 @@ class Journal:
             out.append(StepRecord(plan=_plan_from_row(r[:n]), phase=r[n], round=r[n + 1], status=r[n + 2],
                                   attempts=r[n + 3], started_utc=r[n + 4], finished_utc=r[n + 5],
                                   fail_reason=r[n + 6], fault_id=r[n + 7],
-                                  summary=json.loads(r[n + 8]) if r[n + 8] else None))
+                                  summary=_json(r[n + 8], f"step {r[0]} summary") if r[n + 8] else None))
         return out
 
     def step(self, step_id: int) -> StepRecord:
@@ -1120,7 +1238,7 @@ class Journal:
             sql += " AND kind=?"
             args.append(kind)
         return [{"id": r[0], "run_id": r[1], "t_wall_utc": r[2], "t_robot_s": r[3], "kind": r[4],
-                 "record": json.loads(r[5])} for r in self._q(sql + " ORDER BY id", args)]
+                 "record": _json(r[5], f"event {r[0]}")} for r in self._q(sql + " ORDER BY id", args)]
 
     # ------------------------------------------------------------------ robot time
     @staticmethod
@@ -1163,7 +1281,7 @@ class Journal:
         return digest
 
     def models(self) -> list[dict[str, Any]]:
-        return [{"region": r[0], "member": r[1], "path": r[2], "sha256": r[3], "metrics": json.loads(r[4])}
+        return [{"region": r[0], "member": r[1], "path": r[2], "sha256": r[3], "metrics": _json(r[4], "model metrics")}
                 for r in self._q("SELECT region, member, path, sha256, metrics FROM models ORDER BY region, member")]
 
     def record_artifact(self, name: str, path: str | os.PathLike[str], sha256: str | None = None) -> str:
@@ -1195,32 +1313,46 @@ class Journal:
 
     # ------------------------------------------------------------------ whole-journal checks
     def verify(self) -> list[str]:
-        """Full check: SQLite integrity, foreign keys, every phase hash, every done step's
-        arrays and every fault blob. Returns the problems found (empty = sound)."""
+        """Full check: SQLite's integrity check and foreign keys, every JSON record, every
+        phase hash, every done step's arrays and every fault blob. Returns the problems
+        found, each naming the damaged part (empty = sound). Reads one consistent snapshot
+        (safe while a controller writes); never raises on damage."""
         problems: list[str] = []
-        ic = [r[0] for r in self._q("PRAGMA integrity_check")]
-        if ic != ["ok"]:
-            problems.extend(f"sqlite: {m}" for m in ic)
-        for r in self._q("PRAGMA foreign_key_check"):
-            problems.append(f"foreign key: {tuple(r)}")
-        for p in self.phases():
+
+        def check(what: str, read: Callable[[], Any]) -> Any:
             try:
-                self.phase(p["name"], p["round"])
-            except JournalCorruption as exc:
-                problems.append(str(exc))
-        for rec in self.steps(statuses=["done"]):
-            try:
-                self._load_step_result(rec)
-            except JournalCorruption as exc:
-                problems.append(str(exc))
-        n_orphans = self._q("SELECT count(*) FROM step_arrays a JOIN steps s USING (step_id) "
-                            "WHERE s.status != 'done'")[0][0]
-        if n_orphans:
-            problems.append(f"{n_orphans} step arrays belong to steps that are not done")
+                return read()
+            except (JournalError, sqlite3.DatabaseError, ValueError, KeyError, TypeError, IndexError) as exc:
+                problems.append(f"{what}: {exc}" if what not in str(exc) else str(exc))
+                return None
+
+        in_snapshot = self._conn is not None and not self._conn.in_transaction
+        if in_snapshot:
+            check("journal", lambda: self._q("BEGIN"))
         try:
-            self.faults()
-        except JournalCorruption as exc:
-            problems.append(str(exc))
+            ic = check("sqlite integrity check", lambda: [r[0] for r in self._q("PRAGMA integrity_check")])
+            if ic is not None and ic != ["ok"]:
+                problems.extend(f"sqlite: {m}" for m in ic[:20])
+            fk = check("sqlite foreign keys", lambda: self._q("PRAGMA foreign_key_check"))
+            problems.extend(f"foreign key: {tuple(r)}" for r in (fk or [])[:20])
+            check("session record", self.session)
+            check("provenance", self.provenance)
+            check("events", self.events)
+            check("models", self.models)
+            check("transitions", self.transitions)
+            for p in check("phases", self.phases) or []:
+                check(f"phase {p['name']!r} round {p['round']}", lambda p=p: self.phase(p["name"], p["round"]))
+            for rec in check("steps", lambda: self.steps(statuses=["done"])) or []:
+                check(f"step {rec.step_id}", lambda rec=rec: self._load_step_result(rec))
+            n_orphans = check("step arrays", lambda: self._q(
+                "SELECT count(*) FROM step_arrays a JOIN steps s USING (step_id) WHERE s.status != 'done'")[0][0])
+            if n_orphans:
+                problems.append(f"{n_orphans} step arrays belong to steps that are not done")
+            check("faults", self.faults)
+        finally:
+            if in_snapshot and self._conn is not None and self._conn.in_transaction:
+                with contextlib.suppress(sqlite3.Error):
+                    self._conn.execute("COMMIT")
         return problems
 
     def summary(self) -> dict[str, Any]:
@@ -1241,6 +1373,13 @@ class Journal:
             "runs": [dict(zip(("run_id", "mode", "started_utc", "pid", "host", "ended_utc", "end_status"), r))
                      for r in runs],
         }
+
+
+def describe_damage(problems: Sequence[str], limit: int = 8) -> str:
+    """One message for the damage :meth:`Journal.verify` found (the first ``limit`` parts)."""
+    shown = "; ".join(problems[:limit])
+    more = f"; and {len(problems) - limit} more" if len(problems) > limit else ""
+    return f"the session journal is damaged: {shown}{more}"
 
 
 # ============================================================================ row helpers

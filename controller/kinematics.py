@@ -60,6 +60,13 @@ class ArmModel:
         if np.any(self.joint_limits_rad[:, 0] >= self.joint_limits_rad[:, 1]):
             raise ValueError("joint limits need min < max on every joint")
 
+    @property
+    def reach_mm(self) -> float:
+        """An upper bound on the distance from the base origin to the TCP in any joint
+        configuration: each DH link moves the frame by at most sqrt(a^2 + d^2) mm."""
+        links = float(np.sum(np.hypot(self.dh_a_mm, self.dh_d_mm)))
+        return links + float(np.linalg.norm(self.flange_to_tcp.position_mm))
+
     def with_tcp(self, flange_to_tcp: Pose) -> "ArmModel":
         """The same arm carrying a different tool."""
         return ArmModel(self.name, self.dh_a_mm, self.dh_d_mm, self.dh_alpha_rad, self.joint_limits_rad,
@@ -348,7 +355,13 @@ def linear_path_joints(model: ArmModel, start: Pose, end: Pose, seed_joints_rad:
     - a waypoint lies within the given margins of a singularity (see
       :func:`singularity_margins`): passing exactly through one can be smooth in joint
       space, but the real controller stops a moveL there.
+
+    Bounded work: an end beyond the arm's reach is refused before any waypoint is
+    sampled, so a path has at most about 2 * reach / step_mm waypoints.
     """
+    reach = model.reach_mm
+    if max(float(np.linalg.norm(start.position_mm)), float(np.linalg.norm(end.position_mm))) > reach:
+        return None
     fractions = path_samples(start, end, step_mm, step_deg)
     seed = np.zeros(6) if seed_joints_rad is None else np.asarray(seed_joints_rad, dtype=float).reshape(6)
     tcp = np.stack([interpolate_pose(start, end, float(f)).matrix() for f in fractions])

@@ -62,8 +62,9 @@ def _utc_now() -> str:
 def read_holder(lock_path: str | os.PathLike[str]) -> dict[str, Any] | None:
     """The holder record in a lock file, or None if empty/missing/garbled.
 
-    Adds ``alive``: whether that pid still runs (only decidable on this host; else None).
-    Reading never takes the lock, so ``elastoprobe status`` cannot get in a controller's way.
+    Adds ``alive``: whether that controller still holds the lock (only decidable on this
+    host; else None) — see :func:`holder_alive`. Reading never takes the lock, so
+    ``elastoprobe status`` cannot get in a controller's way.
     """
     try:
         text = Path(lock_path).read_text(encoding="utf-8")
@@ -74,19 +75,57 @@ def read_holder(lock_path: str | os.PathLike[str]) -> dict[str, Any] | None:
         return None
     alive: bool | None = None
     if record.get("host") == socket.gethostname() and isinstance(record.get("pid"), int):
-        alive = _pid_alive(record["pid"])
+        alive = holder_alive(Path(lock_path), record)
     record["alive"] = alive
     return record
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+def holder_alive(lock_path: Path, record: dict[str, Any]) -> bool:
+    """Whether the process a (local) holder record names still holds the lock.
+
+    A record outlives its holder after a kill -9, and the pid may be reused by another
+    process since; so the lock itself is asked first (the kernel's table of flocks,
+    /proc/locks, without taking it), then the pid: it must run and have started no later
+    than it took the lock (psutil), or it is another process that got the same pid."""
+    holders = _flock_holders(lock_path)
+    if holders is not None and int(record["pid"]) not in holders:
         return False
-    except PermissionError:
-        return True   # exists, owned by someone else
-    return True
+    return _same_process(int(record["pid"]), record.get("started_utc"))
+
+
+def _flock_holders(lock_path: Path) -> set[int] | None:
+    """The pids holding a flock on ``lock_path`` (Linux /proc/locks); None if unknown."""
+    try:
+        st = os.stat(lock_path)
+        table = Path("/proc/locks").read_text()
+    except OSError:
+        return None
+    ident = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    out = set()
+    for line in table.splitlines():      # "1: FLOCK ADVISORY WRITE <pid> <maj:min:inode> 0 EOF"
+        parts = line.split()
+        if parts[1:2] == ["FLOCK"] and len(parts) > 5 and parts[5] == ident and parts[4].isdigit():
+            out.add(int(parts[4]))
+    return out
+
+
+def _same_process(pid: int, started_utc: Any) -> bool:
+    import psutil
+
+    try:
+        proc = psutil.Process(pid)
+        created = proc.create_time()
+        if proc.status() == psutil.STATUS_ZOMBIE:
+            return False
+    except (psutil.NoSuchProcess, psutil.ZombieProcess):
+        return False
+    except psutil.AccessDenied:
+        return True     # exists, owned by someone else: cannot tell more
+    try:
+        taken = _dt.datetime.fromisoformat(str(started_utc)).timestamp()
+    except ValueError:
+        return True
+    return created <= taken + 2.0       # the record is written to the second
 
 
 class _FileLock:

@@ -14,6 +14,8 @@ from typing import Any, Callable
 
 from transitions import Machine, MachineError
 
+from .signals import deferred_interrupts
+
 STATES: list[str] = [
     "idle", "preflight", "sweeping", "planning", "moving_to_standoff", "reference_scan",
     "seeking_contact", "ramping", "holding", "scanning", "unloading", "retracting",
@@ -77,7 +79,8 @@ class SessionMachine:
     def fire(self, trigger: str) -> None:
         """Fire ``trigger``; an impossible transition is a programming error, said plainly."""
         try:
-            self.trigger(trigger)   # type: ignore[attr-defined]
+            with deferred_interrupts():     # the state and its journal record change together
+                self.trigger(trigger)   # type: ignore[attr-defined]
         except MachineError as exc:
             raise RuntimeError(f"state machine: cannot {trigger!r} from {self.state!r}") from exc
 

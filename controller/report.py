@@ -33,7 +33,7 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from .atomic import atomic_write_text
+from .atomic import atomic_write_text, ensure_dir
 from .journal import FaultRecord, Journal, StepRecord
 
 MAX_CLOUD_POINTS = 6000          # points drawn of the cloud (subsampled, seeded)
@@ -871,6 +871,6 @@ def write_report(session_dir: Path) -> Path:
         j.close()
     page, _errors = render_html(data)
     out = Path(session_dir) / "report" / "index.html"
-    out.parent.mkdir(parents=True, exist_ok=True)
+    ensure_dir(out.parent)
     atomic_write_text(out, page)
     return out

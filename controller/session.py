@@ -22,14 +22,14 @@ import numpy as np
 from .atomic import json_default
 from .config import SessionInputs, effective_motion_limits
 from .devices import Cell
-from .errors import DeviceError, ElastoprobeError, MotionRefused
+from .errors import DeviceError, DiskError, ElastoprobeError, MotionRefused
 from .geometry import Pose
-from .journal import Journal, JournalError, SessionMeta, StepRecord, StepResult
+from .journal import Journal, JournalCorruption, JournalError, SessionMeta, StepRecord, StepResult
 from .locking import CellLock
 from .machine import SessionMachine
 from .placement import PlacementMonitor
 from .probe import ForceLevel, ProbeExecutor, ProbeFault, ProbeSettings, ProbeTarget, StepData
-from .signals import OperatorFlags
+from .signals import OperatorFlags, OperatorInterrupt, deferred_interrupts
 
 EXIT_DONE, EXIT_FAULT, EXIT_PAUSED = 0, 1, 3
 
@@ -92,8 +92,9 @@ class Session:
     """Runs (or resumes) one session in ``session_dir``."""
 
     def __init__(self, inputs: SessionInputs, session_dir: Path, seed: int, dry_run: bool = False,
-                 on_progress: Callable[[Progress], None] | None = None) -> None:
+                 on_progress: Callable[[Progress], None] | None = None, object_model: Any = None) -> None:
         self.inputs = inputs
+        self.object_model = object_model          # cellfactory.ObjectModel; loaded in run() when None
         self.dir = Path(session_dir)
         self.seed = int(seed)
         self.dry_run = dry_run
@@ -107,7 +108,7 @@ class Session:
 
     # ------------------------------------------------------------------ entry points
     def run(self, resume: bool = False) -> int:
-        from .cellfactory import build_cell
+        from .cellfactory import build_cell, load_object_model
 
         self.flags.install()
         # The cell lock guards real hardware; an in-process simulated cell (or a dry run)
@@ -117,14 +118,18 @@ class Session:
         try:
             if cell_lock is not None:
                 cell_lock.acquire()
+            # Every input problem (object, mesh) is found before anything is written.
+            model = self.object_model if self.object_model is not None else load_object_model(self.inputs)
             self.journal = self._open_journal(resume)
             self.log = JsonlLog(self.dir / "log.jsonl")
             self.log.write("session_start", resume=resume, seed=self.seed, plan=self.inputs.plan.name)
-            built = build_cell(self.inputs, self.seed, dry_run=self.dry_run)
+            built = build_cell(self.inputs, self.seed, dry_run=self.dry_run, model=model)
             self.cell = built.cell
             self.world = built
             for warning in built.warnings:
                 self._log("calibration_warning", message=warning)
+            for warning in model.warnings:
+                self._log("object_warning", message=warning)
             self._record_identities()
             if resume:
                 self._note_calibration_change()
@@ -258,21 +263,31 @@ class Session:
         # Counted from the journal, not from zero in each process: a fault that paused a
         # sweep must not be met again by the resumed one.
         attempt = self._sweep_faults()
-        self.machine.fire("sweep")
-        while True:
-            cell.begin_step((self.seed, key_step, attempt))
-            try:
-                return acquire_cloud(self.executor, verts.min(axis=0), verts.max(axis=0),
-                                     plan.cloud.sweep_spacing_mm, plan.cloud.sweep_height_mm,
-                                     max_points=plan.cloud.max_points, seed=self.seed)
-            except (ProbeFault, DeviceError) as exc:
-                # A device call outside a guarded motion (the arm's status while planning a
-                # leg) is a fault of the sweep too: on the real cell the UR link's child
-                # died and was restarted with the arm stopped.
-                fault = exc if isinstance(exc, ProbeFault) else ProbeFault("device", str(exc))
-                self.handle_sweep_fault(fault, attempt)
-                attempt += 1
+        # A partial sweep is never used, so a pause need not wait for the sweep's end: the
+        # executor's per-tick operator check answers a pause as well as a stop here.
+        should_stop = self.executor.should_stop
+        self.executor.should_stop = lambda: self.flags.pause_requested
+        try:
+            with deferred_interrupts():
                 self.machine.fire("sweep")
+                while True:
+                    cell.begin_step((self.seed, key_step, attempt))
+                    try:
+                        return acquire_cloud(self.executor, verts.min(axis=0), verts.max(axis=0),
+                                             plan.cloud.sweep_spacing_mm, plan.cloud.sweep_height_mm,
+                                             max_points=plan.cloud.max_points, seed=self.seed)
+                    except (ProbeFault, DeviceError) as exc:
+                        # A device call outside a guarded motion (the arm's status while planning a
+                        # leg) is a fault of the sweep too: on the real cell the UR link's child
+                        # died and was restarted with the arm stopped.
+                        fault = exc if isinstance(exc, ProbeFault) else ProbeFault("device", str(exc))
+                        self.handle_sweep_fault(fault, attempt)
+                        attempt += 1
+                        self.machine.fire("sweep")
+                    except MotionRefused as exc:     # every line refused: it would be refused again
+                        raise SessionAborted(f"the object cannot be swept: {exc}") from None
+        finally:
+            self.executor.should_stop = should_stop
 
     def _sweep_faults(self) -> int:
         assert self.journal is not None
@@ -301,20 +316,39 @@ class Session:
             machine.fire("start")
             if resume:
                 self._recover_pose()
-            phases.run_all(ctx)
+            # Computation between the contacts (planning, learning, the map and report)
+            # ends at once on a pause or stop; contacts and sweeps end at their own
+            # checkpoints (signals.py).
+            with self.flags.interruptible():
+                phases.run_all(ctx)
             machine.fire("finish")
             j.set_status("done")
             self._log("session_done")
             self._epilogue("finish", "session done")
             return EXIT_DONE
-        except SessionPaused as exc:
+        except (SessionPaused, OperatorInterrupt) as exc:
+            reason = self.flags.reason if isinstance(exc, OperatorInterrupt) else str(exc)
+            if self.flags.stop_now:
+                self._stop_arm()
             self._park()
             if machine.can("pause"):
                 machine.fire("pause")
-            j.set_status("paused", str(exc))
-            self._log("session_paused", reason=str(exc))
-            self._epilogue("finish_by" if "finish_by" in str(exc) else "pause", str(exc))
+            j.set_status("paused", reason)
+            self._log("session_paused", reason=reason)
+            self._epilogue("finish_by" if "finish_by" in reason else "pause", reason)
+            if reason.startswith("pause requested") and self.flags.stop_now:
+                # The operator's second request came while the pause was being saved: a stop.
+                j.set_status("paused", self.flags.reason)
+                self._log("session_paused", reason=self.flags.reason)
             return EXIT_PAUSED
+        except JournalCorruption as exc:
+            # Stored data is damaged: stop and park, and write nothing more to the journal
+            # (its status stays what it was); the CLI says what is damaged and how to salvage.
+            self._stop_arm()
+            self._park(journal=False)
+            if self.log is not None:
+                self.log.write("session_stopped", reason=f"journal damaged: {exc}")
+            raise
         except SessionAborted as exc:
             self._park()
             if machine.can("abort"):
@@ -323,13 +357,14 @@ class Session:
             self._log("session_aborted", reason=str(exc))
             self._epilogue("fault", f"aborted: {exc}")
             return EXIT_FAULT
-        except (JournalError, sqlite3.OperationalError) as exc:
-            # The journal could not write (disk full, I/O error): nothing half-written
-            # survives (each write is one transaction), so stop, park and pause; the
-            # session resumes once the disk is fixed. Recording the pause may fail too.
+        except (JournalError, sqlite3.OperationalError, DiskError) as exc:
+            # The journal or a file could not be written (disk full, I/O error, read-only):
+            # nothing half-written survives (each write is one transaction or an atomic
+            # rename), so stop, park and pause; the session resumes once the disk is fixed.
+            # Recording the pause may fail too.
             self._stop_arm()
-            self._park()
-            reason = f"journal write failed: {type(exc).__name__}: {exc}"
+            self._park(journal=False)
+            reason = str(exc) if isinstance(exc, DiskError) else f"journal write failed: {type(exc).__name__}: {exc}"
             if self.log is not None:
                 self.log.write("session_paused", reason=reason, disk_error=True)
             try:
@@ -388,12 +423,17 @@ class Session:
         self._log("resume_state", force_n=force, tcp_mm=status.tcp_pose.position_mm)
         self.executor.safe_retract()
 
-    def _park(self) -> None:
+    def _park(self, journal: bool = True) -> None:
+        """Retract to travel height (best effort: the arm is stopped); ``journal=False`` when
+        the journal cannot take the record (damaged, or its disk failing)."""
         self.executor.acknowledged_trip = self.cell.arm.trip() if self.cell is not None else None
         try:
             self.executor.safe_retract()
-        except (ProbeFault, ElastoprobeError) as exc:   # parking is best effort; the arm is stopped
-            self._log("park_failed", message=str(exc))
+        except (ProbeFault, ElastoprobeError) as exc:
+            if journal:
+                self._log("park_failed", message=str(exc))
+            elif self.log is not None:
+                self.log.write("park_failed", message=str(exc))
 
     # ------------------------------------------------------------------ steps
     def run_steps(self, phase: str, round_: int, targets: dict[int, ProbeTarget]) -> None:
@@ -401,16 +441,17 @@ class Session:
         assert self.journal is not None
         j = self.journal
         self.progress.phase = f"{phase}[{round_}]"
-        while True:
-            self._check_operator()
-            self._check_budget()
-            self._check_disk()
-            pending = j.pending_steps(phase=phase, round=round_)
-            if not pending:
-                break
-            group = self._contact_group(pending)
-            target = targets[group[0].plan.target_index]
-            self._run_contact(target, group, targets)
+        with deferred_interrupts():     # a request is answered between contacts, never inside one
+            while True:
+                self._check_operator()
+                self._check_budget()
+                self._check_disk()
+                pending = j.pending_steps(phase=phase, round=round_)
+                if not pending:
+                    break
+                group = self._contact_group(pending)
+                target = targets[group[0].plan.target_index]
+                self._run_contact(target, group, targets)
         self._update_progress()
 
     def _contact_group(self, pending: list[StepRecord]) -> list[StepRecord]:
@@ -545,7 +586,7 @@ class Session:
         step_id = open_steps[0].step_id if open_steps else None
         if fault.kind == "operator_stop":
             self._log("operator_stop", step=step_id)
-            raise SessionPaused("stopped by the operator")
+            raise SessionPaused(self.flags.reason)
         policy = self.inputs.plan.fault_policy.for_kind(fault.kind)
         retries_so_far = self._retry_index(step_id) if step_id is not None else 0
         action = policy.action
@@ -601,6 +642,9 @@ class Session:
         assert self.journal is not None and self.cell is not None
         self._stop_arm()
         arm_state = self._wait_stopped()
+        if fault.kind == "operator_stop":
+            self._log("operator_stop", phase="cloud", arm=arm_state)
+            raise SessionPaused(self.flags.reason + " during a sweep (resume sweeps again)")
         policy = self.inputs.plan.fault_policy.for_kind(fault.kind)
         action = policy.action
         if action in ("retry", "skip_target"):
@@ -667,7 +711,7 @@ class Session:
     # ------------------------------------------------------------------ operator, budget, progress
     def _check_operator(self) -> None:
         if self.flags.pause_requested:
-            raise SessionPaused("pause requested by the operator")
+            raise SessionPaused(self.flags.reason)
         finish_by = self.inputs.plan.finish_by
         if finish_by is not None and _dt.datetime.now(_dt.timezone.utc) >= finish_by:
             raise SessionPaused(f"finish_by {finish_by.isoformat()} reached")
@@ -702,8 +746,9 @@ class Session:
         try:
             from .report import write_report
 
-            write_report(self.dir)
-        except Exception as exc:   # a report problem must not change the exit code
+            with self.flags.interruptible():       # a second request skips it: `elastoprobe report` redoes it
+                write_report(self.dir)
+        except (Exception, OperatorInterrupt) as exc:   # a report problem must not change the exit code
             if self.log is not None:
                 self.log.write("report_failed", error=f"{type(exc).__name__}: {exc}")
         self._notify(event, message)

@@ -1,21 +1,54 @@
-"""Operator requests by signal (DESIGN §11): the handlers only set flags.
+"""Operator requests by signal (DESIGN §11), honoured in every phase.
 
-SIGINT once or SIGTERM: deferred pause — finish the step in flight, unload,
-retract, save, exit 3. SIGINT a second time: safe stop now — stop the arm,
-unload, retract, save, exit 3. ``elastoprobe pause DIR`` and ``elastoprobe stop
-DIR`` send these signals to the controller holding the session lock.
+SIGINT once or SIGTERM: pause — finish the step in flight, unload, retract, save,
+exit 3. SIGINT a second time: safe stop now — stop the arm, unload, retract, save,
+exit 3. ``elastoprobe pause DIR`` and ``elastoprobe stop DIR`` send these signals to
+the controller holding the session lock.
+
+Two kinds of work answer a request differently:
+
+- Work with the arm or the journal (a contact, a sweep, a journal transaction, a state
+  transition) runs inside :func:`deferred_interrupts`: the handler only sets flags, and
+  the work ends at its own checkpoint (the contact's last level; the sweep polls the
+  flags at every control tick).
+- Computation (planning, learning, training, the report) runs inside
+  :meth:`OperatorFlags.interruptible`: the handler raises :class:`OperatorInterrupt` in
+  the main thread at once (Python runs handlers between bytecodes, so within a
+  numpy, torch or SQLite call's return). Nothing it computed is committed yet, so the
+  checkpoint is the last committed phase and ``resume`` recomputes from there.
+
+The interrupt is raised once per process: what the session does after it (parking,
+saving, the report) is never cut short by a second request, which only turns the
+pause into a stop.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
+from typing import Iterator
 
 from .errors import InputError
 from .locking import session_lock_holder
+
+# The active flags of this process (the handlers are process-wide): what
+# :func:`deferred_interrupts` consults.
+_active: "OperatorFlags | None" = None
+
+
+class OperatorInterrupt(BaseException):
+    """A pause or stop request that ended a computation in progress.
+
+    A BaseException, like KeyboardInterrupt: ``except Exception`` in library code must
+    not swallow it."""
+
+    def __init__(self, stop: bool) -> None:
+        self.stop = stop
+        super().__init__("stop requested by the operator" if stop else "pause requested by the operator")
 
 
 @dataclass
@@ -24,25 +57,73 @@ class OperatorFlags:
     stop_now: bool = False
     interrupts: int = 0
     _previous: dict[int, object] = field(default_factory=dict)
+    _interruptible: int = 0          # depth of interruptible sections
+    _deferred: int = 0               # depth of deferred sections (inside an interruptible one)
+    _raised: bool = False
 
+    # -- handlers: set flags, then interrupt a computation if one is in progress
     def _on_sigint(self, signum: int, frame: FrameType | None) -> None:
         self.interrupts += 1
         self.pause_requested = True
         if self.interrupts >= 2:
             self.stop_now = True
+        self._raise_if_pending()
 
     def _on_sigterm(self, signum: int, frame: FrameType | None) -> None:
         self.pause_requested = True
+        self._raise_if_pending()
+
+    def _raise_if_pending(self) -> None:
+        if self.pause_requested and self._interruptible and not self._deferred and not self._raised:
+            self._raised = True
+            raise OperatorInterrupt(self.stop_now)
+
+    @property
+    def reason(self) -> str:
+        """What the operator asked for, as the pause reason says it."""
+        return "stopped by the operator" if self.stop_now else "pause requested by the operator"
+
+    @contextlib.contextmanager
+    def interruptible(self) -> Iterator[None]:
+        """Computation: a request (also one that came before) raises OperatorInterrupt here."""
+        self._interruptible += 1
+        try:
+            self._raise_if_pending()
+            yield
+        finally:
+            self._interruptible -= 1
 
     def install(self) -> "OperatorFlags":
+        global _active
         self._previous[signal.SIGINT] = signal.signal(signal.SIGINT, self._on_sigint)
         self._previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, self._on_sigterm)
+        _active = self
         return self
 
     def restore(self) -> None:
+        global _active
         for signum, handler in self._previous.items():
             signal.signal(signum, handler)   # type: ignore[arg-type]
         self._previous.clear()
+        if _active is self:
+            _active = None
+
+
+@contextlib.contextmanager
+def deferred_interrupts() -> Iterator[None]:
+    """A block a request must not cut in two (a journal transaction, a device command, a
+    state transition): a request that arrives inside is held, and raised (if a computation
+    is in progress around the block) once the block has ended normally."""
+    flags = _active
+    if flags is None:
+        yield
+        return
+    flags._deferred += 1
+    try:
+        yield
+    finally:
+        flags._deferred -= 1
+    flags._raise_if_pending()
 
 
 def _holder_pid(session_dir: Path) -> int:
@@ -50,10 +131,9 @@ def _holder_pid(session_dir: Path) -> int:
     if not holder or not holder.get("pid"):
         raise InputError("no controller is running this session (no lock holder)", path=str(session_dir))
     pid = int(holder["pid"])
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        raise InputError(f"the controller (pid {pid}) is not running", path=str(session_dir)) from None
+    if holder.get("alive") is False:
+        raise InputError(f"the controller (pid {pid}) is not running; continue with: elastoprobe resume "
+                         f"{session_dir}", path=str(session_dir))
     return pid
 
 

@@ -1,8 +1,10 @@
 """``elastoprobe status DIR [--follow]``: progress, state, faults and ETA, read-only.
 
 Reads the journal through a read-only connection (WAL: never blocks the running
-controller). ``--follow`` prints new events as they are journaled until the
-session stops running (no lock holder) — bounded by the session's own life.
+controller), after checking the whole journal (a damaged one is named, exit 2). Tells a
+live controller from a dead one — the session lock is asked, not only the pid its
+record names (controller/locking.py) — and says how to continue. ``--follow`` prints
+new events as they are journaled until the controller stops running.
 """
 from __future__ import annotations
 
@@ -15,15 +17,22 @@ from .journal import Journal
 from .locking import session_lock_holder
 
 
-def snapshot(session_dir: Path) -> dict[str, Any]:
+def _next_step(session_dir: Path, status: str, alive: bool) -> str | None:
+    """The command that continues the session, or None (running, finished or aborted)."""
+    if alive or status in ("done", "aborted"):
+        return None
+    return f"elastoprobe resume {session_dir}"
+
+
+def snapshot(session_dir: Path, check: str = "full") -> dict[str, Any]:
     """One status record of a session (JSON-able)."""
-    j = Journal.open_readonly(session_dir)
+    j = Journal.open_readonly(session_dir, check=check)
     try:
         sess = j.session()
         counts = j.status_counts()
         robot = j.robot_time_s()
-        transitions = j.transitions()
-        faults = j.faults()
+        transitions = j.transitions(last=1)
+        faults = j.faults(with_raw=False)
         phases = j.phases()
     finally:
         j.close()
@@ -31,13 +40,17 @@ def snapshot(session_dir: Path) -> dict[str, Any]:
     total = sum(counts.values())
     open_steps = counts.get("planned", 0) + counts.get("in_progress", 0) + counts.get("failed", 0)
     per_step = robot["total"] / done if done else None
-    holder = session_lock_holder(session_dir)
+    holder = session_lock_holder(session_dir) or {}
+    alive = bool(holder.get("alive"))
     return {
         "session": str(session_dir),
         "plan": sess["plan_name"],
         "status": sess["status"],
         "status_reason": sess["status_reason"],
-        "running_pid": holder.get("pid") if holder else None,
+        "running_pid": holder.get("pid") if alive else None,
+        "controller": {"pid": holder.get("pid"), "host": holder.get("host"), "since_utc": holder.get("started_utc"),
+                       "alive": holder.get("alive")} if holder else None,
+        "continue_with": _next_step(session_dir, sess["status"], alive),
         "state": transitions[-1]["to_state"] if transitions else "idle",
         "phase": f"{phases[-1]['name']}[{phases[-1]['round']}]" if phases else None,
         "steps": counts,
@@ -49,11 +62,22 @@ def snapshot(session_dir: Path) -> dict[str, Any]:
     }
 
 
+def _controller_line(snap: dict[str, Any]) -> str:
+    ctl = snap["controller"]
+    if snap["running_pid"]:
+        return f", running as pid {snap['running_pid']}"
+    if ctl and ctl.get("pid") and ctl.get("alive") is False and snap["status"] not in ("done", "aborted"):
+        return (f"; not running: its controller (pid {ctl['pid']}, since {ctl.get('since_utc')}) "
+                f"ended without saving (killed?)")
+    if ctl and ctl.get("alive") is None:
+        return f"; controller pid {ctl.get('pid')} on {ctl.get('host')} (another host: cannot tell if it runs)"
+    return ""
+
+
 def _print(snap: dict[str, Any]) -> None:
     s = snap["steps"]
     print(f"{snap['session']}: plan {snap['plan']!r}, {snap['status']}"
-          + (f" ({snap['status_reason']})" if snap["status_reason"] else "")
-          + (f", running as pid {snap['running_pid']}" if snap["running_pid"] else ""))
+          + (f" ({snap['status_reason']})" if snap["status_reason"] else "") + _controller_line(snap))
     print(f"  state {snap['state']}, phase {snap['phase']}")
     print(f"  steps: {s.get('done', 0)} done, {s.get('planned', 0)} planned, {s.get('in_progress', 0)} in progress, "
           f"{s.get('failed', 0)} failed (to retry), {s.get('skipped', 0)} skipped, of {snap['steps_total']}")
@@ -63,6 +87,13 @@ def _print(snap: dict[str, Any]) -> None:
         print(f"  faults ({len(snap['faults'])}):")
         for f in snap["faults"][-10:]:
             print(f"    #{f['id']} {f['kind']} at step {f['step']} -> {f['action']}: {f['message']}")
+    if snap["continue_with"]:
+        print(f"  continue with: {snap['continue_with']}")
+
+
+def _running(session_dir: Path) -> bool:
+    holder = session_lock_holder(session_dir)
+    return bool(holder and holder.get("alive"))
 
 
 def show_status(session_dir: Path, follow: bool = False, as_json: bool = False, poll_s: float = 1.0) -> int:
@@ -71,18 +102,21 @@ def show_status(session_dir: Path, follow: bool = False, as_json: bool = False, 
     if not follow:
         return 0
     last_event = 0
-    while True:
-        j = Journal.open_readonly(session_dir)
-        try:
-            events = j.events(after_id=last_event)
-        finally:
-            j.close()
-        for e in events:
-            last_event = e["id"]
-            line = {"t_robot_s": e["t_robot_s"], "kind": e["kind"], **e["record"]}
-            print(json.dumps(line) if as_json else f"  [{e['t_wall_utc']}] {e['kind']} {e['record']}", flush=True)
-        if session_lock_holder(session_dir) is None:
-            final = snapshot(session_dir)
-            print(json.dumps(final)) if as_json else _print(final)
-            return 0
-        time.sleep(poll_s)
+    try:
+        while True:
+            j = Journal.open_readonly(session_dir, check="none")
+            try:
+                events = j.events(after_id=last_event)
+            finally:
+                j.close()
+            for e in events:
+                last_event = e["id"]
+                line = {"t_robot_s": e["t_robot_s"], "kind": e["kind"], **e["record"]}
+                print(json.dumps(line) if as_json else f"  [{e['t_wall_utc']}] {e['kind']} {e['record']}", flush=True)
+            if not _running(session_dir):
+                final = snapshot(session_dir, check="none")
+                print(json.dumps(final)) if as_json else _print(final)
+                return 0
+            time.sleep(poll_s)
+    except KeyboardInterrupt:       # Ctrl-C ends following; the session is not touched
+        return 0

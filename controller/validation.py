@@ -37,6 +37,7 @@ class PathValidator:
         self.contact_allowance_mm = contact_allowance_mm
 
     def validate_path(self, start: Pose, end: Pose, contact_allowed: bool = False) -> None:
+        self._check_workspace(start, end)
         joints = linear_path_joints(self.model, start, end, self.seed_joints)
         if joints is None:
             raise MotionRefused(f"no joint path for the straight move to {np.round(end.position_mm, 1).tolist()} mm "
@@ -45,6 +46,18 @@ class PathValidator:
         if collision is not None:
             raise MotionRefused(f"collision: {collision}")
         self.seed_joints = np.asarray(joints[-1], dtype=float)
+
+    def _check_workspace(self, start: Pose, end: Pose) -> None:
+        """The TCP's ends inside the workspace box (so the whole straight path is: a box is
+        convex), checked first: it costs nothing, and the rest of the work grows with the path."""
+        workspace = getattr(self.checker, "workspace", None)
+        if workspace is None:
+            return
+        for what, pose in (("start", start), ("end", end)):
+            outside = float(workspace.signed_distance(pose.position_mm[None])[0])
+            if outside > 0:
+                raise MotionRefused(f"the move's {what} {np.round(pose.position_mm, 1).tolist()} mm is "
+                                    f"{outside:.0f} mm outside the workspace")
 
     def collision(self, start: Pose, end: Pose, contact_allowed: bool = False) -> str | None:
         """The first collision along the straight TCP path (a message), None when clear.

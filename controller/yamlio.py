@@ -28,6 +28,7 @@ import pydantic
 from ruamel.yaml import YAML
 from ruamel.yaml.error import MarkedYAMLError, YAMLError
 from ruamel.yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
+from ruamel.yaml.reader import ReaderError
 
 from .errors import InputError, InputErrors
 
@@ -141,6 +142,12 @@ class _Builder:
         raise self.fail(node, f"tag {tag!r} is not allowed")
 
 
+def _line_col(text: str, index: int) -> tuple[int, int]:
+    """1-based (line, column) of character ``index`` of ``text``."""
+    before = text[:index]
+    return before.count("\n") + 1, index - (before.rfind("\n") + 1) + 1
+
+
 def parse_yaml_text(text_bytes: bytes, path: str) -> YamlDoc:
     """Parse YAML bytes into a :class:`YamlDoc`; raise :class:`InputError` with a position."""
     if len(text_bytes) > MAX_FILE_BYTES:
@@ -166,6 +173,12 @@ def parse_yaml_text(text_bytes: bytes, path: str) -> YamlDoc:
         line, col = (mark.line + 1, mark.column + 1) if mark is not None else (1, 1)
         problem = (exc.problem or exc.context or "invalid YAML").strip().splitlines()[0]
         raise InputError(f"YAML syntax: {problem}", path=path, line=line, col=col) from None
+    except ReaderError as exc:   # a character YAML does not allow (NUL, other controls): at its place
+        line, col = _line_col(text, int(exc.position))
+        code = ord(exc.character) if isinstance(exc.character, str) else int(exc.character)
+        name = "NUL" if code == 0 else f"#x{code:04x}"
+        raise InputError(f"YAML syntax: the control character {name} is not allowed in a YAML file",
+                         path=path, line=line, col=col) from None
     except YAMLError as exc:   # unmarked errors (e.g. stream-level problems)
         raise InputError(f"YAML syntax: {exc}", path=path, line=1, col=1) from None
     if node is None:

@@ -32,6 +32,7 @@ from pydantic import Field, StringConstraints
 
 from elastoprobe.controller.errors import InputError, InputErrors
 from elastoprobe.controller.geometry import push_direction, unit
+from elastoprobe.controller.meshcheck import drop_degenerate_faces, mesh_findings, read_mesh
 from elastoprobe.controller.yamlio import Spec, YamlDoc, load_validated
 
 from .materials import Material, MaterialSpec, material_from_spec
@@ -209,6 +210,7 @@ class SimObject:
         self.region_names = list(region_names)
         self.materials = list(materials)
         self.blend_width_mm = float(blend_width_mm)
+        self.load_warnings: list[str] = []        # what the user should know of the file (holes, ...)
         self._cache: dict[tuple, ContactModel] = {}
         self._dents: list[Dent] = []
         self._index = SurfaceIndex(mesh.triangles)
@@ -562,40 +564,66 @@ def _check_refs(spec: ObjectSpec, doc: YamlDoc) -> None:
 
 
 def _load_mesh_object(spec: ObjectSpec, doc: YamlDoc, path: Path) -> MeshObject:
+    """A painted user mesh, checked (controller/meshcheck.py) before anything is computed from it."""
     ms = spec.mesh
     assert ms is not None
     file = (path.parent / ms.file).resolve()
     if not file.is_file():
         raise doc.error(("mesh", "file"), f"mesh file {str(file)!r} does not exist")
     try:
-        loaded = trimesh.load(str(file), force="mesh", process=False)
-    except Exception as exc:     # trimesh raises many types for bad files
-        raise doc.error(("mesh", "file"), f"cannot read mesh: {exc}") from None
-    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-        raise doc.error(("mesh", "file"), "the mesh file holds no triangles")
+        loaded = read_mesh(file)
+    except ValueError as exc:
+        raise doc.error(("mesh", "file"), f"{file.name}: {exc}") from None
     mesh = loaded.copy()
-    mesh.apply_scale(ms.scale_mm_per_unit)
-    if ms.place_on_table:
-        mesh.apply_translation([0.0, 0.0, -float(mesh.vertices[:, 2].min())])
-    elif float(mesh.vertices[:, 2].min()) < -1e-6:
-        raise doc.error(("mesh", "place_on_table"), "the mesh reaches below the table (z < 0)")
+    with np.errstate(over="ignore", invalid="ignore"):
+        mesh.apply_scale(ms.scale_mm_per_unit)
+        if not np.all(np.isfinite(mesh.vertices)):
+            raise doc.error(("mesh", "scale_mm_per_unit"), f"{file.name}: coordinates times scale_mm_per_unit "
+                                                           f"are not finite numbers (the mesh is far too large)")
+        if ms.place_on_table:
+            mesh.apply_translation([0.0, 0.0, -float(mesh.vertices[:, 2].min())])
+        elif float(mesh.vertices[:, 2].min()) < -1e-6:
+            raise doc.error(("mesh", "place_on_table"), "the mesh reaches below the table (z < 0)")
+        findings = mesh_findings(mesh, table_z_mm=0.0)
+    if findings.errors:
+        raise doc.error(("mesh", "file"), f"{file.name}: " + "; ".join(findings.errors))
     names, materials = _materials(spec)
+    labels = _paint(spec, doc, loaded, names)
+    mesh, kept = drop_degenerate_faces(mesh)
+    labels = labels[kept]
+    faces_keep = ~((mesh.triangles[:, :, 2].max(axis=1) < 1e-3) & (mesh.face_normals[:, 2] < -0.99))
+    mesh.update_faces(faces_keep)
+    labels = labels[faces_keep]
+    mesh.remove_unreferenced_vertices()
+    obj = MeshObject(spec.name, mesh, labels, names, materials, spec.blend_width_mm)
+    obj.load_warnings = [f"{file}: {w}" for w in findings.warnings]
+    return obj
+
+
+def _paint(spec: ObjectSpec, doc: YamlDoc, loaded: trimesh.Trimesh, names: list[str]) -> np.ndarray:
+    """Region label per face from the face colours; every region's colour must be on some face."""
+    ms = spec.mesh
+    assert ms is not None
     colors = np.asarray(loaded.visual.face_colors)[:, :3].astype(int) if loaded.visual.kind else \
         np.zeros((len(loaded.faces), 3), dtype=int)
-    labels = np.full(len(mesh.faces), -1, dtype=int)
-    for region in ms.regions:
-        match = np.all(colors == np.asarray(region.face_color_rgb), axis=1) & (labels < 0)
-        labels[match] = names.index(region.material)
+    labels = np.full(len(loaded.faces), -1, dtype=int)
+    for i, region in enumerate(ms.regions):
+        match = np.all(colors == np.asarray(region.face_color_rgb), axis=1)
+        if not match.any():
+            present, count = np.unique(colors, axis=0, return_counts=True)
+            order = np.argsort(-count)[:4]
+            have = ", ".join(f"{present[k].tolist()} on {count[k]} faces" for k in order) \
+                if loaded.visual.kind else "none: the file has no colours"
+            raise doc.error(("mesh", "regions", i, "face_color_rgb"),
+                            f"no face of the mesh has the colour {list(region.face_color_rgb)} "
+                            f"(material {region.material!r}); the mesh's colours: {have}")
+        labels[match & (labels < 0)] = names.index(region.material)
     if np.any(labels < 0):
         if ms.default_material is None:
             raise _key_error(doc, ("mesh", "regions"), f"{int(np.sum(labels < 0))} faces match no region colour "
                                                  f"(add default_material)")
         labels[labels < 0] = names.index(ms.default_material)
-    faces_keep = ~((mesh.triangles[:, :, 2].max(axis=1) < 1e-3) & (mesh.face_normals[:, 2] < -0.99))
-    mesh.update_faces(faces_keep)
-    labels = labels[faces_keep]
-    mesh.remove_unreferenced_vertices()
-    return MeshObject(spec.name, mesh, labels, names, materials, spec.blend_width_mm)
+    return labels
 
 
 def load_object(path: str | Path) -> SimObject:

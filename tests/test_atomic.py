@@ -20,6 +20,7 @@ from elastoprobe.controller.atomic import (
     atomic_dir_replace, atomic_write_bytes, atomic_write_json, atomic_write_text, make_staging_dir,
     remove_stale_temps,
 )
+from elastoprobe.controller.errors import DiskError
 
 # Writes self-checking versions of one file forever (until killed); with KILL_BEFORE_REPLACE
 # it kills itself after the temporary is complete but before the rename.
@@ -90,11 +91,11 @@ def test_write_variants_and_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPat
     assert json.loads((tmp_path / "m.json").read_text()) == {"rmse_mm": 0.5, "n": 3, "v": [0, 1]}
     with pytest.raises(ValueError):
         atomic_write_json(tmp_path / "m.json", {"x": float("inf")})   # null, never Infinity
-    # A failing rename leaves the old file and no temporary behind.
+    # A failing rename leaves the old file and no temporary behind, and says which path.
     def broken_replace(src: str, dst: str) -> None:
-        raise OSError("simulated")
+        raise OSError(28, "No space left on device")
     monkeypatch.setattr(atomic.os, "replace", broken_replace)
-    with pytest.raises(OSError):
+    with pytest.raises(DiskError, match=r"m\.json: cannot write: No space left on device \(the disk is full\)"):
         atomic_write_text(tmp_path / "m.json", "new")
     monkeypatch.undo()
     assert json.loads((tmp_path / "m.json").read_text())["n"] == 3

@@ -87,7 +87,7 @@ BROKEN_OBJECTS = {
     "E_mpa zero": ({"E_mpa: 12.0": "E_mpa: 0.0"}, None, "obj.yaml:22:12", "greater than 0"),
     "E_mpa negative": ({"E_mpa: 12.0": "E_mpa: -3.0"}, None, "obj.yaml:22:12", "greater than 0"),
     "nu 0.5": ({"nu: 0.45": "nu: 0.5"}, None, "obj.yaml:23:9", "less than 0.5"),
-    "unknown material": ({"{material: sponge,": "{material: spunge,"}, None, "obj.yaml:17:19",
+    "unknown material": ({"{material: sponge,": "{material: spunge,"}, None, "obj.yaml:17:18",
                          "unknown material 'spunge'"),
     "corrupt PLY header": ({}, b"ply\nformat binary_little_endian 1.0\nelement vertex 12\x00\xff\n",
                            "obj.yaml:12:9", "cannot read mesh"),
@@ -150,7 +150,7 @@ def test_case2_resume_with_a_mesh_broken_since_refuses_and_keeps_the_session(tmp
     plan.write_text(text)
     out = tmp_path / "s"
     # A session that pauses at once (finish_by in the past), then the mesh is damaged.
-    plan.write_text(plan.read_text() + "finish_by: 2000-01-01T00:00:00+00:00\n")
+    plan.write_text(plan.read_text() + "finish_by: '2000-01-01T00:00:00+00:00'\n")
     first = _run_cli(["run", str(plan), "--out", str(out), "--quiet"])
     assert first.returncode == 3, first.stderr[-2000:]
     (tmp_path / "user_object.ply").write_bytes(_nan_vertex())

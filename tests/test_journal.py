@@ -177,7 +177,14 @@ def test_checksums_detect_a_flipped_byte_on_disk(tmp_path: Path) -> None:
     _flip_byte_in_file(db, scans[2000:2064])
     _flip_byte_in_file(db, (np.arange(64.0) * np.pi).astype("<f8").tobytes()[100:164])
     _flip_byte_in_file(db, raw.astype("<f8").tobytes()[:64])
-    with Journal.open(d, min_free_bytes=0) as j:
+    before = db.read_bytes()
+    # Opening for writing (resume) checks everything first, names every damaged part and
+    # writes nothing; so does a reader that asks for the full check (the default).
+    for opening in (lambda: Journal.open(d, min_free_bytes=0), lambda: Journal.open_readonly(d)):
+        with pytest.raises(JournalCorruption, match=r"damaged: .*phase 'survey' .*step 0 array 'scans_xz_mm'.*fault 1"):
+            opening()
+    assert db.read_bytes() == before
+    with Journal.open_readonly(d, check="none") as j:
         # SQLite itself does not notice damage inside a blob; our checksums do.
         assert j._conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
         with pytest.raises(JournalCorruption, match="step 0 array 'scans_xz_mm'"):

@@ -193,5 +193,6 @@ def test_mesh_object_errors_name_the_mesh_entry(tmp_path):
         load_object(tmp_path / "o.yaml")
     shutil.copy(OBJECTS / "user_object.ply", tmp_path / "user_object.ply")
     (tmp_path / "o.yaml").write_text(text.replace("face_color_rgb: [60, 60, 70]", "face_color_rgb: [61, 60, 70]"))
-    with pytest.raises(InputError, match=r"o\.yaml:15:3: 520 faces match no region colour"):
+    with pytest.raises(InputError, match=r"o\.yaml:17:42: no face of the mesh has the colour \[61, 60, 70\] "
+                                         r"\(material 'sponge'\); the mesh's colours: \[60, 60, 70\] on 520 faces"):
         load_object(tmp_path / "o.yaml")

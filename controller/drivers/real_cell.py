@@ -146,8 +146,9 @@ def _object_mesh(path: Path) -> Any:
     return trimesh.load(str(path), force="mesh")
 
 
-def build_real_cell(inputs: Any, seed: int) -> Any:
-    """A ``BuiltCell`` for a ``ur`` or ``loopback`` cell (see the module docstring)."""
+def build_real_cell(inputs: Any, seed: int, object_mesh: Any = None) -> Any:
+    """A ``BuiltCell`` for a ``ur`` or ``loopback`` cell (see the module docstring); ``object_mesh``:
+    the object's checked mesh (cellfactory.load_object_model), read from the cell's file when None."""
     from ..cellfactory import BuiltCell
     from .line_scanner import SerialLineScanner
 
@@ -173,7 +174,7 @@ def build_real_cell(inputs: Any, seed: int) -> Any:
     try:
         hardware = HardwareProcess(hardware_config(cell, inputs.limits, **overrides)).start()
         scanner = SerialLineScanner(scanner_url, RealClock(), timeout_s=2.0)
-        mesh = _object_mesh(obj_path)
+        mesh = object_mesh if object_mesh is not None else _object_mesh(obj_path)
     except BaseException:
         if hardware is not None:
             hardware.close()
