@@ -1,13 +1,16 @@
-"""The simulated overnight soak: a night of probing with faults, kills and resumes (issue #7).
+"""The simulated overnight soak: a night of probing with faults, kills and resumes (issues #7, #15).
 
 A private copy of the simulated cell injects rate-based faults of every kind in
-``sim.faults.KINDS`` (about one per 100 force steps in total; the emergency stop with
-``clear_after_s``, a disk error on the journal's write among them). The real CLI runs
+``sim.faults.KINDS`` (about one every ten force steps in total; the emergency stop with
+``clear_after_s``, a disk error on the journal's write among them), follow-up faults that
+strike while the controller recovers from another one (``rate_per_100_faults``), and
+faults fixed in the cloud sweep and in learning phases (the simulator is keyed there as
+at a step: ``phases.SWEEP_STEP_KEY``, ``session.LEARN_STEP_KEY``). The real CLI runs
 ``config/plans/soak.yaml`` (>= 8 h of robot time) in a child process; the driver SIGKILLs
-it at seeded random moments (a random wall-clock delay, or aimed inside a journal
-transaction), plays the operator when the session pauses (an e-stop: wait, release,
-resume; a disk error: the disk is fixed, resume) and resumes until the session is done
-or a bounded number of children is spent.
+it at seeded random moments (a random wall-clock delay, aimed inside a journal
+transaction, or in a learning phase), plays the operator when the session pauses (an
+e-stop: wait, release, resume; a disk error: the disk is fixed, resume) and resumes until
+the session is done or a bounded number of children is spent.
 
 Ground truth, not the controller's word:
 - injected faults come from the simulator's durable record (``ELASTOPROBE_SIM_FAULT_LOG``,
@@ -82,7 +85,16 @@ SEEN_AS: dict[str, set[str]] = {
 # the burst): the journaled fault follows the injection within this much robot time.
 MATCH_WINDOW_S = 20.0
 # Aimed kills: a SIGKILL inside these journal transactions (controller/journal.py).
-AIMED_POINTS = ("commit_step:half_arrays", "commit_step:before_commit", "begin_step:before_commit")
+AIMED_POINTS = ("commit_step:half_arrays", "commit_step:before_commit", "begin_step:before_commit",
+                "commit_phase:half_steps", "record_fault:before_commit")
+# A kill in a learning phase: after the first region's model is fitted, before it is saved
+# (controller/phases.py crash points).
+LEARNING_POINT = "models:before_save@1"
+# The simulator keys of the sweep and of learning phases (controller/phases.py, session.py).
+SWEEP_KEY = 2**32 - 2
+LEARN_KEY = 2**32 - 1002
+# Faults of these kinds follow up others (a burst: one lands while the controller recovers).
+FOLLOW_UPS = {"protective_stop": 3.0, "connection_loss": 3.0, "force_spike": 2.0, "ft_frozen": 2.0}
 
 
 @dataclass(frozen=True)
@@ -91,24 +103,33 @@ class SoakConfig:
 
     plan_overrides: dict[str, Any] = field(default_factory=dict)   # dotted keys over soak.yaml
     seed: int = 1
-    fault_rate_per_100_steps: float = 1.0           # all kinds together
+    fault_rate_per_100_steps: float = 10.0          # all kinds together: a fault every ten steps
     rates_per_100_steps: dict[str, float] | None = None   # per kind, overrides the even split
-    step_faults: tuple[tuple[str, int], ...] = ()   # (kind, step id): at that step's first attempt
+    # (kind, step key, delay s or None): at that key's first attempt (a step id, or the
+    # sweep's or a learning phase's key)
+    step_faults: tuple[tuple[str, int, float | None], ...] = ()
+    follow_ups_per_100_faults: dict[str, float] = field(default_factory=lambda: dict(FOLLOW_UPS))
     estop_clear_after_s: float = 60.0               # robot time: the operator walks over
     operator_delay_s: float = 1.0                   # wall: before the operator resumes
-    kills: int = 6
+    kills: int = 24
     kill_delay_s: tuple[float, float] = (20.0, 300.0)
-    aimed_kill_every: int = 2                       # every n-th kill lands inside a transaction
+    # The kind of each kill in turn: a random moment, inside a journal transaction, in learning.
+    kill_modes: tuple[str, ...] = ("delay", "aimed", "delay", "aimed", "learning", "aimed")
     aimed_nth: tuple[int, int] = (5, 300)
-    max_children: int = 60
+    max_children: int = 300
     child_timeout_s: float = 3600.0
     sample_s: float = 2.0
     min_robot_hours: float = 8.0                    # what the full night must reach
 
 
-# Rate faults alone may draw no disk error in a night (1 in 12 nights at these rates), so
-# two are fixed at survey steps, listed after the rate faults (their draws are unchanged).
-FULL = SoakConfig(step_faults=(("disk_error", 801), ("disk_error", 1601)))
+# Faults fixed where rates reach seldom: the cloud sweep (one key a night) mid-way through
+# it, and the first learning phases; two disk errors at survey steps (listed after the
+# rate faults: their draws are unchanged).
+FULL = SoakConfig(step_faults=(
+    ("protective_stop", SWEEP_KEY, 40.0), ("connection_loss", SWEEP_KEY, 150.0),
+    ("emergency_stop", LEARN_KEY, None), ("protective_stop", LEARN_KEY - 1, None),
+    ("connection_loss", LEARN_KEY - 2, None), ("force_spike", LEARN_KEY - 3, None),
+    ("disk_error", 801, None), ("disk_error", 1601, None)))
 QUICK = SoakConfig(
     plan_overrides={
         "name": "soak-quick", "cloud.sweep_spacing_mm": 5.0, "cloud.max_points": 20000,
@@ -126,12 +147,14 @@ QUICK = SoakConfig(
     # (e-stop, disk error) and of kinds that are retried.
     rates_per_100_steps={"emergency_stop": 1.5, "disk_error": 3.0, "force_spike": 3.0,
                          "protective_stop": 3.0, "scanner_timeout": 3.0, "connection_loss": 3.0},
-    operator_delay_s=0.2, kills=2, kill_delay_s=(6.0, 10.0), aimed_kill_every=2, aimed_nth=(3, 12),
-    max_children=14, child_timeout_s=300.0, sample_s=0.5, min_robot_hours=0.0,
+    follow_ups_per_100_faults={"protective_stop": 20.0},
+    operator_delay_s=0.2, kills=3, kill_delay_s=(6.0, 10.0), kill_modes=("delay", "aimed", "learning"),
+    aimed_nth=(3, 12), max_children=20, child_timeout_s=300.0, sample_s=0.5, min_robot_hours=0.0,
     # A disk error at a middle force level of a contact that no other fault touches with
-    # this seed (listed after the rate faults, so their draws are unchanged): the short
-    # run is sure to meet one, whatever the rate draws give.
-    step_faults=(("disk_error", 10),),
+    # this seed and a protective stop in the sweep (listed after the rate faults, so their
+    # draws are unchanged): the short run is sure to meet them, whatever the rate draws
+    # give. (Its one learning phase is its last: no motion follows to meet a fault there.)
+    step_faults=(("disk_error", 10, None), ("protective_stop", SWEEP_KEY, 5.0)),
 )
 
 
@@ -146,9 +169,10 @@ def fault_rates(cfg: SoakConfig) -> dict[str, float]:
 
 
 def write_cell(dst_dir: Path, name: str, rates: dict[str, float], estop_clear_after_s: float,
-               step_faults: tuple[tuple[str, int], ...] = ()) -> Path:
+               step_faults: tuple[tuple[str, int, float | None], ...] = (),
+               follow_ups: dict[str, float] | None = None) -> Path:
     """A private copy of the simulated cell (its own lock name) with rate-based faults
-    (then the step faults)."""
+    (then the step faults, then the follow-ups)."""
     lines = SIM_CELL.read_text().splitlines()
     lines = [f"name: {name}" if ln.startswith("name:") else ln for ln in lines]
     lines = [ln.replace("../objects/composite.yaml", str(COMPOSITE)) for ln in lines]
@@ -158,8 +182,13 @@ def write_cell(dst_dir: Path, name: str, rates: dict[str, float], estop_clear_af
     for kind, rate in rates.items():
         extra = f", clear_after_s: {estop_clear_after_s}" if kind == "emergency_stop" else ""
         lines.append(f"    - {{kind: {kind}, rate_per_100_steps: {rate:.6g}{extra}}}")
-    for kind, step in step_faults:
-        lines.append(f"    - {{kind: {kind}, step: {step}}}")
+    for kind, step, delay_s in step_faults:
+        extra = f", clear_after_s: {estop_clear_after_s}" if kind == "emergency_stop" else ""
+        extra += f", delay_s: {delay_s}" if delay_s is not None else ""
+        lines.append(f"    - {{kind: {kind}, step: {step}{extra}}}")
+    for kind, rate in (follow_ups or {}).items():
+        extra = f", clear_after_s: {estop_clear_after_s}" if kind == "emergency_stop" else ""
+        lines.append(f"    - {{kind: {kind}, rate_per_100_faults: {rate:.6g}{extra}}}")
     out = dst_dir / f"{name}.yaml"
     out.write_text("\n".join(lines) + "\n")
     return out
@@ -229,7 +258,7 @@ def _journal_poll(session_dir: Path) -> tuple[float, set[int], int] | None:
     if not (session_dir / "journal.sqlite").exists():
         return None
     try:
-        j = Journal.open_readonly(session_dir)
+        j = Journal.open_readonly(session_dir, check="none")
     except Exception:   # noqa: BLE001 - being created, or locked for a moment: next poll
         return None
     try:
@@ -292,7 +321,7 @@ def _session_status(session_dir: Path) -> tuple[str | None, str | None]:
 
     if not (session_dir / "journal.sqlite").exists():
         return None, None
-    j = Journal.open_readonly(session_dir)
+    j = Journal.open_readonly(session_dir, check="none")
     try:
         s = j.session()
         return s["status"], s.get("status_reason")
@@ -306,7 +335,7 @@ def journal_soundness(session_dir: Path) -> list[str]:
 
     if not (session_dir / "journal.sqlite").exists():
         return []
-    j = Journal.open_readonly(session_dir)
+    j = Journal.open_readonly(session_dir, check="none")
     try:
         problems = [f"integrity_check: {r[0]}" for r in j._q("PRAGMA integrity_check") if r[0] != "ok"]
         return problems + j.verify()
@@ -359,12 +388,14 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
     """Each injected fault (once per kind and step key) against the journal: its fate."""
     from elastoprobe.controller.journal import Journal
 
-    j = Journal.open_readonly(session_dir)
+    j = Journal.open_readonly(session_dir, check="none")
     try:
         run_of_pid = {int(r[1]): int(r[0]) for r in j._q("SELECT run_id, pid FROM runs ORDER BY run_id")}
         faults = j.faults(with_raw=False)
         run_of_fault = {int(r[0]): r[1] for r in j._q("SELECT fault_id, run_id FROM faults")}
-        status = {r.step_id: r.status for r in j.steps()}
+        steps = j.steps()
+        status = {r.step_id: r.status for r in steps}
+        step_phase = {r.step_id: r.phase for r in steps}
     finally:
         j.close()
     paused_fault_ids = _paused_fault_ids(children, faults, run_of_fault, run_of_pid)
@@ -386,7 +417,9 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
                 match = f
                 break
         fate: dict[str, Any] = {"kind": rec["kind"], "key": list(ident[1]), "run_id": run_id,
-                                "t_s": round(rec["t_s"], 3)}
+                                "t_s": round(rec["t_s"], 3), "phase": phase_of_key(ident[1], step_phase)}
+        if rec.get("follows"):
+            fate["follows"] = rec["follows"]
         if match is not None:
             claimed.add(match.fault_id)
             fate.update(fault_id=match.fault_id, seen_as=match.kind, step=match.step_id, action=match.policy_action,
@@ -428,6 +461,21 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
     other = [f for f in faults if f.fault_id not in claimed]
     return {"fates": [f for group in fates.values() for f in group], "raw_injections": len(injected),
             "journaled_other": _histogram(f.kind for f in other)}
+
+
+PHASE_NAMES = {"sampling": "survey", "regions": "characterize", "densify": "densify"}
+
+
+def phase_of_key(key: tuple[int, ...], step_phase: dict[int, str]) -> str:
+    """The phase a fault was drawn in, from its simulator key (seed, step, attempt)."""
+    if not key:
+        return "outside any step"
+    step = int(key[1])
+    if step >= SWEEP_KEY - 100:
+        return "sweeping"
+    if LEARN_KEY - 100 <= step <= LEARN_KEY:
+        return "learning"
+    return PHASE_NAMES.get(step_phase.get(step, ""), "probing")
 
 
 _RECOVERY_PREFIX = re.compile(r"during recovery from ([a-z_]+): ")
@@ -488,7 +536,7 @@ def step_accounting(session_dir: Path, ever_done: set[int]) -> dict[str, Any]:
 
     counts = step_done_counts(session_dir)
     committed = set(counts) | ever_done
-    j = Journal.open_readonly(session_dir)
+    j = Journal.open_readonly(session_dir, check="none")
     try:
         steps = j.steps()
         robot_h = j.robot_time_s()["total"] / 3600.0
@@ -547,7 +595,8 @@ def run_soak(cfg: SoakConfig, work_dir: Path) -> dict[str, Any]:
     work_dir.mkdir(parents=True, exist_ok=True)
     rng = random.Random(cfg.seed)
     rates = fault_rates(cfg)
-    cell = write_cell(work_dir, f"soak-cell-{os.getpid()}", rates, cfg.estop_clear_after_s, cfg.step_faults)
+    cell = write_cell(work_dir, f"soak-cell-{os.getpid()}", rates, cfg.estop_clear_after_s, cfg.step_faults,
+                      cfg.follow_ups_per_100_faults)
     plan = write_plan(work_dir, cell, cfg.plan_overrides)
     out = work_dir / "session"
     fault_log = work_dir / "sim_faults.jsonl"
@@ -558,21 +607,27 @@ def run_soak(cfg: SoakConfig, work_dir: Path) -> dict[str, Any]:
 
     children: list[ChildRun] = []
     ever_done: set[int] = set()
-    state: dict[str, Any] = {"seed": cfg.seed, "rates": rates, "min_robot_hours": cfg.min_robot_hours,
-                             "baseline_rss_mb": base_rss, "kills": 0, "operator_clears": 0,
+    state: dict[str, Any] = {"seed": cfg.seed, "rates": rates, "follow_ups": cfg.follow_ups_per_100_faults,
+                             "min_robot_hours": cfg.min_robot_hours,
+                             "baseline_rss_mb": base_rss, "kills": 0, "kills_by_mode": {}, "operator_clears": 0,
                              "journal_problems": [], "wall_s": 0.0}
     kills_left = cfg.kills
+    mode_index, learning_misses = 0, 0
     while len(children) < cfg.max_children:
         resume = (out / "journal.sqlite").exists()
         args = (["resume", str(out), "--quiet"] if resume else
                 ["run", str(plan), "--out", str(out), "--seed", str(cfg.seed), "--quiet"])
-        child_env, kill_after, aimed = dict(env), None, None
+        child_env, kill_after, aimed, mode = dict(env), None, None, None
         if kills_left > 0:
-            if cfg.aimed_kill_every and (cfg.kills - kills_left + 1) % cfg.aimed_kill_every == 0:
+            mode = cfg.kill_modes[mode_index % len(cfg.kill_modes)]
+            if mode == "aimed":
                 aimed = f"{rng.choice(AIMED_POINTS)}@{rng.randint(*cfg.aimed_nth)}"
-                child_env["ELASTOPROBE_JOURNAL_CRASH_AT"] = aimed
+            elif mode == "learning":
+                aimed = LEARNING_POINT
             else:
                 kill_after = rng.uniform(*cfg.kill_delay_s)
+            if aimed is not None:
+                child_env["ELASTOPROBE_JOURNAL_CRASH_AT"] = aimed
         child = run_child(args, child_env, out, kill_after, cfg.sample_s, cfg.child_timeout_s, ever_done,
                           work_dir / "children.stderr")
         if child.returncode == -9 and child.killed is None and aimed is not None:
@@ -584,7 +639,15 @@ def run_soak(cfg: SoakConfig, work_dir: Path) -> dict[str, Any]:
         stop = False
         if child.returncode == -9 and child.killed not in (None, "timeout"):
             state["kills"] += 1
+            state["kills_by_mode"][mode] = state["kills_by_mode"].get(mode, 0) + 1
             kills_left -= 1
+            mode_index += 1
+        elif mode == "learning":
+            # It paused before it reached a learning phase: try again, but after three misses
+            # (no learning left in the night) go on to the next kind of kill.
+            learning_misses += 1
+            if learning_misses >= 3:
+                mode_index, learning_misses = mode_index + 1, 0
         elif child.returncode == 3:
             if reason and "emergency_stop" in reason:
                 time.sleep(cfg.operator_delay_s)     # the operator walks over and releases it
@@ -630,9 +693,14 @@ def summarize(work_dir: Path) -> dict[str, Any]:
         "faults_repeated_after_resume": [f for f in fates if "repeat_of_fault_id" in f],
         "faults_by_kind": {k: _histogram(f["fate"] for f in fates if f["kind"] == k)
                            for k in sorted({f["kind"] for f in fates})},
+        "faults_by_phase": {p: _histogram(f["fate"] for f in fates if f["phase"] == p)
+                            for p in sorted({f["phase"] for f in fates})},
+        "faults_during_recovery": _histogram(f["fate"] for f in fates if f.get("follows")),
+        "kills_by_mode": state.get("kills_by_mode", {}),
         "fault_injections_raw": judged.get("raw_injections", 0),
         "faults_journaled_not_injected": judged.get("journaled_other", {}),
         "fault_rates_per_100_steps": state["rates"],
+        "follow_ups_per_100_faults": state.get("follow_ups", {}),
         "status": status, "status_reason": reason,
         "children": len(children), "resumes": max(len(children) - 1, 0),
         "operator_clears": state["operator_clears"],

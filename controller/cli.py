@@ -183,7 +183,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
     from .config import load_session_inputs
     from .journal import Journal
 
-    j = Journal.open_readonly(args.dir)
+    j = Journal.open_readonly(args.dir, check="none")     # Journal.open checks it all before writing
     try:
         prov = j.provenance()
         session = j.session()
@@ -436,6 +436,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return exc.exit_code
     except BrokenPipeError:
         return EXIT_DONE
+    except KeyboardInterrupt:       # a command without its own handling (calibrate, diagram, ...)
+        print(f"elastoprobe {args.command}: interrupted", file=sys.stderr)
+        return EXIT_PAUSED
     except OSError as exc:
         # A file the command had to write or read that the disk refused (read-only, full,
         # a file where a directory should be): the path and why, never a traceback.

@@ -166,11 +166,14 @@ FaultKind = Literal["force_spike", "ft_stall", "ft_frozen", "scanner_timeout", "
 
 
 class FaultSpec(Spec):
-    """A fault the simulator injects: at a step, or at a rate per 100 steps."""
+    """A fault the simulator injects: at a step, at a rate per 100 steps, or as a follow-up
+    of other faults (a rate per 100 faults that fire, ``delay_s`` after each: faults come
+    in bursts, and one lands while the controller recovers from another)."""
 
     kind: FaultKind
     step: int | None = Field(None, ge=0)
     rate_per_100_steps: float | None = Field(None, gt=0, le=100)
+    rate_per_100_faults: float | None = Field(None, gt=0, le=100)
     clear_after_s: float | None = Field(None, gt=0)   # emergency stop: operator clears it after this
     delay_s: float | None = Field(None, ge=0, le=3600)          # after the step begins (default: drawn 0.2-2 s)
     duration_s: float | None = Field(None, gt=0, le=3600)       # default per kind (sim/faults.py)
@@ -178,8 +181,10 @@ class FaultSpec(Spec):
 
     @model_validator(mode="after")
     def _when(self) -> "FaultSpec":
-        if (self.step is None) == (self.rate_per_100_steps is None):
-            raise ValueError("give exactly one of step or rate_per_100_steps")
+        if sum(v is not None for v in (self.step, self.rate_per_100_steps, self.rate_per_100_faults)) != 1:
+            raise ValueError("give exactly one of step, rate_per_100_steps or rate_per_100_faults")
+        if self.rate_per_100_faults is not None and self.kind == "disk_error":
+            raise ValueError("a disk error happens at a journal write, not as a follow-up of another fault")
         return self
 
 

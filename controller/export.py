@@ -18,6 +18,8 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import os
+import shutil
+import sys
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -289,6 +291,11 @@ def export_hdf5(session_dir: str | os.PathLike[str], out_path: str | os.PathLike
     j = Journal.open_readonly(d)
     try:
         ensure_dir(out.parent)
+        # The export holds about what the journal holds: refuse before h5py meets a full disk.
+        need, free = (d / "journal.sqlite").stat().st_size, shutil.disk_usage(out.parent).free
+        if free < need:
+            raise DiskError(f"cannot write: about {need / 2**20:.0f} MiB needed, {free / 2**20:.0f} MiB free "
+                            f"(the disk is full)", path=str(out))
         fd, tmp_name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
         os.close(fd)
     except OSError as exc:
@@ -297,6 +304,9 @@ def export_hdf5(session_dir: str | os.PathLike[str], out_path: str | os.PathLike
     except BaseException:
         j.close()
         raise
+    # h5py reports a failed write again from its objects' destructors ("Exception ignored
+    # in ..."); the error that matters is raised below, so those echoes are not printed.
+    hook, sys.unraisablehook = sys.unraisablehook, lambda unraisable: None
     try:
         with h5py.File(tmp_name, "w") as f:
             f.attrs.update({"format": FORMAT, "exported_utc": _utc_now(), "session_dir": str(d.resolve()),
@@ -318,6 +328,7 @@ def export_hdf5(session_dir: str | os.PathLike[str], out_path: str | os.PathLike
         raise
     finally:
         j.close()
+        sys.unraisablehook = hook
     fsync_dir(out.parent)
     return out
 

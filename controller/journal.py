@@ -586,6 +586,8 @@ class Journal:
         if readonly:
             conn = Journal._reader(path)
         else:
+            if not path.is_file():
+                raise JournalCorruption(f"{path}: not a file")
             conn = sqlite3.connect(str(path), isolation_level=None, timeout=10.0)
         try:
             Journal._check_schema(conn, path)
@@ -610,6 +612,8 @@ class Journal:
         immutable — nothing can be writing it there — unless a write-ahead log lies beside
         it (a session killed there), which cannot be read without that index."""
         base = "file:" + urllib.parse.quote(str(path)) + "?mode=ro"
+        if not path.is_file():
+            raise JournalCorruption(f"{path}: not a file")
         if _writable(path.parent):
             conn = sqlite3.connect(base, uri=True, isolation_level=None, timeout=10.0)
             try:

@@ -79,8 +79,9 @@ def read_rows(con: sqlite3.Connection, table: str, columns: str, lost: list[str]
     sql = f"SELECT rowid, {columns} FROM {table}"
     try:
         return con.execute(sql + " ORDER BY rowid").fetchall()
-    except sqlite3.DatabaseError:
-        pass
+    except sqlite3.DatabaseError as exc:
+        if "no such" in str(exc):       # the table (or a column) is not in the schema at all
+            raise
     try:
         top = int(con.execute(f"SELECT max(rowid) FROM {table}").fetchone()[0] or 0)
     except sqlite3.DatabaseError:
@@ -90,6 +91,8 @@ def read_rows(con: sqlite3.Connection, table: str, columns: str, lost: list[str]
     pending = [(1, top)]
     while pending:
         lo, hi = pending.pop()
+        if lo > hi:
+            continue
         try:
             out.extend(con.execute(sql + " WHERE rowid BETWEEN ? AND ?", (lo, hi)).fetchall())
         except sqlite3.DatabaseError:

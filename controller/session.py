@@ -65,19 +65,33 @@ class Progress:
 
 
 class JsonlLog:
-    """DIR/log.jsonl: one JSON object per line, flushed per record (readable while running)."""
+    """DIR/log.jsonl: one JSON object per line, flushed per record (readable while running).
+
+    A copy for people and tools; the journal is the record. A full disk must not turn the
+    session's own handling of that disk error into a traceback, so a line that cannot be
+    written is dropped (and counted)."""
 
     def __init__(self, path: Path) -> None:
-        self._f = open(path, "a", encoding="utf-8")
+        try:
+            self._f = open(path, "a", encoding="utf-8")
+        except OSError as exc:
+            raise DiskError.from_os_error(exc, str(path)) from None
+        self.dropped = 0
 
     def write(self, event: str, **record: Any) -> None:
         rec = {"t_wall_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds"),
                "event": event, **record}
-        self._f.write(json.dumps(rec, default=_json_default) + "\n")
-        self._f.flush()
+        try:
+            self._f.write(json.dumps(rec, default=_json_default) + "\n")
+            self._f.flush()
+        except OSError:
+            self.dropped += 1
 
     def close(self) -> None:
-        self._f.close()
+        try:
+            self._f.close()
+        except OSError:
+            pass
 
 
 def _json_default(o: Any) -> Any:
@@ -102,6 +116,7 @@ class Session:
         self.progress = Progress()
         self.on_progress = on_progress or (lambda p: None)
         self.journal: Journal | None = None
+        self._journal_damaged = False
         self.cell: Cell | None = None
         self.log: JsonlLog | None = None
         self._current_step: int | None = None
@@ -142,7 +157,10 @@ class Session:
             if self.cell is not None:
                 self.cell.close()
             if self.journal is not None:
-                self.journal.close()
+                if self._journal_damaged:
+                    self.journal.abandon()       # nothing more is written to a damaged journal
+                else:
+                    self.journal.close()
             if self.log is not None:
                 self.log.close()
             if cell_lock is not None:
@@ -289,6 +307,15 @@ class Session:
         finally:
             self.executor.should_stop = should_stop
 
+    def _key_learning(self) -> None:
+        """Key the simulator for a learning phase, as for a sweep or a step: the cell lives on
+        while the controller learns (a stop or a lost connection then is met at the next
+        motion). Keyed by the models rounds already committed, so a resumed session that
+        learns the same round again uses the same key."""
+        assert self.journal is not None and self.cell is not None
+        rounds = sum(1 for p in self.journal.phases() if p["name"] == "models")
+        self.cell.begin_step((self.seed, LEARN_STEP_KEY - rounds, 0))
+
     def _sweep_faults(self) -> int:
         assert self.journal is not None
         return sum(1 for f in self.journal.faults(with_raw=False)
@@ -308,7 +335,14 @@ class Session:
 
         assert self.journal is not None and self.cell is not None
         j = self.journal
-        machine = SessionMachine(j.transition_callback(self.cell.clock.now_s, lambda: self._current_step))
+        journal_transition = j.transition_callback(self.cell.clock.now_s, lambda: self._current_step)
+
+        def on_transition(source: str, dest: str, trigger: str) -> None:
+            journal_transition(source, dest, trigger)
+            if dest == "learning":
+                self._key_learning()
+
+        machine = SessionMachine(on_transition)
         self.machine = machine
         self.executor = self._make_executor(machine)
         ctx = phases.PhaseContext(session=self)
@@ -344,6 +378,7 @@ class Session:
         except JournalCorruption as exc:
             # Stored data is damaged: stop and park, and write nothing more to the journal
             # (its status stays what it was); the CLI says what is damaged and how to salvage.
+            self._journal_damaged = True
             self._stop_arm()
             self._park(journal=False)
             if self.log is not None:
@@ -776,6 +811,10 @@ class Session:
 
 
 SWEEP_FAULT_PREFIX = "during a sweep of the object"
+# The simulator key of a learning phase (minus the models round): below the sweep keys
+# (phases.SWEEP_STEP_KEY = 2**32 - 2, re-registration sweeps just under it), far above
+# every planned step id.
+LEARN_STEP_KEY = 2**32 - 1002
 
 
 def _release_freed_memory() -> None:

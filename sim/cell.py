@@ -307,8 +307,8 @@ def params_from_cell(cell, object_path: str | Path | None = None, seed: int = 0,
                 probe_range = (z - shape.length_mm / 2.0, z + shape.length_mm / 2.0)
     mis = sim.miscalibration
     faults = [FaultPlan(kind=f.kind, step=f.step, rate_per_100_steps=f.rate_per_100_steps,
-                        clear_after_s=f.clear_after_s, delay_s=f.delay_s, duration_s=f.duration_s,
-                        magnitude=f.magnitude) for f in sim.faults]
+                        rate_per_100_faults=f.rate_per_100_faults, clear_after_s=f.clear_after_s,
+                        delay_s=f.delay_s, duration_s=f.duration_s, magnitude=f.magnitude) for f in sim.faults]
     return SimCellParams(
         object=object_path if object_path is not None else cell.object.file,
         base_to_object=cell.object.base_to_object.pose(),

@@ -1,9 +1,12 @@
 """Fault injection for the simulated cell (DESIGN §8 "Faults on demand").
 
 A :class:`FaultPlan` says what and when: at a step index (first attempt only, so a
-retry can succeed), at a virtual time, or at a rate per 100 steps drawn from the
-keyed RNG (seed, step, attempt, FAULTS). Within a step the fault fires ``delay_s``
-after ``begin_step`` (drawn from the keyed RNG when not given).
+retry can succeed), at a virtual time, at a rate per 100 steps drawn from the
+keyed RNG (seed, step, attempt, FAULTS), or as a follow-up: at a rate per 100 faults,
+drawn each time another fault fires and due ``delay_s`` (drawn 0.3-3 s) after it —
+while the controller stops, unloads and retracts from the first. Within a step the
+fault fires ``delay_s`` after ``begin_step`` (drawn from the keyed RNG when not given).
+A follow-up never has follow-ups of its own.
 
 Every fault is visible only through what a real device would show: F/T data (a
 spike, repeated values, missing samples), status bits (protective stop, emergency
@@ -37,7 +40,7 @@ import numpy as np
 
 from elastoprobe.controller.errors import DeviceError
 
-from .world import PRE_STEP, US_PER_S, Stream
+from .world import PRE_STEP, US_PER_S, Stream, keyed_rng
 
 if TYPE_CHECKING:   # pragma: no cover
     from .world import Contact, SimWorld
@@ -62,6 +65,8 @@ _DEFAULTS = {
 }
 
 FAULT_LOG_ENV = "ELASTOPROBE_SIM_FAULT_LOG"
+# Streams of the follow-up draws: one per fault fired in a step (above every Stream id).
+_FOLLOW_UP_STREAM = 1000
 # Kinds that may fire without changing anything a device shows (no scan, no contact).
 _CONDITIONAL = ("scanner_timeout", "scanner_short_burst", "slip")
 
@@ -74,7 +79,8 @@ class FaultPlan:
     step: int | None = None
     at_t_s: float | None = None
     rate_per_100_steps: float | None = None
-    delay_s: float | None = None          # after begin_step (step and rate faults)
+    rate_per_100_faults: float | None = None   # a follow-up of other faults
+    delay_s: float | None = None          # after begin_step (step and rate faults); after the other fault
     duration_s: float | None = None
     magnitude: float | None = None
     clear_after_s: float | None = None    # emergency stop: the operator clears it after this
@@ -82,9 +88,11 @@ class FaultPlan:
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"unknown fault kind {self.kind!r}")
-        given = [x is not None for x in (self.step, self.at_t_s, self.rate_per_100_steps)]
+        given = [x is not None for x in (self.step, self.at_t_s, self.rate_per_100_steps, self.rate_per_100_faults)]
         if sum(given) != 1:
-            raise ValueError("give exactly one of step, at_t_s, rate_per_100_steps")
+            raise ValueError("give exactly one of step, at_t_s, rate_per_100_steps, rate_per_100_faults")
+        if self.rate_per_100_faults is not None and self.kind == "disk_error":
+            raise ValueError("a disk error cannot be a follow-up (it is played at a journal write)")
 
 
 @dataclass
@@ -99,6 +107,7 @@ class _Active:
     key: tuple[int, int, int] | None = None     # the step key it was drawn under (None: on demand)
     plan_index: int | None = None
     effective: bool = False
+    follows: str | None = None                  # the kind of the fault it follows up
 
 
 def _append_record(record: dict) -> None:
@@ -124,6 +133,7 @@ class FaultInjector:
         self._connected = True
         self._disk_due: set[tuple[int, int, int]] = set()   # step keys whose journal write fails
         self._disk_plan_index: dict[tuple[int, int, int], int | None] = {}
+        self._fired_in_key = 0                              # faults fired since begin_step: follow-up draws
         self.injected: list[tuple[str, float]] = []   # (kind, virtual time s): for tests and reports
 
     # ------------------------------------------------------------------ operator and schedule
@@ -153,7 +163,8 @@ class FaultInjector:
 
     def _schedule(self, kind: str, start_us: int, duration_s: float | None, magnitude: float | None,
                   clear_after_s: float | None, rng: np.random.Generator,
-                  key: tuple[int, int, int] | None = None, plan_index: int | None = None) -> None:
+                  key: tuple[int, int, int] | None = None, plan_index: int | None = None,
+                  follows: str | None = None) -> None:
         if kind == "disk_error":
             # The controller's journal plays it, at this step's write (see take_disk_error).
             if key is not None:
@@ -164,7 +175,7 @@ class FaultInjector:
         duration = d_default if duration_s is None else duration_s
         end = math.inf if math.isinf(duration) else start_us + int(round(duration * US_PER_S))
         act = _Active(kind, start_us, end, m_default if magnitude is None else magnitude,
-                      key=key, plan_index=plan_index)
+                      key=key, plan_index=plan_index, follows=follows)
         if clear_after_s is not None:
             act.clear_us = start_us + int(round(clear_after_s * US_PER_S))
         if kind == "object_moved":
@@ -177,6 +188,7 @@ class FaultInjector:
         w = self._world
         seed, step, attempt = w.step_key
         rng = w.rng(Stream.FAULTS)
+        self._fired_in_key = 0
         # Faults scoped to a step (scanner, slip) end with it.
         self._active = [a for a in self._active if a.kind not in ("scanner_timeout", "scanner_short_burst", "slip")
                         or a.start_us > w.now_us]
@@ -222,13 +234,33 @@ class FaultInjector:
                 a.fired = True
                 a.effective = a.kind not in _CONDITIONAL
                 self.injected.append((a.kind, now_us / US_PER_S))
-                _append_record({"event": "injected", "kind": a.kind, "t_s": now_us / US_PER_S,
-                                "key": None if a.key is None else list(a.key), "plan": a.plan_index})
+                record = {"event": "injected", "kind": a.kind, "t_s": now_us / US_PER_S,
+                          "key": None if a.key is None else list(a.key), "plan": a.plan_index}
+                _append_record(record if a.follows is None else {**record, "follows": a.follows})
                 self._fire(a, now_us)
+                if a.follows is None:
+                    self._follow_ups(a, now_us)
             if a.fired and now_us >= a.end_us:
                 self._expire(a)
             elif a.fired and now_us >= a.clear_us and a.kind == "emergency_stop":
                 self.operator_clear_estop()
+
+    def _follow_ups(self, parent: _Active, now_us: int) -> None:
+        """Draw the follow-up plans after ``parent`` fired (keyed by the step and how many
+        faults fired in it before, so a resumed process draws the same)."""
+        follow = [(i, p) for i, p in enumerate(self._plans) if p.rate_per_100_faults is not None]
+        if not follow:
+            return
+        seed, step, attempt = self._world.step_key
+        rng = keyed_rng(seed, step, attempt, _FOLLOW_UP_STREAM + self._fired_in_key)
+        self._fired_in_key += 1
+        for i, plan in follow:
+            draw, delay = rng.random(), rng.uniform(0.3, 3.0)      # always drawn: plans stay independent
+            if draw < float(plan.rate_per_100_faults) / 100.0:
+                start = now_us + int(round((plan.delay_s if plan.delay_s is not None else delay) * US_PER_S))
+                self._schedule(plan.kind, start, plan.duration_s, plan.magnitude, plan.clear_after_s, rng,
+                               key=parent.key if parent.key is not None else self._world.step_key, plan_index=i,
+                               follows=parent.kind)
 
     def _fire(self, a: _Active, now_us: int) -> None:
         arm = self._world.arm

@@ -59,7 +59,7 @@ PLANS = {
 }
 
 CELLS = {
-    "cell_fault_without_when.yaml": (65, 7, "exactly one of step or rate_per_100_steps"),
+    "cell_fault_without_when.yaml": (65, 7, "exactly one of step, rate_per_100_steps or rate_per_100_faults"),
     "cell_missing_limits.yaml": (4, 1, "missing required key 'limits'"),
     "cell_object_missing.yaml": (38, 9, "does not exist"),
     "cell_tip_radius_zero.yaml": (11, 18, "greater than 0"),

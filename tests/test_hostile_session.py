@@ -25,6 +25,7 @@ import pytest
 
 from test_session_util import CLI, child_env, copy_cell, plan_for, run_cli, start_or_resume
 
+from elastoprobe.controller.cli import main
 from elastoprobe.controller.journal import Journal
 
 REPO = Path(__file__).resolve().parent.parent
@@ -57,19 +58,14 @@ def _phases(session: Path) -> set[tuple[str, int]]:
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory: pytest.TempPathFactory) -> dict:
-    tmp = tmp_path_factory.mktemp("hostile")
-    cell = copy_cell(SIM_CELL, tmp, "hostile-test-cell")
-    return {"tmp": tmp, "cell": cell, "plan": plan_for(cell, tmp), "env": child_env(tmp / "locks")}
+def setup(tiny_session: dict) -> dict:
+    return tiny_session
 
 
 @pytest.fixture(scope="module")
-def finished(setup: dict) -> Path:
+def finished(tiny_session: dict) -> Path:
     """A finished tiny session (never modified: tests work on copies)."""
-    out = setup["tmp"] / "finished"
-    child = start_or_resume(setup["plan"], out, SEED, setup["env"])
-    assert child.returncode == 0, child.stderr[-3000:]
-    return out
+    return tiny_session["finished"]
 
 
 def _copy(finished: Path, dst: Path) -> Path:
@@ -129,16 +125,16 @@ def _damaged_copy(finished: Path, dst: Path, label: str) -> Path:
 
 
 @pytest.mark.parametrize("label", sorted(DAMAGE))
-def test_case4_a_damaged_journal_is_named_never_rewritten(label: str, finished: Path, setup: dict,
-                                                          tmp_path: Path) -> None:
+def test_case4_a_damaged_journal_is_named_never_rewritten(label: str, finished: Path, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
     session = _damaged_copy(finished, tmp_path / "s", label)
     journal = session / "journal.sqlite"
     before = _sha(journal)
-    for args in READ_COMMANDS + (["resume"],):
-        child = run_cli([args[0], str(session), *args[1:]], setup["env"])
-        assert "Traceback" not in child.stderr, (args, child.stderr[-3000:])
-        assert child.returncode == 2, (args, child.returncode, child.stderr[-2000:], child.stdout[-2000:])
-        text = child.stderr + child.stdout
+    for args in READ_COMMANDS + (["resume", "--quiet"],):
+        code = main([args[0], str(session), *args[1:]])       # in-process: a traceback fails the test
+        captured = capsys.readouterr()
+        assert code == 2, (args, code, captured.err[-2000:], captured.out[-2000:])
+        text = captured.err + captured.out
         assert "damaged" in text and "elastoprobe salvage" in text, (args, text[-2000:])
         # Never written to: not by a read-only command, not by a refused resume.
         assert _sha(journal) == before, args
@@ -294,8 +290,9 @@ def test_case6_status_after_kill9_says_the_controller_is_gone(setup: dict, tmp_p
     # status --follow of a dead controller ends at once instead of waiting for ever.
     follow = run_cli(["status", str(out), "--follow"], setup["env"])
     assert follow.returncode == 0
-    resumed = start_or_resume(setup["plan"], out, SEED, setup["env"])
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    # pause/stop name the dead controller instead of signalling whatever has its pid now.
+    refused = run_cli(["pause", str(out)], setup["env"])
+    assert refused.returncode == 2 and "not running" in refused.stderr, refused.stderr
 
 
 # ----------------------------------------------------------------------------- case 7
@@ -319,8 +316,7 @@ STOPS = {"SIGINT twice", "elastoprobe stop"}
 
 # By default: the issue's cases in the learning phase, and a pause while sweeping; every
 # request in every phase with -m slow (each case is a session of about a minute).
-DEFAULT_CASES = {("learning", "SIGINT"), ("learning", "SIGINT twice"), ("learning", "elastoprobe stop"),
-                 ("sweeping", "SIGINT")}
+DEFAULT_CASES = {("learning", "SIGINT twice"), ("sweeping", "SIGINT")}
 CASES = [(p, r) for p in PHASE_STATES for r in REQUESTS]
 
 

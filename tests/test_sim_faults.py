@@ -179,6 +179,36 @@ def test_step_rate_and_time_schedules_are_keyed():
     assert not cell.arm.status().emergency_stop
 
 
+def test_follow_up_faults_come_while_the_first_is_handled(tmp_path, monkeypatch):
+    """A follow-up plan fires 0.3-3 s after another fault (the controller is still stopping
+    and retracting then), keyed by the step: a resumed process draws the same; it has no
+    follow-ups of its own, and the durable record says what it followed."""
+    import json
+
+    log = tmp_path / "faults.jsonl"
+    monkeypatch.setenv("ELASTOPROBE_SIM_FAULT_LOG", str(log))
+    plans = [FaultPlan("protective_stop", step=2, delay_s=0.5),
+             FaultPlan("connection_loss", rate_per_100_faults=100.0)]
+
+    def fired() -> list[tuple[str, float]]:
+        cell = make_cell(faults=plans)
+        for step in range(4):
+            cell.begin_step((1, step, 0))
+            hold(cell, 4.0)
+        return cell.faults.injected
+
+    got = fired()
+    kinds = [k for k, _ in got]
+    assert kinds == ["protective_stop", "connection_loss"]          # one follow-up, none of its own
+    assert 0.3 <= got[1][1] - got[0][1] <= 3.0 + 1e-3
+    assert fired() == got                                            # keyed: reproducible
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    follow = [r for r in records if r["kind"] == "connection_loss"]
+    assert follow and follow[0]["follows"] == "protective_stop" and follow[0]["key"] == [1, 2, 0]
+    with pytest.raises(ValueError, match="follow-up"):
+        FaultPlan("disk_error", rate_per_100_faults=5.0)
+
+
 def test_devices_expose_no_fault_side_channel():
     cell = make_cell()
     for device in (cell.arm, cell.ft, cell.scanner):
