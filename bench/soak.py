@@ -148,7 +148,7 @@ QUICK = SoakConfig(
     rates_per_100_steps={"emergency_stop": 1.5, "disk_error": 3.0, "force_spike": 3.0,
                          "protective_stop": 3.0, "scanner_timeout": 3.0, "connection_loss": 3.0},
     follow_ups_per_100_faults={"protective_stop": 20.0},
-    operator_delay_s=0.2, kills=3, kill_delay_s=(6.0, 10.0), kill_modes=("delay", "aimed", "learning"),
+    operator_delay_s=0.2, kills=3, kill_delay_s=(6.0, 10.0), kill_modes=("aimed", "delay", "learning"),
     aimed_nth=(3, 12), max_children=20, child_timeout_s=300.0, sample_s=0.5, min_robot_hours=0.0,
     # A disk error at a middle force level of a contact that no other fault touches with
     # this seed and a protective stop in the sweep (listed after the rate faults, so their
