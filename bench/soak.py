@@ -103,7 +103,7 @@ class SoakConfig:
 
     plan_overrides: dict[str, Any] = field(default_factory=dict)   # dotted keys over soak.yaml
     seed: int = 1
-    fault_rate_per_100_steps: float = 10.0          # all kinds together: a fault every ten steps
+    fault_rate_per_100_steps: float = 12.0          # all kinds together: a fault every eight to ten steps
     rates_per_100_steps: dict[str, float] | None = None   # per kind, overrides the even split
     # (kind, step key, delay s or None): at that key's first attempt (a step id, or the
     # sweep's or a learning phase's key)
@@ -436,8 +436,10 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
                 fate.update(fate="paused", killed_while_pausing=True)
             else:
                 fate["fate"] = "unresolved"
-        elif rec["kind"] in ("scanner_timeout", "scanner_short_burst", "slip") and \
+        elif rec.get("effective") is False or rec["kind"] in ("scanner_timeout", "scanner_short_burst", "slip") and \
                 (rec["kind"], ident[1], rec["plan"], rec["pid"]) not in effects:
+            # A scanner fault with no scan asked, a slip with no contact, a stop of an arm
+            # already stopped (or a lost connection already lost): nothing any device showed.
             fate["fate"] = "no_effect"
         elif (during := _paused_during_recovery(rec, run_id, faults, run_of_fault, paused_fault_ids)) is not None:
             # It struck while the controller recovered from an earlier fault: recovery

@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from .config import SessionInputs
 from .devices import Cell
 from .errors import InputError
@@ -54,9 +56,13 @@ def load_object_model(inputs: SessionInputs) -> ObjectModel:
         if findings.errors:
             raise where[0].error(where[1], f"{path}: " + "; ".join(findings.errors))
         model = ObjectModel(mesh=mesh, warnings=[f"{path}: {w}" for w in findings.warnings])
-    ws = inputs.cell.limits.workspace
-    problem = bounds_problem(inputs.cell.object.base_to_object.pose().apply(model.mesh.vertices), ws.min_mm,
-                             ws.max_mm)
+    limits = inputs.cell.limits
+    vertices_base = inputs.cell.object.base_to_object.pose().apply(model.mesh.vertices)
+    problem = bounds_problem(vertices_base, limits.workspace.min_mm, limits.workspace.max_mm)
+    for box in limits.keep_out:
+        inside = np.all((vertices_base >= box.min_mm) & (vertices_base <= box.max_mm), axis=1)
+        if problem is None and inside.any():
+            problem = f"the object reaches into keep-out box {box.name!r} ({int(inside.sum())} mesh vertices inside)"
     if problem is not None:
         raise where[0].error(where[1], f"{path}: {problem} (check the mesh's scale_mm_per_unit and the cell's "
                                        f"object placement)")

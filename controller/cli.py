@@ -54,11 +54,12 @@ def _finite_float(value: str) -> float:
 
 # --------------------------------------------------------------------------- commands
 def _load_object(inputs):   # type: ignore[no-untyped-def]
-    """The plan's object, loaded and checked as the session loads it; warnings on stderr."""
-    from .cellfactory import load_object_model
+    """The plan's object, loaded and checked as the session loads it; its warnings and the
+    calibration's (what the session logs when it starts) on stderr."""
+    from .cellfactory import calibration_warnings, load_object_model
 
     model = load_object_model(inputs)
-    for warning in model.warnings:
+    for warning in model.warnings + calibration_warnings(inputs):
         print(f"warning: {warning}", file=sys.stderr)
     return model
 

@@ -25,7 +25,9 @@ Ground truth that survives a kill: with ``ELASTOPROBE_SIM_FAULT_LOG=path`` set, 
 fault that fires appends one JSON line (pid, kind, virtual time, step key, plan index)
 to ``path``, and faults whose effect depends on what the controller does (a scanner
 fault needs a scan request, a slip needs a contact) append an ``effect`` line the first
-time they change what a device shows. The soak reads it (bench/soak.py); the in-memory
+time they change what a device shows; a stop, e-stop or lost connection that fires while
+the arm already shows it (a follow-up during the first one's recovery) is marked
+``"effective": false``. The soak reads it (bench/soak.py); the in-memory
 :attr:`FaultInjector.injected` dies with a killed process.
 """
 from __future__ import annotations
@@ -236,7 +238,11 @@ class FaultInjector:
                 self.injected.append((a.kind, now_us / US_PER_S))
                 record = {"event": "injected", "kind": a.kind, "t_s": now_us / US_PER_S,
                           "key": None if a.key is None else list(a.key), "plan": a.plan_index}
-                _append_record(record if a.follows is None else {**record, "follows": a.follows})
+                if a.follows is not None:
+                    record["follows"] = a.follows
+                if self._already_so(a.kind):
+                    record["effective"] = False       # a second stop of a stopped arm changes nothing
+                _append_record(record)
                 self._fire(a, now_us)
                 if a.follows is None:
                     self._follow_ups(a, now_us)
@@ -261,6 +267,18 @@ class FaultInjector:
                 self._schedule(plan.kind, start, plan.duration_s, plan.magnitude, plan.clear_after_s, rng,
                                key=parent.key if parent.key is not None else self._world.step_key, plan_index=i,
                                follows=parent.kind)
+
+    def _already_so(self, kind: str) -> bool:
+        """Whether the arm already shows what ``kind`` would make it show (stopped, e-stopped,
+        disconnected): then firing it changes nothing any device shows."""
+        arm = self._world.arm
+        if kind == "protective_stop":
+            return arm._protective_since_us is not None or arm._estop
+        if kind == "emergency_stop":
+            return bool(arm._estop)
+        if kind == "connection_loss":
+            return not self._connected
+        return False
 
     def _fire(self, a: _Active, now_us: int) -> None:
         arm = self._world.arm

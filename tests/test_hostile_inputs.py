@@ -172,6 +172,17 @@ def test_case3_an_object_larger_than_the_workspace_is_refused_at_check(tmp_path:
     assert "120000 x 90000 x 40000 mm" in err
 
 
+def test_an_object_placed_in_a_keep_out_box_is_refused_at_check(tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    text = SIM_CELL.read_text().replace("base_to_object: {position_mm: [400.0, 0.0, 0.0]}",
+                                        "base_to_object: {position_mm: [60.0, 0.0, 0.0]}")
+    cell = tmp_path / "cell.yaml"
+    cell.write_text(text.replace("../objects/composite.yaml", str(OBJECTS / "composite.yaml")))
+    assert main(["check", str(REPO / "config" / "plans" / "demo.yaml"), "--cell", str(cell)]) == 2
+    err = capsys.readouterr().err
+    assert "keep-out box 'robot_column'" in err and "Traceback" not in err, err
+
+
 @pytest.mark.timeout(900)
 def test_case3_run_of_an_oversized_object_ends_with_a_reason(tmp_path: Path) -> None:
     obj = _user_object(tmp_path, {"scale_mm_per_unit: 1.0": "scale_mm_per_unit: 1000"})
