@@ -406,16 +406,7 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
     for rec in sorted(injected, key=lambda r: (run_of_pid.get(r["pid"], 10**9), r["t_s"])):
         ident = (rec["kind"], tuple(rec["key"] or ()), rec["plan"])
         run_id = run_of_pid.get(rec["pid"])
-        match = None
-        # A moved object stays moved: it is seen when a scan line first crosses relief that
-        # shows the shift, which may be many contacts later (in the same process).
-        window_s = math.inf if rec["kind"] == "object_moved" else MATCH_WINDOW_S
-        for f in faults:
-            if (f.fault_id not in claimed and run_of_fault[f.fault_id] == run_id and f.t_robot_s is not None
-                    and rec["t_s"] - 1e-6 <= f.t_robot_s <= rec["t_s"] + window_s
-                    and f.kind in SEEN_AS[rec["kind"]]):
-                match = f
-                break
+        match = journaled_match(rec, run_id, faults, run_of_fault, claimed)
         fate: dict[str, Any] = {"kind": rec["kind"], "key": list(ident[1]), "run_id": run_id,
                                 "t_s": round(rec["t_s"], 3), "phase": phase_of_key(ident[1], step_phase)}
         if rec.get("follows"):
@@ -463,6 +454,25 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
     other = [f for f in faults if f.fault_id not in claimed]
     return {"fates": [f for group in fates.values() for f in group], "raw_injections": len(injected),
             "journaled_other": _histogram(f.kind for f in other)}
+
+
+def journaled_match(rec: dict[str, Any], run_id: int | None, faults: list[Any], run_of_fault: dict[int, int],
+                    claimed: set[int]) -> Any:
+    """The first unclaimed journaled fault of the same run that reports an injection ``rec``:
+    a kind the controller reports it as, journaled within the match window after it."""
+    if rec.get("effective") is False:
+        # A stop of an arm already stopped changed nothing: it claims no journaled fault
+        # (else it would take the one a later, real fault caused).
+        return None
+    # A moved object stays moved: it is seen when a scan line first crosses relief that
+    # shows the shift, which may be many contacts later (in the same process).
+    window_s = math.inf if rec["kind"] == "object_moved" else MATCH_WINDOW_S
+    for f in faults:
+        if (f.fault_id not in claimed and run_of_fault[f.fault_id] == run_id and f.t_robot_s is not None
+                and rec["t_s"] - 1e-6 <= f.t_robot_s <= rec["t_s"] + window_s
+                and f.kind in SEEN_AS[rec["kind"]]):
+            return f
+    return None
 
 
 PHASE_NAMES = {"sampling": "survey", "regions": "characterize", "densify": "densify"}

@@ -883,7 +883,11 @@ class Journal:
 
     # ------------------------------------------------------------------ session & provenance
     def session(self) -> dict[str, Any]:
-        row = self._q("SELECT created_utc, plan_name, seed, status, status_utc, status_reason FROM session")[0]
+        rows = self._q("SELECT created_utc, plan_name, seed, status, status_utc, status_reason FROM session")
+        row = rows[0] if rows else None
+        if row is None or not isinstance(row[1], str) or not isinstance(row[2], int) \
+                or row[3] not in SESSION_STATUSES or not (row[5] is None or isinstance(row[5], str)):
+            raise JournalCorruption("journal: the session record is damaged (plan name, seed or status unreadable)")
         return {"created_utc": row[0], "plan_name": row[1], "seed": row[2], "status": row[3],
                 "status_utc": row[4], "status_reason": row[5]}
 

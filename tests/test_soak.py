@@ -121,3 +121,26 @@ def test_a_fault_during_recovery_counts_as_the_pause_it_caused() -> None:
     # A pause naming another fault does not claim it.
     other = soak.ChildRun([], 101, 3, None, 1.0, 1.0, [], pause_reason="force_spike: force 52 N")
     assert soak._paused_fault_ids([other, resumed], faults, {3: 1, 4: 1}, {101: 1, 102: 2}) == set()
+
+
+def test_a_stop_of_a_stopped_arm_claims_no_journaled_fault_and_phases_come_from_keys() -> None:
+    # The quick soak met it: a follow-up protective stop fired while the arm was already
+    # stopped (it changed nothing) and took the journaled fault of the next real stop, which
+    # was then called undetected.
+    from elastoprobe.controller.journal import FaultRecord
+
+    stop = FaultRecord(fault_id=2, kind="protective_stop", t_robot_s=11.3, t_wall_utc="", step_id=None,
+                       message="during a sweep of the object: the robot is in a protective stop",
+                       policy_action="retry", raw=None)
+    idle = {"kind": "protective_stop", "t_s": 5.0, "key": [1, soak.SWEEP_KEY, 0], "effective": False}
+    real = {"kind": "protective_stop", "t_s": 11.263, "key": [1, soak.SWEEP_KEY, 1]}
+    assert soak.journaled_match(idle, 1, [stop], {2: 1}, set()) is None
+    assert soak.journaled_match(real, 1, [stop], {2: 1}, set()) is stop
+    assert soak.journaled_match(real, 2, [stop], {2: 1}, set()) is None          # another run's
+    from elastoprobe.controller.phases import SWEEP_STEP_KEY
+    from elastoprobe.controller.session import LEARN_STEP_KEY
+
+    assert (soak.SWEEP_KEY, soak.LEARN_KEY) == (SWEEP_STEP_KEY, LEARN_STEP_KEY)
+    assert soak.phase_of_key((1, soak.SWEEP_KEY, 3), {}) == "sweeping"
+    assert soak.phase_of_key((1, soak.LEARN_KEY - 2, 0), {}) == "learning"
+    assert soak.phase_of_key((1, 12, 0), {12: "regions"}) == "characterize"
