@@ -59,13 +59,20 @@ def load_object_model(inputs: SessionInputs) -> ObjectModel:
     limits = inputs.cell.limits
     vertices_base = inputs.cell.object.base_to_object.pose().apply(model.mesh.vertices)
     problem = bounds_problem(vertices_base, limits.workspace.min_mm, limits.workspace.max_mm)
+    if problem is not None:
+        problem += " (check the mesh's scale_mm_per_unit and the cell's object placement)"
     for box in limits.keep_out:
         inside = np.all((vertices_base >= box.min_mm) & (vertices_base <= box.max_mm), axis=1)
         if problem is None and inside.any():
-            problem = f"the object reaches into keep-out box {box.name!r} ({int(inside.sum())} mesh vertices inside)"
+            problem = (f"the object reaches into keep-out box {box.name!r} ({int(inside.sum())} mesh vertices "
+                       f"inside; check the cell's object placement)")
+    size_mm = float(np.ptp(vertices_base, axis=0).max())
+    tip_mm = 2.0 * inputs.cell.tool.tip_radius_mm
+    if problem is None and size_mm < tip_mm:
+        problem = (f"the object is {size_mm:.3g} mm across, smaller than the probe's tip ({tip_mm:g} mm): "
+                   f"nothing on it can be probed (a mesh in metres needs scale_mm_per_unit: 1000)")
     if problem is not None:
-        raise where[0].error(where[1], f"{path}: {problem} (check the mesh's scale_mm_per_unit and the cell's "
-                                       f"object placement)")
+        raise where[0].error(where[1], f"{path}: {problem}")
     if model.simulated is not None and inputs.cell.kind != "ur":    # simulated and loopback cells
         check_physics(inputs, model.simulated)
     return model

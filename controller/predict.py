@@ -8,6 +8,7 @@ import numpy as np
 from .errors import InputError
 from .journal import Journal
 from .learning.models import RegionModel
+from .provenance import sha256_file
 
 
 def latest_models(session_dir: Path) -> tuple[int, dict[int, Path]]:
@@ -22,6 +23,10 @@ def latest_models(session_dir: Path) -> tuple[int, dict[int, Path]]:
     if rec is None:
         raise InputError("the session has no trained models yet", path=str(session_dir))
     files = {int(k): Path(session_dir) / v["path"] for k, v in rec.outputs["regions"].items() if "path" in v}
+    for k, v in rec.outputs["regions"].items():     # a model file is served only as it was recorded
+        if "path" in v and v.get("sha256") and (not files[int(k)].is_file() or sha256_file(files[int(k)]) != v["sha256"]):
+            raise InputError(f"the model file of region {k} is missing or changed since the session recorded it "
+                             f"(refit with: elastoprobe train {session_dir})", path=str(files[int(k)]))
     return r - 1, files
 
 

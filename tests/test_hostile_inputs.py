@@ -172,6 +172,12 @@ def test_case3_an_object_larger_than_the_workspace_is_refused_at_check(tmp_path:
     assert "120000 x 90000 x 40000 mm" in err
 
 
+def test_a_mesh_in_metres_is_refused_as_smaller_than_the_tip(tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    obj = _user_object(tmp_path, {"scale_mm_per_unit: 1.0": "scale_mm_per_unit: 0.001"})
+    _check_and_run_refuse(capsys, _plan(tmp_path, obj), tmp_path, ": ", "smaller than the probe's tip")
+
+
 def test_an_object_placed_in_a_keep_out_box_is_refused_at_check(tmp_path: Path,
                                                                 capsys: pytest.CaptureFixture[str]) -> None:
     text = SIM_CELL.read_text().replace("base_to_object: {position_mm: [400.0, 0.0, 0.0]}",
