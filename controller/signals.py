@@ -18,8 +18,9 @@ Two kinds of work answer a request differently:
   checkpoint is the last committed phase and ``resume`` recomputes from there.
 
 The interrupt is raised once per process: what the session does after it (parking,
-saving, the report) is never cut short by a second request, which only turns the
-pause into a stop.
+saving) is never cut short by a second request, which turns the pause into a stop (and
+skips the report a pause writes, if that is still being written: ``elastoprobe report``
+writes it later).
 """
 from __future__ import annotations
 
