@@ -361,6 +361,7 @@ class Session:
             self._epilogue("finish", "session done")
             return EXIT_DONE
         except (SessionPaused, OperatorInterrupt) as exc:
+            self.flags.acknowledge()
             reason = self.flags.reason if isinstance(exc, OperatorInterrupt) else str(exc)
             if self.flags.stop_now:
                 self._stop_arm()

@@ -17,10 +17,11 @@ Two kinds of work answer a request differently:
   numpy, torch or SQLite call's return). Nothing it computed is committed yet, so the
   checkpoint is the last committed phase and ``resume`` recomputes from there.
 
-The interrupt is raised once per process: what the session does after it (parking,
-saving) is never cut short by a second request, which turns the pause into a stop (and
-skips the report a pause writes, if that is still being written: ``elastoprobe report``
-writes it later).
+Each request interrupts at most one computation: once the session has acknowledged it
+(:meth:`OperatorFlags.acknowledge`, when it starts to pause), only a new request raises
+again. What the session does then (parking, saving) is never cut short; a further
+request turns the pause into a stop, and skips the report a pause writes if that is
+still being written (``elastoprobe report`` writes it later).
 """
 from __future__ import annotations
 
@@ -57,27 +58,34 @@ class OperatorFlags:
     pause_requested: bool = False
     stop_now: bool = False
     interrupts: int = 0
+    requests: int = 0                # every SIGINT or SIGTERM
     _previous: dict[int, object] = field(default_factory=dict)
     _interruptible: int = 0          # depth of interruptible sections
     _deferred: int = 0               # depth of deferred sections (inside an interruptible one)
-    _raised: bool = False
+    _answered: int = 0               # requests already raised or acknowledged
 
     # -- handlers: set flags, then interrupt a computation if one is in progress
     def _on_sigint(self, signum: int, frame: FrameType | None) -> None:
         self.interrupts += 1
+        self.requests += 1
         self.pause_requested = True
         if self.interrupts >= 2:
             self.stop_now = True
         self._raise_if_pending()
 
     def _on_sigterm(self, signum: int, frame: FrameType | None) -> None:
+        self.requests += 1
         self.pause_requested = True
         self._raise_if_pending()
 
     def _raise_if_pending(self) -> None:
-        if self.pause_requested and self._interruptible and not self._deferred and not self._raised:
-            self._raised = True
+        if self.requests > self._answered and self._interruptible and not self._deferred:
+            self._answered = self.requests
             raise OperatorInterrupt(self.stop_now)
+
+    def acknowledge(self) -> None:
+        """The session acts on the requests so far (it pauses): only a new one interrupts again."""
+        self._answered = self.requests
 
     @property
     def reason(self) -> str:
