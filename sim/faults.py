@@ -26,8 +26,8 @@ fault that fires appends one JSON line (pid, kind, virtual time, step key, plan 
 to ``path``, and faults whose effect depends on what the controller does (a scanner
 fault needs a scan request, a slip needs a contact) append an ``effect`` line the first
 time they change what a device shows; a stop, e-stop or lost connection that fires while
-the arm already shows it (a follow-up during the first one's recovery) is marked
-``"effective": false``. The soak reads it (bench/soak.py); the in-memory
+the arm already shows it, or an F/T fault while the tripped guard holds the arm (a
+follow-up during the first one's recovery), is marked ``"effective": false``. The soak reads it (bench/soak.py); the in-memory
 :attr:`FaultInjector.injected` dies with a killed process.
 """
 from __future__ import annotations
@@ -270,8 +270,11 @@ class FaultInjector:
 
     def _already_so(self, kind: str) -> bool:
         """Whether the arm already shows what ``kind`` would make it show (stopped, e-stopped,
-        disconnected): then firing it changes nothing any device shows."""
+        disconnected; for an F/T fault: the safety guard has tripped and holds the arm until
+        it is re-armed): then firing it changes nothing any device shows."""
         arm = self._world.arm
+        if kind in ("force_spike", "ft_stall", "ft_frozen"):
+            return self._world.trip is not None
         if kind == "protective_stop":
             return arm._protective_since_us is not None or arm._estop
         if kind == "emergency_stop":
