@@ -52,7 +52,7 @@ def load_object_model(inputs: SessionInputs) -> ObjectModel:
             mesh = read_mesh(path)
         except ValueError as exc:
             raise where[0].error(where[1], f"{path}: {exc}") from None
-        findings = mesh_findings(mesh, table_z_mm=None)
+        findings = mesh_findings(mesh)
         if findings.errors:
             raise where[0].error(where[1], f"{path}: " + "; ".join(findings.errors))
         model = ObjectModel(mesh=mesh, warnings=[f"{path}: {w}" for w in findings.warnings])

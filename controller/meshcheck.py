@@ -85,9 +85,9 @@ def _places(points_mm: list[np.ndarray]) -> str:
     return shown + (f" and {more} more" if more > 0 else "")
 
 
-def mesh_findings(mesh: trimesh.Trimesh, table_z_mm: float | None = 0.0) -> MeshFindings:
-    """Errors and warnings of a read mesh (mm, object frame; the table at ``table_z_mm``,
-    None when the object does not rest on a table)."""
+def mesh_findings(mesh: trimesh.Trimesh) -> MeshFindings:
+    """Errors and warnings of a read mesh (mm, object frame, z up: the object rests on the
+    table at its lowest point)."""
     found = MeshFindings()
     vertices = np.asarray(mesh.vertices, dtype=float)
     degenerate = degenerate_faces(mesh)
@@ -109,8 +109,8 @@ def mesh_findings(mesh: trimesh.Trimesh, table_z_mm: float | None = 0.0) -> Mesh
                               f"{_places(mids)}: the simulated contact and the collision checks may see "
                               f"a wrong side there")
     open_edges = unique[counts == 1]
-    if len(open_edges) and table_z_mm is not None:
-        on_table = np.all(vertices[open_edges][:, :, 2] <= table_z_mm + TABLE_RIM_MM, axis=1)
+    if len(open_edges):
+        on_table = np.all(vertices[open_edges][:, :, 2] <= vertices[:, 2].min() + TABLE_RIM_MM, axis=1)
         open_edges = open_edges[~on_table]
     if len(open_edges):
         holes = _loops(open_edges)

@@ -584,7 +584,7 @@ def _load_mesh_object(spec: ObjectSpec, doc: YamlDoc, path: Path) -> MeshObject:
             mesh.apply_translation([0.0, 0.0, -float(mesh.vertices[:, 2].min())])
         elif float(mesh.vertices[:, 2].min()) < -1e-6:
             raise doc.error(("mesh", "place_on_table"), "the mesh reaches below the table (z < 0)")
-        findings = mesh_findings(mesh, table_z_mm=0.0)
+        findings = mesh_findings(mesh)
     if findings.errors:
         raise doc.error(("mesh", "file"), f"{file.name}: " + "; ".join(findings.errors))
     names, materials = _materials(spec)
