@@ -437,7 +437,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return exc.exit_code
     except BrokenPipeError:
         return EXIT_DONE
-    except KeyboardInterrupt:       # a command without its own handling (calibrate, diagram, ...)
+    except KeyboardInterrupt:       # before a session took the signals, or a command without handling
+        if args.command == "run":
+            print("elastoprobe run: interrupted before the session started; nothing was written", file=sys.stderr)
+            return EXIT_FAULT
         print(f"elastoprobe {args.command}: interrupted", file=sys.stderr)
         return EXIT_PAUSED
     except OSError as exc:

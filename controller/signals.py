@@ -140,6 +140,9 @@ def _holder_pid(session_dir: Path) -> int:
     if not holder or not holder.get("pid"):
         raise InputError("no controller is running this session (no lock holder)", path=str(session_dir))
     pid = int(holder["pid"])
+    if holder.get("alive") is None:
+        raise InputError(f"the controller (pid {pid}) runs on host {holder.get('host')!r}, not this one: "
+                         f"pause or stop it there", path=str(session_dir))
     if holder.get("alive") is False:
         raise InputError(f"the controller (pid {pid}) is not running; continue with: elastoprobe resume "
                          f"{session_dir}", path=str(session_dir))

@@ -569,7 +569,8 @@ def _load_mesh_object(spec: ObjectSpec, doc: YamlDoc, path: Path) -> MeshObject:
     assert ms is not None
     file = (path.parent / ms.file).resolve()
     if not file.is_file():
-        raise doc.error(("mesh", "file"), f"mesh file {str(file)!r} does not exist")
+        what = "is not a regular file" if file.exists() else "does not exist"
+        raise doc.error(("mesh", "file"), f"mesh file {str(file)!r} {what}")
     try:
         loaded = read_mesh(file)
     except ValueError as exc:
