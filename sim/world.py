@@ -580,7 +580,10 @@ class SimWorld:
         now = self.now_us
         end = now + n_periods * period
         faults._sim_on_time(now)
-        if faults._sim_any_active() or faults._sim_bound_end(now, end) != end:
+        # A fault that fired just now may have ended the hold already (a protective stop
+        # halts the arm and is over in the same instant, so it is not active any more).
+        if (faults._sim_any_active() or faults._sim_bound_end(now, end) != end
+                or not arm._sim_hold_ready(now)):
             return False
         path = arm._path
         rot = path.r0

@@ -150,3 +150,18 @@ def test_no_batch_while_the_force_ramps():
     tick(cell, None, 0.5)                               # a long sleep while RUNNING
     assert motion.state() == MotionState.RUNNING
     assert cell.world.stats["hold_spans"] == spans
+
+
+def test_a_protective_stop_due_at_a_loop_update_ends_the_hold_without_a_batch():
+    """The fault fires as the batch starts and is over at once (a protective stop halts the
+    arm in that instant): the batch must see the hold has ended (a soak night died here)."""
+    cell = make_cell(seed=3)
+    cell.begin_step((3, 1, 0))
+    press(cell, POINTS["rubber_ball"], UP, 90.0, 5.0, settle_s=0.2)
+    log = Log()
+    _hold_and_scan(cell, log, 0.6, 0)                  # batched
+    period = cell.arm._settings.force_loop_period_us
+    due_us = cell.arm._regulator.next_update_us + 5 * period
+    cell.faults.inject("protective_stop", delay_s=(due_us - cell.world.now_us) / 1e6)
+    _hold_and_scan(cell, log, 0.8, 0)
+    assert cell.arm._regulator is None and cell.arm._protective_since_us == due_us
