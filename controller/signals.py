@@ -28,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -64,19 +65,54 @@ class OperatorFlags:
     _deferred: int = 0               # depth of deferred sections (inside an interruptible one)
     _answered: int = 0               # requests already raised or acknowledged
 
-    # -- handlers: set flags, then interrupt a computation if one is in progress
-    def _on_sigint(self, signum: int, frame: FrameType | None) -> None:
-        self.interrupts += 1
-        self.requests += 1
-        self.pause_requested = True
+    # Signals seen, counted from both sides (see _on_signal): handler calls and wakeup-pipe bytes.
+    _calls: dict[int, int] = field(default_factory=dict)
+    _bytes: dict[int, int] = field(default_factory=dict)
+    _counted: dict[int, int] = field(default_factory=dict)
+    _wakeup: tuple[int, int] | None = None   # pipe the C-level handler writes each signal's number to
+    _previous_wakeup: int = -1
+
+    # -- handler: set flags, then interrupt a computation if one is in progress
+    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+        # Python makes one handler call for all the signals of one number that arrive while
+        # the main thread is inside one C call (two SIGINTs 50 ms apart inside a torch or
+        # numpy operation), but the C-level handler writes a byte per signal to the wakeup
+        # pipe. Neither count alone is exact: calls coalesce, and a byte is written just
+        # after the flag that makes the call (when another thread took the signal, the call
+        # can come first). Both are lower bounds of the signals delivered, so the larger one
+        # is counted: nothing is counted twice and a single signal is never lost.
+        self._calls[signum] = self._calls.get(signum, 0) + 1
+        for sig, n in self._drain().items():
+            self._bytes[sig] = self._bytes.get(sig, 0) + n
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            seen = max(self._calls.get(sig, 0), self._bytes.get(sig, 0))
+            new = seen - self._counted.get(sig, 0)
+            if new <= 0:
+                continue
+            self._counted[sig] = seen
+            self.requests += new
+            self.pause_requested = True
+            if sig == signal.SIGINT:
+                self.interrupts += new
         if self.interrupts >= 2:
             self.stop_now = True
         self._raise_if_pending()
 
-    def _on_sigterm(self, signum: int, frame: FrameType | None) -> None:
-        self.requests += 1
-        self.pause_requested = True
-        self._raise_if_pending()
+    def _drain(self) -> dict[int, int]:
+        """Signal number -> bytes read from the wakeup pipe since the last drain."""
+        counts: dict[int, int] = {}
+        if self._wakeup is None:
+            return counts
+        while True:
+            try:
+                data = os.read(self._wakeup[0], 512)
+            except (BlockingIOError, InterruptedError):
+                break
+            if not data:
+                break
+            for sig in data:
+                counts[sig] = counts.get(sig, 0) + 1
+        return counts
 
     def _raise_if_pending(self) -> None:
         if self.requests > self._answered and self._interruptible and not self._deferred:
@@ -103,17 +139,46 @@ class OperatorFlags:
             self._interruptible -= 1
 
     def install(self) -> "OperatorFlags":
+        """Take SIGINT and SIGTERM for this process until :meth:`restore`.
+
+        Only the main thread can take signals; elsewhere (a controller embedded in a
+        thread) nothing is installed and the flags stay as they are, so requests go to
+        whatever the main thread does with them."""
         global _active
-        self._previous[signal.SIGINT] = signal.signal(signal.SIGINT, self._on_sigint)
-        self._previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, self._on_sigterm)
+        if threading.current_thread() is not threading.main_thread():
+            return self
+        r, w = os.pipe()
+        try:
+            os.set_blocking(r, False)
+            os.set_blocking(w, False)
+            self._previous_wakeup = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+        except BaseException:
+            os.close(r)
+            os.close(w)
+            raise
+        self._wakeup = (r, w)
+        try:
+            self._previous[signal.SIGINT] = signal.signal(signal.SIGINT, self._on_signal)
+            self._previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, self._on_signal)
+        except BaseException:
+            self.restore()
+            raise
         _active = self
         return self
 
     def restore(self) -> None:
+        """Give back the handlers and wakeup fd found by :meth:`install` (nested installs
+        restore in reverse order, as the session inside the CLI does)."""
         global _active
         for signum, handler in self._previous.items():
             signal.signal(signum, handler)   # type: ignore[arg-type]
         self._previous.clear()
+        if self._wakeup is not None:
+            signal.set_wakeup_fd(self._previous_wakeup)
+            for fd in self._wakeup:
+                os.close(fd)
+            self._wakeup = None
+            self._previous_wakeup = -1
         if _active is self:
             _active = None
 

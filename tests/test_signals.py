@@ -68,3 +68,88 @@ def test_a_request_before_the_computation_interrupts_it_at_its_start(flags: Oper
     with pytest.raises(OperatorInterrupt):
         with flags.interruptible():
             pytest.fail("the computation should not start")
+
+
+def test_two_sigints_during_one_long_c_call_are_a_stop(flags: OperatorFlags) -> None:
+    """Python makes one handler call for signals that arrive while the main thread is inside
+    one C call (a numpy or torch operation); a double SIGINT, 50 ms apart as ``elastoprobe
+    stop`` sends it, must still be a stop. The long C call here is a blocking read(2) through
+    ctypes, restarted after each signal (SA_RESTART), that ends when the sender writes."""
+    import ctypes
+    import threading
+    import time
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    r, w = os.pipe()
+    signal.siginterrupt(signal.SIGINT, False)       # restart the read: no return to Python between
+
+    def press_twice_then_release() -> None:
+        time.sleep(0.1)
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        os.write(w, b"x")
+
+    sender = threading.Thread(target=press_twice_then_release)
+    try:
+        sender.start()
+        buf = ctypes.create_string_buffer(1)
+        assert libc.read(r, buf, 1) == 1            # both signals land in here
+        sender.join()
+        assert flags.interrupts == 2 and flags.stop_now and flags.reason == "stopped by the operator"
+    finally:
+        os.close(r)
+        os.close(w)
+
+
+def test_a_sigint_and_a_sigterm_in_one_c_call_count_once_each(flags: OperatorFlags) -> None:
+    """Two handler calls (one per signal number) drain one pipe: nothing is counted twice."""
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        os.kill(os.getpid(), signal.SIGINT)
+        os.kill(os.getpid(), signal.SIGTERM)
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+    for _ in range(3):                  # let the interpreter run the pending handlers
+        pass
+    assert flags.requests == 2 and flags.interrupts == 1 and not flags.stop_now
+
+
+def test_restore_gives_back_the_handlers_and_the_wakeup_fd() -> None:
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+    previous = signal.set_wakeup_fd(w)
+    try:
+        outer = OperatorFlags().install()
+        inner = OperatorFlags().install()     # the session inside the CLI's flags
+        inner.restore()
+        assert signal.getsignal(signal.SIGINT) == outer._on_signal
+        outer.restore()
+        assert {s: signal.getsignal(s) for s in before} == before
+        assert signal.set_wakeup_fd(w) == w   # ours again, untouched
+    finally:
+        signal.set_wakeup_fd(previous)
+        os.close(r)
+        os.close(w)
+
+
+def test_off_the_main_thread_install_takes_nothing_and_restore_is_harmless() -> None:
+    import threading
+
+    before = signal.getsignal(signal.SIGINT)
+    errors: list[BaseException] = []
+
+    def embedded() -> None:
+        try:
+            f = OperatorFlags().install()
+            assert f._wakeup is None and not f._previous
+            f.restore()
+        except BaseException as exc:    # noqa: BLE001 - reported to the main thread
+            errors.append(exc)
+
+    t = threading.Thread(target=embedded)
+    t.start()
+    t.join()
+    assert errors == [] and signal.getsignal(signal.SIGINT) is before
