@@ -236,15 +236,19 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_predict(args: argparse.Namespace) -> int:
     from .predict import predict_profile
 
-    x_mm, depth_mm, std_mm = predict_profile(Path(args.dir), args.region, args.force, args.angle)
+    x_mm, depth_mm, std_mm, outside = predict_profile(Path(args.dir), args.region, args.force, args.angle,
+                                                      extrapolate=args.extrapolate)
     if args.json:
         print(json.dumps({"region": args.region, "force_n": args.force, "angle_deg": args.angle,
+                          "extrapolated": outside,
                           "x_mm": [round(v, 4) for v in x_mm.tolist()],
                           "depth_mm": [None if v != v else round(v, 5) for v in depth_mm.tolist()],
                           "ensemble_std_mm": [None if v != v else round(v, 5) for v in std_mm.tolist()]},
                          allow_nan=False))
     else:
         i = int(depth_mm.argmax())
+        for line in outside:
+            print(f"EXTRAPOLATED: {line}")
         print(f"region {args.region}, F = {args.force} N, angle = {args.angle} deg: peak depth "
               f"{depth_mm[i]:.3f} mm (ensemble spread {std_mm[i]:.3f} mm) at x = {x_mm[i]:.1f} mm")
         for xv, dv in zip(x_mm[::16], depth_mm[::16]):
@@ -371,6 +375,9 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("--force", type=_finite_float, required=True, help="force magnitude (N)")
     pr.add_argument("--angle", type=_finite_float, required=True, help="approach angle (deg, 0..180)")
     pr.add_argument("--json", action="store_true")
+    pr.add_argument("--extrapolate", action="store_true",
+                    help="answer a query outside the force and angle ranges the model was fitted on "
+                         "(flagged in the answer) instead of refusing it")
 
     rp = sub.add_parser("report", help="(re)write DIR/report/index.html")
     rp.add_argument("dir", type=_existing_dir)

@@ -20,6 +20,7 @@ import numpy as np
 from .geometry import INTERIOR_ANGLES_DEG, scan_direction
 from .journal import StepPlan
 from .learning import profiles as prof
+from .predict import trained_ranges
 from .probe import ProbeTarget, StepData
 from .session import SessionAborted
 
@@ -536,11 +537,12 @@ def _characterize_choice(ctx: PhaseContext, labels: dict[int, int], n_regions: i
 
 
 def region_dataset(ctx: PhaseContext, region: int) -> dict[str, np.ndarray]:
-    """Every done step at targets of ``region``: measured |F|, commanded angle, profile, point id."""
+    """Every done step at targets of ``region``: measured |F|, commanded angle, profile, point id,
+    commanded force."""
     s = ctx.session
     j = s.journal
     assert j is not None
-    forces, angles, depths, pids = [], [], [], []
+    forces, angles, depths, pids, commanded = [], [], [], [], []
     recs = [r for r in j.steps(statuses=["done"]) if ctx.labels.get(r.plan.target_index) == region]
     for r in recs:
         res = j.step_result(r.step_id)
@@ -548,7 +550,8 @@ def region_dataset(ctx: PhaseContext, region: int) -> dict[str, np.ndarray]:
         angles.append(r.plan.angle_deg)
         depths.append(res.profile_depth_mm)
         pids.append(r.plan.target_index)
-    return {"force_n": np.array(forces), "angle_deg": np.array(angles),
+        commanded.append(r.plan.force_n)
+    return {"force_n": np.array(forces), "angle_deg": np.array(angles), "commanded_force_n": np.array(commanded),
             "depth_mm": np.array(depths) if depths else np.zeros((0, ctx.grid.samples)),
             "point_ids": np.array(pids, dtype=np.int64)}
 
@@ -585,7 +588,9 @@ def phase_models(ctx: PhaseContext, round_: int) -> None:
             digest = j.record_model(region, 0, path, {"round": round_, "n_profiles": int(len(data["force_n"]))})
             outputs["regions"][str(region)] = {"path": str(Path(path).relative_to(s.dir)), "sha256": digest,
                                                "model_hash": model.model_hash(),
-                                               "n_profiles": int(len(data["force_n"]))}
+                                               "n_profiles": int(len(data["force_n"])),
+                                               **trained_ranges(data["force_n"], data["commanded_force_n"],
+                                                                data["angle_deg"])}
         crash_point("models:before_commit")
         j.commit_phase("models", round_, outputs)
         s._log("phase", name="models", round=round_, regions=list(outputs["regions"]))
