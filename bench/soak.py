@@ -660,13 +660,16 @@ def run_soak(cfg: SoakConfig, work_dir: Path) -> dict[str, Any]:
             state["kills_by_mode"][mode] = state["kills_by_mode"].get(mode, 0) + 1
             kills_left -= 1
             mode_index += 1
-        elif mode == "learning":
-            # It paused before it reached a learning phase: try again, but after three misses
-            # (no learning left in the night) go on to the next kind of kill.
-            learning_misses += 1
-            if learning_misses >= 3:
-                mode_index, learning_misses = mode_index + 1, 0
         elif child.returncode == 3:
+            if mode == "learning":
+                # It paused before it reached a learning phase: try again, but after three
+                # misses (no learning left in the night) go on to the next kind of kill.
+                learning_misses += 1
+                if learning_misses >= 3:
+                    mode_index, learning_misses = mode_index + 1, 0
+            # The operator plays their part whatever kill was armed (a pause on an e-stop
+            # while a learning kill waited was left uncounted, and the short run's judge
+            # then missed its operator release).
             if reason and "emergency_stop" in reason:
                 time.sleep(cfg.operator_delay_s)     # the operator walks over and releases it
                 state["operator_clears"] += 1
