@@ -494,10 +494,11 @@ def _dedupe(groups: list[np.ndarray], gap_mm: float) -> np.ndarray:
     return pts[keep]
 
 
-def _triangulate(points_xy: np.ndarray) -> np.ndarray:
-    """Delaunay triangles (T,3), counter-clockwise seen from above."""
+def _triangulate(points_xy: np.ndarray, n_needed: int) -> np.ndarray:
+    """Delaunay triangles (T,3), counter-clockwise seen from above; the first ``n_needed`` points
+    must all be vertices (qhull may leave out a nearly coincident one)."""
     tri = Delaunay(points_xy)
-    if len(tri.coplanar):
+    if len(tri.coplanar) and np.any(tri.coplanar[:, 0] < n_needed):
         raise RuntimeError("degenerate point set: qhull dropped points")
     f = tri.simplices.copy()
     a, b, c = points_xy[f[:, 0]], points_xy[f[:, 1]], points_xy[f[:, 2]]
@@ -589,7 +590,7 @@ def _top_faces(footprint: Footprint, ring: np.ndarray, inner: list[np.ndarray]) 
     others = pts[n_ring:]
     pts = np.vstack([pts[:n_ring], others[footprint.inset_mm(others) >= RING_CLEAR_MM]])
     ghost = footprint.inset_points(ring[::2], -GHOST_OUT_MM)
-    faces = _triangulate(np.vstack([pts, ghost]))
+    faces = _triangulate(np.vstack([pts, ghost]), len(pts))
     return pts, faces[np.all(faces < len(pts), axis=1)]
 
 

@@ -109,6 +109,13 @@ def test_sim_object_refuses_bad_choices_with_exit_2(tmp_path: Path, capsys: pyte
     assert not (tmp_path / "x").exists()
 
 
+def test_sim_object_into_a_file_is_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    target = tmp_path / "taken"
+    target.write_text("not a folder", encoding="utf-8")
+    assert main(["sim", "object", "--seed", "3", "--out", str(target)]) == 2
+    assert "must be a folder" in capsys.readouterr().err and target.read_text(encoding="utf-8") == "not a folder"
+
+
 def test_the_plan_text_reads_back_as_the_same_plan() -> None:
     from ruamel.yaml import YAML
 
