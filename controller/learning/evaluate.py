@@ -317,20 +317,22 @@ def truth_surface_scores(surface_points_mm: np.ndarray, surface_normals: np.ndar
     """Score a session's region map (over its cloud) on samples of the object's true surface.
 
     The surface samples (S,3) carry their true normals and labels and the area (mm^2) each
-    stands for (sim/truth_surface.py). The cloud's labels are carried onto them (:func:`carry_labels`)
-    and scored with :func:`region_map_scores`, area-weighted, boundary points within 1.5
-    sample spacings. ``coverage``: the area fraction within ``covered_mm`` of the cloud
-    point its label came from (the nearest one of the same face). The uncovered part is scored too (the user receives a map
-    there as well); ``error_covered`` / ``error_uncovered``: the mislabelled fraction of
-    each part's own area (None for an empty part).
+    stands for (sim/truth_surface.py). The cloud's labels are carried onto them
+    (:func:`carry_labels`) and scored with :func:`region_map_scores`, area-weighted,
+    boundary points within 1.5 sample spacings. ``coverage``: the area fraction within
+    ``covered_mm`` of the cloud point its label came from (the nearest one of the same
+    face). The uncovered part is scored too (the user receives a map there as well);
+    ``error_covered`` / ``error_uncovered``: the mislabelled fraction of each part's own
+    area (None for an empty part). ``wrong`` (S,) marks the mislabelled samples.
     """
     pts = np.asarray(surface_points_mm, dtype=float).reshape(-1, 3)
     true = np.asarray(true_labels).reshape(-1)
     w = np.asarray(area_mm2, dtype=float).reshape(-1)
     carried, dist = carry_labels(pts, surface_normals, cloud_points_mm, cloud_normals, cloud_labels)
     scores = region_map_scores(carried, true, w, pts, radius_mm=1.5 * spacing_mm)
-    matched = np.array([scores["matching"].get(v.item(), -1) for v in np.unique(carried)])
-    wrong = matched[np.searchsorted(np.unique(carried), carried)] != true
+    ids, which = np.unique(carried, return_inverse=True)
+    matched = np.array([scores["matching"].get(v.item(), -1) for v in ids], dtype=int)
+    wrong = matched[which.reshape(-1)] != true if ids.size else np.zeros(0, bool)
     covered = dist <= covered_mm
 
     def error_of(part: np.ndarray) -> float | None:
