@@ -226,7 +226,7 @@ def _truth_surface_map(inputs: Any, truth: Any, cloud_mm: np.ndarray, cloud_norm
     out_of_reach = float(top.area_mm2[~reach].sum())
     top = top.subset(reach)
     s = ev.truth_surface_scores(top.points_mm, top.normals, top.labels, top.area_mm2, cloud_mm, cloud_normals,
-                                cloud_labels, top.spacing_mm)
+                                cloud_labels, top.spacing_mm, seam_distance_mm=truth.boundary_distance_mm)
     wrong = s["wrong"]
     names = truth.region_names()
     return {
