@@ -210,8 +210,8 @@ def fit_problems(outline: ObjectOutline, cell: CellSpec) -> list[str]:
     model = ur5e(cell.tool.flange_to_tcp.pose(), limits)
     seed = np.radians(np.asarray(cell.robot.home_joints_deg, dtype=float))
     up, t = b2o.apply_vector(np.array([0.0, 0.0, 1.0])), b2o.apply_vector(np.array([0.0, 1.0, 0.0]))
-    top = [np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[2]])] + [np.array([x, y, hi[2]])
-                                                                           for x in (lo[0], hi[0]) for y in (lo[1], hi[1])]
+    top = [np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[2]])]
+    top += [np.array([x, y, hi[2]]) for x in (lo[0], hi[0]) for y in (lo[1], hi[1])]
     for p in top:
         pose: Pose = standoff_pose(b2o.apply(p), up, t, 90.0, cell.tool.tip_radius_mm, STANDOFF_MM)
         if inverse(model, pose, seed) is None:

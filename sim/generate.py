@@ -81,7 +81,7 @@ each part draws from its own stream, ``default_rng([seed, part])``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -781,7 +781,8 @@ FAMILIES: dict[str, Family] = {f.name: f for f in (
     Family("elastomer", "elastic", (6.0, 18.0),
            {"nu": (0.45, 0.49), "friction_mu": 0.9, "body_radius_mm": 0.0, "plough_ratio": 1.0,
             "creep_fraction": 0.02, "creep_tau_s": 0.5},
-           {"scanner_noise_mm": 0.015, "noise_corr_floor_mm": 0.003, "dropout_prob": 0.01, "steep_incidence_deg": 75.0}),
+           {"scanner_noise_mm": 0.015, "noise_corr_floor_mm": 0.003, "dropout_prob": 0.01,
+            "steep_incidence_deg": 75.0}),
     Family("hard_rubber", "elastic", (25.0, 60.0),
            {"nu": 0.49, "friction_mu": 0.8, "body_radius_mm": 0.0, "plough_ratio": 1.0, "creep_fraction": 0.01,
             "creep_tau_s": 0.5},
@@ -860,7 +861,8 @@ class MaterialDraw:
     def contrast(self) -> dict[str, Any]:
         """Survey-dent ratios of every pair (larger over smaller) and the smallest."""
         d = self.survey_dent_mm
-        pairs = [[i, j, round(max(d[i], d[j]) / min(d[i], d[j]), 3)] for i in range(len(d)) for j in range(i + 1, len(d))]
+        pairs = [[i, j, round(max(d[i], d[j]) / min(d[i], d[j]), 3)]
+                 for i in range(len(d)) for j in range(i + 1, len(d))]
         return {"pairs": pairs, "min": min((p[2] for p in pairs), default=None),
                 "near_pair": list(self.near_pair) if self.near_pair else None}
 
