@@ -18,7 +18,9 @@ Shapes (every top is a height field z(x, y) over a footprint; lengths are semi-a
 - ``block``: a ~ U(55, 85), b ~ U(45, 65), p ~ U(3, 5), H ~ U(40, 70), shoulders rounded by
   r_e ~ U(0.25, 0.45) H (the shipped user object's kind).
 - ``dome``: an elliptic footprint (p = 2), a ~ U(80, 120), b = a U(0.75, 1), a paraboloid
-  z = H (1 - (x/a)^2 - (y/b)^2), H ~ U(25, 50): meets the table at atan(2H/a) = 22-51 deg.
+  z = H (1 - (x/a)^2 - (y/b)^2), H ~ U(15, 35): a low dome, meeting the table at
+  atan(2H/a) = 14-41 deg, so that 45-100 % of its footprint lies within 30 deg of level
+  (the plan rule's tilt limit).
 - ``sheet`` (undulating): a slab's footprint, z = H0 + A sin(2 pi u / L + phi) with u along a
   random direction, H0 ~ U(22, 35), L ~ U(70, 140), A ~ U(0.03, 0.07) L (slopes up to
   13-24 deg), edge rounded by r_e ~ U(3, 8).
@@ -238,7 +240,7 @@ def draw_shape(kind: str, rng: np.random.Generator, pattern: str) -> Shape:
         return Shape(kind, Footprint(u(55.0, 85.0), u(45.0, 65.0), u(3.0, 5.0)), height, u(0.25, 0.45) * height)
     if kind == "dome":
         a = u(80.0, 120.0)
-        return Shape(kind, Footprint(a, a * u(0.75, 1.0), 2.0), u(25.0, 50.0), 0.0, curved=True)
+        return Shape(kind, Footprint(a, a * u(0.75, 1.0), 2.0), u(15.0, 35.0), 0.0, curved=True)
     if kind == "sheet":
         length = u(70.0, 140.0)
         wave = (u(0.03, 0.07) * length, length, u(0.0, np.pi), u(0.0, 2.0 * np.pi))
