@@ -54,6 +54,8 @@ def test_forces_follow_the_height_within_the_cells_limits(tmp_path: Path) -> Non
     plan = plan_for_object(outline, CELL, "thin", "thin.yaml")
     assert plan["phases"]["characterize"]["forces_n"] == [1.0, 2.5, 4.5, 7.0, 10.0]
     assert plan["phases"]["survey"]["forces_n"] == [1.5, 4.5] and plan["limits"]["max_force_n"] == 15.0
+    # The contact search ends above the table: half the height past the surface, not the cell's 30 mm.
+    assert plan["limits"]["search_distance_mm"] == 12.0
     assert plan["sampling"]["units"] == 48
     dens = valid(plan, tmp_path).phases.densify
     assert dens.resolution_mm >= 2 * dens.min_spacing_mm and dens.points_per_round == 14
