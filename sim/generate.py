@@ -23,7 +23,7 @@ Shapes (every top is a height field z(x, y) over a footprint; lengths are semi-a
   (the plan rule's tilt limit).
 - ``sheet`` (undulating): a slab's footprint, z = H0 + A sin(2 pi u / L + phi) with u along a
   random direction, H0 ~ U(22, 35), L ~ U(70, 140), A ~ U(0.03, 0.07) L (slopes up to
-  13-24 deg), edge rounded by r_e ~ U(3, 8).
+  11-24 deg), edge rounded by r_e ~ U(3, 8).
 - ``composite``: a base like the shipped pillow, a ~ U(150, 200), b ~ U(110, 150), p ~ U(6, 10),
   H ~ U(50, 80), r_e ~ U(15, 25), carrying a stiff part with a superellipse footprint
   (p = 12), semi-axes U(50, 80) each, off-centre by up to the room left on the flat top
@@ -45,8 +45,10 @@ Patterns (painted on the top; label 0 is the matrix, the others one material eac
   strip; one that finds no room shrinks (at most to 15 mm across) until it does. The
   composite's pattern is its stiff part (``box`` or ``plate``).
 
-Materials (the shipped ones' families; log-uniform moduli; ``h`` is the area-weighted mean
-height of the top the material covers, i.e. the layer under a typical probe point):
+Materials (the shipped ones' families; ``h`` is the area-weighted mean height of the top
+the material covers, i.e. the layer under a typical probe point). Moduli are drawn
+log-uniformly in survey dent over what the family's range (below) and the validity leave,
+minus the dents too close to the materials already drawn (:func:`draw_materials`):
 
 ==============  ==============  ================  =====================================
 family          kind            modulus (MPa)     other
@@ -75,9 +77,10 @@ Meshes: the top is a Delaunay triangulation of a designed point set: a hexagonal
 (7 mm on flat tops, 5 mm on curved ones), rows along the rounded edge (<= 3 mm of arc
 apart), and every seam sampled at 0.8 mm with rows at +-0.5, 1.2, 2.4 and 4.5 mm beside it.
 A face takes the label of the pattern at its centroid, so a seam is rendered by the
-chords between its own samples (within ~0.05 mm for the tightest curve, a 15 mm disc) and
-the faces along it are about 1 mm (:func:`seam_render_error_mm` measures both). The walls
-are strips between the edge ring (1.5 mm apart) and the table. Deterministic for a seed:
+chords between its own samples: on the suite the label boundary lies within 0.3 mm of the
+drawn seam (0.45 mm where a seam meets a dome's rim), with faces of about 1 mm along it
+(:func:`seam_render_error_mm` measures both). The walls are strips between the edge ring
+(1 mm apart) and the table. Deterministic for a seed:
 each part draws from its own stream, ``default_rng([seed, part])``.
 """
 from __future__ import annotations
