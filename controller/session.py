@@ -466,8 +466,9 @@ class Session:
                 return
             self._current_step = data.step_id
             attempt = j.begin_step(data.step_id)
-            profile, x = phases.step_profile(self, target, data)
-            result = StepResult.from_step_data(data, profile, x)
+            measured = phases.measure_step_data(self, target, data)
+            result = StepResult.from_step_data(data, measured.depth_mm, phases.session_grid(self).x_mm,
+                                               summary=measured.facts())
             self._inject_disk_error(data.step_id, retry)
             j.commit_step(data.step_id, attempt, result)
             step_time += data.robot_time_s
