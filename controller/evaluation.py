@@ -17,7 +17,9 @@ from .errors import InputError
 from .geometry import INTERIOR_ANGLES_DEG, scan_direction
 from .journal import Journal
 from .learning import evaluate as ev
-from .learning.models import RegionModel
+from .learning.models import RegionModel, ServedProfile
+from .learning.support import SUPPORT_NAMES
+from .predict import served_models
 
 
 def _inputs_of(j: Journal) -> Any:
@@ -40,6 +42,52 @@ def _held_out_forces(trained: list[float]) -> list[float]:
     return [(x + y) / 2.0 for x, y in zip(f, f[1:])]
 
 
+class FullSpan:
+    """Full-span scores of served profiles: every sample where the true surface is defined."""
+
+    def __init__(self) -> None:
+        self.errors: list[np.ndarray] = []
+        self.codes: list[np.ndarray] = []
+        self.served = 0
+
+    def add(self, served: ServedProfile, truth_mm: np.ndarray, face: np.ndarray) -> None:
+        scored = face & np.isfinite(truth_mm)
+        self.served += int(truth_mm.size)
+        # A NaN served sample is scored as the worst error, never skipped.
+        err = np.where(np.isfinite(served.depth_mm), served.depth_mm - truth_mm, np.inf)
+        self.errors.append(err[scored])
+        self.codes.append(np.asarray(served.support)[scored])
+
+    def _all(self) -> tuple[np.ndarray, np.ndarray]:
+        if not self.errors:
+            return np.zeros(0), np.zeros(0, dtype=np.int8)
+        return np.concatenate(self.errors), np.concatenate(self.codes)
+
+    def rmse(self) -> float | None:
+        e, _ = self._all()
+        return float(np.sqrt(np.mean(e ** 2))) if e.size else None
+
+    def max_abs(self) -> float | None:
+        e, _ = self._all()
+        return float(np.max(np.abs(e))) if e.size else None
+
+    def scored_fraction(self) -> float | None:
+        e, _ = self._all()
+        return e.size / self.served if self.served else None
+
+    def support_fractions(self) -> dict[str, Any]:
+        _, c = self._all()
+        names = list(SUPPORT_NAMES) + ["unknown"]
+        idx = np.where((c >= 0) & (c < len(SUPPORT_NAMES)), c, len(SUPPORT_NAMES)).astype(int)
+        counts = np.bincount(idx, minlength=len(names)) if c.size else np.zeros(len(names), int)
+        return {n: _num(k / c.size) if c.size else None for n, k in zip(names, counts)}
+
+    def rmse_by_support(self) -> dict[str, Any]:
+        e, c = self._all()
+        return {n: _num(float(np.sqrt(np.mean(e[c == k] ** 2)))) if np.any(c == k) else None
+                for k, n in enumerate(SUPPORT_NAMES)}
+
+
 def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int = 12345) -> dict[str, Any]:
     from .cellfactory import ground_truth_for
 
@@ -53,13 +101,6 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
             raise InputError("the session has no final region map yet (run or resume it to the end)",
                              path=str(session_dir))
         truth = ground_truth_for(inputs, int(sess["seed"]))
-        model_round = int(final.outputs["model_round"])
-        models_rec = j.phase("models", model_round)
-        models: dict[int, RegionModel] = {}
-        if models_rec is not None:
-            for region, info in models_rec.outputs["regions"].items():
-                if "path" in info:
-                    models[int(region)] = RegionModel.load(Path(session_dir) / info["path"])
         regions_rec = None
         r = 0
         while j.phase("regions", r) is not None:
@@ -71,6 +112,9 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         measured = [(rec, j.step_result(rec.step_id)) for rec in char]
     finally:
         j.close()
+    # What predict serves: the newest models, or those `elastoprobe train` refitted since.
+    source = served_models(Path(session_dir))
+    models = {region: RegionModel.load(path) for region, path in source.files.items()}
 
     pts = cloud.arrays["points_mm"].astype(float)
     normals = cloud.arrays["normals"].astype(float)
@@ -116,6 +160,13 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         seen = coverage[key] >= 0.5 * counts[key] if key in coverage else np.zeros(len(x), bool)
         return ev.roi_mask(truth_row[None, :])[0] & outside_tip & seen
 
+    def on_face(point: np.ndarray, normal: np.ndarray) -> np.ndarray:
+        """(L,) where the true surface of the profile is defined (ev.profile_face_mask)."""
+        t = scan_direction(normal, ref)
+        return ev.profile_face_mask(truth, point, normal, t, x)
+
+    full = {"held_out_angles": FullSpan(), "held_out_forces": FullSpan(), "held_out_points": FullSpan()}
+
     # Noise floor and held-out angles/forces at the characterized points.
     noise_pred, noise_true, noise_roi = [], [], []
     ha_pred, ha_true, ha_roi, hf_pred, hf_true, hf_roi = [], [], [], [], [], []
@@ -132,16 +183,21 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         if label not in models:
             continue
         m = models[label]
+        face = on_face(p, n)
         for a in _held_out_angles(list(ch.angles_deg)):
             for f in ch.forces_n[1:-1]:
-                ha_pred.append(m.predict_mm(f, a).copy())
+                served = m.serve(f, a, extrapolate=True)
+                ha_pred.append(served.depth_mm)
                 ha_true.append(true_profile(p, n, f, a))
                 ha_roi.append(roi(label, a, ha_true[-1]))
+                full["held_out_angles"].add(served, ha_true[-1], face)
         for f in _held_out_forces(list(ch.forces_n)):
             for a in ch.angles_deg:
-                hf_pred.append(m.predict_mm(f, a).copy())
+                served = m.serve(f, a, extrapolate=True)
+                hf_pred.append(served.depth_mm)
                 hf_true.append(true_profile(p, n, f, a))
                 hf_roi.append(roi(label, a, hf_true[-1]))
+                full["held_out_forces"].add(served, hf_true[-1], face)
 
     # Held-out points: unprobed cloud points, interior of their predicted region, facing up.
     rng = np.random.default_rng(seed)
@@ -161,11 +217,14 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
             cand = interior if interior.size else cand
         pick = rng.choice(cand, size=min(n_points_per_region, cand.size), replace=False)
         for k in pick:
+            face = on_face(pts[k], normals[k])
             for f in ch.forces_n:
                 for a in (45.0, 90.0, 135.0):
-                    hp_pred.append(m.predict_mm(f, a).copy())
+                    served = m.serve(f, a, extrapolate=True)
+                    hp_pred.append(served.depth_mm)
                     hp_true.append(true_profile(pts[k], normals[k], f, a))
                     hp_roi.append(roi(label, a, hp_true[-1]))
+                    full["held_out_points"].add(served, hp_true[-1], face)
 
     def rmse(pred_list: list[np.ndarray], true_list: list[np.ndarray], roi_list: list[np.ndarray]) -> float | None:
         if not pred_list:
@@ -173,6 +232,8 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         return ev.profile_rmse_mm(np.array(pred_list), np.array(true_list), np.array(roi_list))
 
     peak = float(np.nanmax(np.array(noise_true))) if noise_true else None
+    mirror_admitted = {str(r): m.meta.get("support", {}).get("mirror", {}).get("admitted")
+                       for r, m in sorted(models.items())}
     mirror = [ev.mirror_residual(m, np.array(ch.forces_n), np.array([a for a in ch.angles_deg if a < 90.0]))
               for m in models.values()]
     return {
@@ -190,6 +251,17 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
                             "held_out_points": _num(rmse(hp_pred, hp_true, hp_roi))},
         "profile_rmse_roi": "truth > 5% of its peak, |x| > tip radius, and seen by the scanner on that side "
                             "in >= half of the region's measured profiles",
+        "profile_rmse_full_mm": {k: _num(v.rmse()) for k, v in full.items()},
+        "profile_max_abs_error_mm": {k: _num(v.max_abs()) for k, v in full.items()},
+        "profile_full_span": "every sample predict serves (the full-data member, clipped to the model's "
+                             "physical bounds) where the object's true surface continues from the contact, tip "
+                             "and shadow included; served_support_fraction and the RMSE by support: "
+                             "held-out angles",
+        "profile_full_scored_fraction": {k: _num(v.scored_fraction()) for k, v in full.items()},
+        "served_support_fraction": full["held_out_angles"].support_fractions(),
+        "profile_rmse_full_by_support_mm": full["held_out_angles"].rmse_by_support(),
+        "mirror_admitted": mirror_admitted,
+        "models": source.source,
         "noise_floor_mm": _num(rmse(noise_pred, noise_true, noise_roi)),
         "peak_depth_mm": _num(peak),
         "mirror_residual": _num(float(np.nanmean(mirror)) if mirror else None),

@@ -160,6 +160,10 @@ class SimGroundTruth:
     def region_names(self) -> list[str]:
         return list(self._obj.region_names)
 
+    def closest_surface(self, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(closest undeformed surface points (N,3) mm, outward unit normals (N,3), region labels (N,))."""
+        return self._obj.closest_surface(np.atleast_2d(np.asarray(points_mm, dtype=float)))
+
     def boundary_distance_mm(self, points_mm: np.ndarray) -> np.ndarray:
         """(N,) distance (mm) of each point to the nearest boundary between materials (inf: none)."""
         return self._obj.boundary_distance_mm(np.atleast_2d(points_mm))[0]
