@@ -29,6 +29,10 @@ def _inputs_of(j: Journal) -> Any:
     return load_session_inputs(prov["plan"]["path"], prov["cell"]["path"])
 
 
+# Random in-range queries per region for the served-bounds check.
+SERVED_BOUND_QUERIES = 10_000
+
+
 def _held_out_angles(trained: list[float]) -> list[float]:
     """Interior angles between trained ones (within INTERIOR_ANGLES_DEG), e.g. 35, 60, 120, 145."""
     lo, hi = INTERIOR_ANGLES_DEG
@@ -86,6 +90,26 @@ class FullSpan:
         e, c = self._all()
         return {n: _num(float(np.sqrt(np.mean(e[c == k] ** 2)))) if np.any(c == k) else None
                 for k, n in enumerate(SUPPORT_NAMES)}
+
+
+def served_bounds(model: RegionModel, deepest_true_mm: float | None, force_range_n: tuple[float, float],
+                  angle_range_deg: tuple[float, float], queries: int = SERVED_BOUND_QUERIES,
+                  seed: int = 0) -> dict[str, Any]:
+    """``queries`` random (F, angle) in the trained ranges (the model's own, else the plan's):
+    the deepest and highest sample served, against the deepest true dent the region's
+    characterized points make; a violation is a profile with a sample deeper than 1.5 x
+    that dent or more than 1 mm above the undeformed surface (or not a number)."""
+    lim = model.limits
+    f_lo, f_hi = lim.force_range_n if lim is not None else force_range_n
+    a_lo, a_hi = lim.angle_range_deg if lim is not None else angle_range_deg
+    rng = np.random.default_rng(seed)
+    depth = model.predict_batch_mm(rng.uniform(f_lo, f_hi, queries), rng.uniform(a_lo, a_hi, queries))
+    ok = np.all(np.isfinite(depth) & (depth >= -1.0), axis=1)
+    if deepest_true_mm is not None:
+        ok &= np.all(depth <= 1.5 * deepest_true_mm, axis=1)
+    return {"queries": queries, "deepest_served_mm": _num(np.nanmax(depth)),
+            "highest_served_mm": _num(-np.nanmin(depth)), "deepest_true_mm": _num(deepest_true_mm),
+            "violations": int(np.count_nonzero(~ok))}
 
 
 def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int = 12345) -> dict[str, Any]:
@@ -166,6 +190,7 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         return ev.profile_face_mask(truth, point, normal, t, x)
 
     full = {"held_out_angles": FullSpan(), "held_out_forces": FullSpan(), "held_out_points": FullSpan()}
+    deepest_true: dict[int, float] = {}
 
     # Noise floor and held-out angles/forces at the characterized points.
     noise_pred, noise_true, noise_roi = [], [], []
@@ -176,6 +201,8 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         p, n = np.asarray(rec.plan.point_mm), np.asarray(rec.plan.normal)
         noise_pred.append(res.profile_depth_mm)
         noise_true.append(truth.true_profile_mm(p, n, np.asarray(rec.plan.t), f, rec.plan.angle_deg, x))
+        label_of_step = target_labels.get(rec.plan.target_index, -1)
+        deepest_true[label_of_step] = max(deepest_true.get(label_of_step, 0.0), float(np.nanmax(noise_true[-1])))
         noise_roi.append(roi(target_labels.get(rec.plan.target_index), rec.plan.angle_deg, noise_true[-1]))
         points_done[rec.plan.target_index] = (p, n)
     for ti, (p, n) in points_done.items():
@@ -261,6 +288,9 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         "served_support_fraction": full["held_out_angles"].support_fractions(),
         "profile_rmse_full_by_support_mm": full["held_out_angles"].rmse_by_support(),
         "mirror_admitted": mirror_admitted,
+        "served_bounds": {str(r): served_bounds(m, deepest_true.get(r), (min(ch.forces_n), max(ch.forces_n)),
+                                                (min(ch.angles_deg), max(ch.angles_deg)), seed=seed + r)
+                          for r, m in sorted(models.items())},
         "models": source.source,
         "noise_floor_mm": _num(rmse(noise_pred, noise_true, noise_roi)),
         "peak_depth_mm": _num(peak),
