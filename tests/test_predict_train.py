@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from elastoprobe.controller.export import export_hdf5, read_back
 from test_session_util import TINY_PLAN, child_env, run_cli
 
 pytestmark = [pytest.mark.timeout(900)]
@@ -65,3 +66,15 @@ def test_out_of_range_queries_are_refused_or_flagged_on_request(killed_before_mo
     assert doc["extrapolated"] and all(v is not None for v in doc["depth_mm"])
     text = run_cli(["predict", str(out), "--region", "1", "--force", "1000", "--angle", "90", "--extrapolate"], env)
     assert text.returncode == 0 and "EXTRAPOLATED" in text.stdout
+
+
+def test_the_export_carries_what_predict_serves(killed_before_models, tmp_path: Path) -> None:
+    out, env = killed_before_models
+    if not (out / "models" / "retrained" / "manifest.json").exists():
+        assert run_cli(["train", str(out)], env).returncode == 0
+    back = read_back(export_hdf5(out, tmp_path / "export.h5"))
+    assert set(back.retrained_models) == {0, 1}
+    for model in back.retrained_models.values():
+        codes = model["weights"]["support_codes"]
+        assert codes.ndim == 3 and codes.shape[-1] == model["weights"]["x_mm"].size
+        assert model["meta"]["serving"]["depth_max_mm"] > 0.0
