@@ -830,6 +830,30 @@ def _per_region(figs: _Figures, data: ReportData, name: str, build: Callable[[Re
                                                      f"{missing} (region {r})") for r in regions)
 
 
+def _section_profiles(figs: _Figures, data: ReportData) -> str:
+    """The averaged profiles per region, with what the averaging dropped and why."""
+    regions = _regions_with_profiles(data)
+    if not regions:
+        return _not_yet("no labelled region has measured profiles")
+    out = []
+    for r in regions:
+        profs = [p for p in data.profiles if p.region == r]
+        counted = [p for p in profs if p.rejected]
+        note = ("The averaging recorded no rejection counts for these steps (measured before they were kept)."
+                if not counted else
+                f"The averaging of {len(counted)} steps dropped "
+                f"{sum(p.rejected.get('rejected_scan_samples', 0) for p in counted)} single-scan values far from "
+                f"the other scans, {sum(p.rejected.get('rejected_line_samples', 0) for p in counted)} averaged "
+                f"samples standing out of their neighbours along the line, "
+                f"{sum(p.rejected.get('implausible_samples', 0) for p in counted)} deeper than the tip went or "
+                f"above the surface, and {sum(p.rejected.get('off_face_samples', 0) for p in counted)} off the "
+                f"probed face (past a rim or onto another part).")
+        out.append(f"<h3>Region {r}</h3><p>{_esc(note)}</p>"
+                   + figs.img(f"profiles region {r}", lambda r=r: fig_region_profiles(data, r),
+                              f"no labelled region has measured profiles (region {r})"))
+    return "".join(out)
+
+
 def _section_disagreement(figs: _Figures, data: ReportData) -> str:
     if not data.densify:
         return _not_yet("no densification round has been committed")
@@ -909,7 +933,7 @@ def render_html(data: ReportData) -> tuple[str, list[str]]:
         ("region-map", "Point cloud and sampling points by region (Fig. 7)",
          figs.img("region map", lambda: fig_region_map(data), "no point cloud has been acquired")),
         ("profiles", "Averaged profiles per region: increasing force, across angles (Figs. 8–12)",
-         _per_region(figs, data, "profiles", fig_region_profiles, "no labelled region has measured profiles")),
+         _section_profiles(figs, data)),
         ("measured-vs-model", "Measured versus modelled profiles (Figs. 13–17)",
          _per_region(figs, data, "measured vs model", fig_measured_vs_model, "no region model yet")
          if data.models else _not_yet("no region model has been trained")),
