@@ -87,7 +87,7 @@ def main() -> int:
     # Baseline: the training as it was, same data, same run.
     t0, c0 = time.perf_counter(), time.process_time()
     baseline = fit_region_model(f, a, meas, grid.x_mm,
-                                config=TrainConfig.before_issue_16(ensemble=MEMBERS - 1, seed=0), noise_mm=NOISE_MM)
+                                config=TrainConfig.baseline(ensemble=MEMBERS - 1, seed=0), noise_mm=NOISE_MM)
     baseline_train_s, baseline_cpu_s = time.perf_counter() - t0, time.process_time() - c0
 
     fu = rng.uniform(2.0, 20.0, 30)

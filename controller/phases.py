@@ -605,7 +605,7 @@ def collect_region_steps(j: Any, labels: dict[int, int], region: int, geometry: 
                        np.array(pid, dtype=np.int64), np.array(tx), np.array(td), np.array(rh))
 
 
-def region_noise_mm(steps: RegionSteps, completed: CompletedTargets, measured_mm: float) -> float:
+def region_noise_mm(completed: CompletedTargets, measured_mm: float) -> float:
     """The error of one of the region's averaged profiles (mm): the larger of the scans'
     own standard error and what two measurements that must agree differ by (the mirror
     test's yardstick, per measurement)."""
@@ -613,7 +613,7 @@ def region_noise_mm(steps: RegionSteps, completed: CompletedTargets, measured_mm
     return float(max(measured_mm, (yard / np.sqrt(2.0)) if yard is not None else 0.0))
 
 
-def fit_region(steps: RegionSteps, config: Any, tip_radius_mm: float, measured_noise: float
+def fit_region(steps: RegionSteps, config: "TrainConfig", tip_radius_mm: float, measured_noise: float
                ) -> tuple["RegionModel", dict[str, Any]]:
     """Complete the region's targets, fit its model and set what it may serve.
 
@@ -625,7 +625,7 @@ def fit_region(steps: RegionSteps, config: Any, tip_radius_mm: float, measured_n
     from .learning.models import ServingLimits, fit_region_model
 
     completed = complete_targets(steps, tip_radius_mm)
-    noise = region_noise_mm(steps, completed, measured_noise)
+    noise = region_noise_mm(completed, measured_noise)
     weights = SUPPORT_WEIGHTS[completed.support]
     model = fit_region_model(steps.force_n, steps.angle_deg, completed.depth_mm, steps.x_mm,
                              point_ids=steps.point_ids, config=config, noise_mm=noise, sample_weight=weights)

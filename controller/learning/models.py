@@ -1,4 +1,4 @@
-"""Per-region neural models of the deformation profile (DESIGN §7; paper §IV).
+"""Per-region neural models of the deformation profile (paper §IV).
 
 One network per region maps (F, α) -> the L-sample depth profile:
 inputs F (N) and α (deg) each mapped linearly to [-1, 1] (the ranges are stored),
@@ -6,12 +6,18 @@ inputs F (N) and α (deg) each mapped linearly to [-1, 1] (the ranges are stored
 (depth_mm / depth_scale_mm, so the region's deepest measured depth is 1).
 
 Training (torch, imported lazily): full-batch resilient propagation
-(``torch.optim.Rprop``) on a masked MSE, so missing (NaN) samples cost nothing.
+(``torch.optim.Rprop``) on a weighted, masked MSE, so missing (NaN) samples cost nothing
+and each sample counts by its support (the session trains on complete targets, see
+:mod:`.support`). The output layer may be trained through a cubic B-spline basis along x
+(``basis_spacing_mm``): every output profile is then smooth at the knot spacing whatever
+the data, and fewer output weights make an epoch cheaper; served, it is the plain L x H
+layer. Training runs in float32 (the served weights are float64).
 Stopping rule: at most ``stages x epochs_per_stage`` epochs (the paper trained in
 five steps of 5000; one continuous Rprop run here, since restarting its step sizes
-makes the loss jump); a member stops early when its
-training loss improved by less than ``plateau_rel_tol`` (relative) over the last
-``plateau_patience`` epochs, or fell below ``loss_goal``.
+makes the loss jump); a member stops early when its training loss improved by less
+than ``plateau_rel_tol`` (relative) over the last ``plateau_patience`` epochs, or its RMS
+fit by less than ``plateau_noise_fraction`` of the data's noise, or the loss fell below
+``loss_goal`` (or the noise itself: the discrepancy principle).
 
 Disagreement: member 0 is fitted on all the data; members 1..E are fitted on
 bootstrap resamples of probe POINTS (every profile of a drawn point comes along,
@@ -28,7 +34,10 @@ steps against that sample's own end-to-end trend along a force grid
 midway between them). Only training changes; serving is untouched.
 
 Serving is pure numpy with the normalisation folded into the weights and
-preallocated buffers (``predict_mm``), fast enough for a 1 kHz haptic loop.
+preallocated buffers (``predict_mm``), fast enough for a 1 kHz haptic loop. A model
+may carry :class:`ServingLimits`: every serving path clips to its physical depth
+bounds, and :meth:`RegionModel.serve` refuses queries outside the trained ranges unless
+asked to extrapolate and says where each sample's training value came from.
 """
 from __future__ import annotations
 
@@ -75,7 +84,6 @@ class TrainConfig:
     monotone_weight: float = 0.1
     monotone_forces: int = 25
     monotone_margin: float = 1e-5
-    monotone_x_stride: int = 1          # the penalty looks at every n-th output sample
     # The training precision (see ``_fit``).
     dtype: str = "float32"
     # Smooth outputs: the output layer is trained as a cubic B-spline along x with knots this
@@ -87,8 +95,7 @@ class TrainConfig:
             raise ValueError(f"activation must be tanh or sigmoid, not {self.activation!r}")
         if self.hidden_units < 1 or self.stages < 1 or self.epochs_per_stage < 1 or self.ensemble < 0:
             raise ValueError("hidden_units, stages, epochs_per_stage must be >= 1 and ensemble >= 0")
-        if (self.monotone_weight < 0.0 or self.monotone_forces < 2 or self.monotone_margin < 0.0
-                or self.monotone_x_stride < 1):
+        if self.monotone_weight < 0.0 or self.monotone_forces < 2 or self.monotone_margin < 0.0:
             raise ValueError("monotone_weight and monotone_margin must be >= 0 and monotone_forces >= 2")
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"dtype must be float32 or float64, not {self.dtype!r}")
@@ -98,9 +105,10 @@ class TrainConfig:
             raise ValueError("basis_spacing_mm must be > 0 (or None)")
 
     @classmethod
-    def before_issue_16(cls, **changes: Any) -> "TrainConfig":
+    def baseline(cls, **changes: Any) -> "TrainConfig":
         """The training as it was before it was made faster (float64, a 400-epoch plateau
-        window at 0.2 %, no noise-relative stop): the bench's baseline."""
+        window at 0.2 %, no noise-relative stop; with no spline basis, the default): the
+        bench's baseline."""
         settings: dict[str, Any] = {"dtype": "float64", "plateau_patience": 400, "plateau_noise_fraction": 0.0}
         settings.update(changes)
         return cls(**settings)
@@ -706,12 +714,9 @@ def _fit(force_n: np.ndarray, angle_deg: np.ndarray, depth_mm: np.ndarray, x_mm:
         mse = ((pred - y_t[None]) ** 2 * w_t).sum(dim=(1, 2)) / denom
         if grid is None:
             return mse, torch.zeros_like(mse)
-        stride = config.monotone_x_stride
+        g = _torch_forward(grid_t, *params, config.activation)
         if basis_t is not None:
-            g = _torch_forward(grid_t, *params, config.activation) @ basis_t[:, ::stride]
-        else:
-            w1, b1, w2, b2 = params
-            g = _torch_forward(grid_t, w1, b1, w2[:, ::stride], b2[:, ::stride], config.activation)
+            g = g @ basis_t
         return mse, config.monotone_weight * _monotone_penalty(g.view(members + 1, *grid[1], -1),
                                                                config.monotone_margin)
 
