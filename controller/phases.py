@@ -20,12 +20,12 @@ import numpy as np
 from .geometry import INTERIOR_ANGLES_DEG, scan_direction
 from .journal import StepPlan
 from .learning import profiles as prof
+from .learning.models import RegionModel, ServingLimits, TrainConfig, fit_region_model
 from .learning.support import UNSUPPORTED, CompletedTargets, RegionSteps, complete_targets, support_table
 from .probe import ProbeTarget, StepData
 from .session import SessionAborted
 
 if TYPE_CHECKING:
-    from .learning.models import RegionModel, TrainConfig
     from .session import Session
 
 # Steps belong to the phase that planned them: the survey of the neural-gas targets is
@@ -98,7 +98,7 @@ class PhaseContext:
     edge_flag: dict[int, bool] = field(default_factory=dict)
     labels: dict[int, int] = field(default_factory=dict)         # target index -> region
     n_regions: int = 0
-    models: dict[int, "RegionModel"] = field(default_factory=dict)
+    models: dict[int, RegionModel] = field(default_factory=dict)
     model_round: int = -1
     _surface: Any = None                                           # surface_map.SurfaceGraph, built once
 
@@ -613,8 +613,8 @@ def region_noise_mm(completed: CompletedTargets, measured_mm: float) -> float:
     return float(max(measured_mm, (yard / np.sqrt(2.0)) if yard is not None else 0.0))
 
 
-def fit_region(steps: RegionSteps, config: "TrainConfig", tip_radius_mm: float, measured_noise: float
-               ) -> tuple["RegionModel", dict[str, Any]]:
+def fit_region(steps: RegionSteps, config: TrainConfig, tip_radius_mm: float, measured_noise: float
+               ) -> tuple[RegionModel, dict[str, Any]]:
     """Complete the region's targets, fit its model and set what it may serve.
 
     The served depth is bounded by the deepest supported training value (the tip's own
@@ -622,8 +622,6 @@ def fit_region(steps: RegionSteps, config: "TrainConfig", tip_radius_mm: float, 
     one (or the undeformed surface), each widened by three times the region's noise;
     queries are accepted over the trained force levels and angles.
     """
-    from .learning.models import ServingLimits, fit_region_model
-
     completed = complete_targets(steps, tip_radius_mm)
     noise = region_noise_mm(completed, measured_noise)
     weights = SUPPORT_WEIGHTS[completed.support]
@@ -644,14 +642,12 @@ def fit_region(steps: RegionSteps, config: "TrainConfig", tip_radius_mm: float, 
     return model.with_limits(limits), info
 
 
-def region_train_config(model_spec: Any, seed: int, region: int, tip_radius_mm: float) -> "TrainConfig":
+def region_train_config(model_spec: Any, seed: int, region: int, tip_radius_mm: float) -> TrainConfig:
     """How the session trains a region's model: the plan's network and ensemble, its epoch
     cap, a seed per session and region, and spline outputs with knots a fifth of the tip
     radius apart (a spherical tip's dent has no feature finer than its contact, and a cubic
     spline at that spacing follows the simulator's dents of the shipped objects to 0.002 mm
     RMS)."""
-    from .learning.models import TrainConfig
-
     return TrainConfig(hidden_units=model_spec.hidden_units, ensemble=model_spec.ensemble - 1,
                        epochs_per_stage=max(10, model_spec.max_epochs // 5), seed=seed * 1000 + region,
                        basis_spacing_mm=tip_radius_mm / 5.0)
@@ -659,8 +655,6 @@ def region_train_config(model_spec: Any, seed: int, region: int, tip_radius_mm: 
 
 def phase_models(ctx: PhaseContext, round_: int) -> None:
     """Fit (or load) one model ensemble per region; files written atomically, hashes committed."""
-    from .learning.models import RegionModel
-
     s = ctx.session
     j = s.journal
     assert j is not None

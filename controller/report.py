@@ -35,6 +35,8 @@ import numpy as np
 
 from .atomic import atomic_write_text
 from .journal import FaultRecord, Journal, StepRecord
+from .learning.support import INFERRED, SUPPORT_NAMES, UNSUPPORTED
+from .predict import read_manifest
 
 MAX_CLOUD_POINTS = 6000          # points drawn of the cloud (subsampled, seeded)
 MAX_FAULT_TRACES = 24            # fault F/T figures embedded; the rest are listed
@@ -148,7 +150,6 @@ def _load_models(data: ReportData, j: Journal) -> None:
     """The region models ``predict`` serves: the latest models phase's, or those
     ``elastoprobe train`` refitted since (or, before any, the model table)."""
     from .learning.models import RegionModel
-    from .predict import read_manifest
 
     rounds = _rounds(data.phases, "models")
     entries: dict[int, str] = {}
@@ -453,8 +454,6 @@ def _support_runs(codes: np.ndarray) -> list[tuple[int, int, int]]:
 
 def _shade_support(ax: Any, x: np.ndarray, codes: np.ndarray) -> None:
     """Background bands: where the model's samples came from (no band where measured)."""
-    from .learning.support import SUPPORT_NAMES
-
     half = 0.5 * float(x[1] - x[0]) if x.size > 1 else 0.5
     drawn: set[int] = set()
     for a, b, code in _support_runs(codes):
@@ -512,8 +511,6 @@ def unseen_queries(measured_forces_n: Iterable[float], measured_angles_deg: Iter
 def _plot_served(ax: Any, served: Any, colour: Any, label: str) -> None:
     """A served profile as height change: solid where measured, mirrored or under the tip,
     dashed where inferred, dotted where unsupported; the ensemble spread as a band."""
-    from .learning.support import INFERRED, UNSUPPORTED
-
     x, d, sd = served.x_mm, served.depth_mm, served.spread_mm
     ax.fill_between(x, -d - sd, -d + sd, color=colour, alpha=0.15, lw=0)
     styles = {INFERRED: "--", UNSUPPORTED: ":"}
