@@ -514,12 +514,10 @@ def _plot_served(ax: Any, served: Any, colour: Any, label: str) -> None:
     x, d, sd = served.x_mm, served.depth_mm, served.spread_mm
     ax.fill_between(x, -d - sd, -d + sd, color=colour, alpha=0.15, lw=0)
     styles = {INFERRED: "--", UNSUPPORTED: ":"}
-    first = True
     for a, b, code in _support_runs(served.support):
         lo, hi = max(a - 1, 0), b + 1     # overlap one sample so the pieces join
-        ax.plot(x[lo:hi + 1], -d[lo:hi + 1], styles.get(code, "-"), color=colour, lw=1.1,
-                label=label if first else None)
-        first = False
+        ax.plot(x[lo:hi + 1], -d[lo:hi + 1], styles.get(code, "-"), color=colour, lw=1.1)
+    ax.plot([], [], "-", color=colour, lw=1.1, label=label)       # the legend's entry: the colour
 
 
 def fig_predictions(data: ReportData, region: int) -> Any:
