@@ -17,7 +17,7 @@ from .errors import InputError
 from .geometry import INTERIOR_ANGLES_DEG, scan_direction
 from .journal import Journal
 from .learning import evaluate as ev
-from .learning.models import RegionModel, ServedProfile
+from .learning.models import OutOfRange, RegionModel, ServedProfile
 from .learning.support import SUPPORT_NAMES
 from .predict import served_models
 
@@ -53,6 +53,7 @@ class FullSpan:
         self.errors: list[np.ndarray] = []
         self.codes: list[np.ndarray] = []
         self.served = 0
+        self.refused = 0                 # queries predict refuses (outside the trained ranges)
 
     def add(self, served: ServedProfile, truth_mm: np.ndarray, face: np.ndarray) -> None:
         scored = face & np.isfinite(truth_mm)
@@ -110,6 +111,17 @@ def served_bounds(model: RegionModel, deepest_true_mm: float | None, force_range
     return {"queries": queries, "deepest_served_mm": _num(np.nanmax(depth)),
             "highest_served_mm": _num(-np.nanmin(depth)), "deepest_true_mm": _num(deepest_true_mm),
             "violations": int(np.count_nonzero(~ok))}
+
+
+def serve_or_refuse(model: RegionModel, force_n: float, angle_deg: float, tally: FullSpan) -> ServedProfile | None:
+    """What predict serves for the query, or None (counted) when it refuses it: a held-out
+    (F, angle) outside the region's trained ranges (an angle blocked at its points) is not
+    something a user is served, so it is not scored."""
+    try:
+        return model.serve(force_n, angle_deg)
+    except OutOfRange:
+        tally.refused += 1
+        return None
 
 
 def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int = 12345) -> dict[str, Any]:
@@ -213,14 +225,18 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         face = on_face(p, n)
         for a in _held_out_angles(list(ch.angles_deg)):
             for f in ch.forces_n[1:-1]:
-                served = m.serve(f, a, extrapolate=True)
+                served = serve_or_refuse(m, f, a, full["held_out_angles"])
+                if served is None:
+                    continue
                 ha_pred.append(served.depth_mm)
                 ha_true.append(true_profile(p, n, f, a))
                 ha_roi.append(roi(label, a, ha_true[-1]))
                 full["held_out_angles"].add(served, ha_true[-1], face)
         for f in _held_out_forces(list(ch.forces_n)):
             for a in ch.angles_deg:
-                served = m.serve(f, a, extrapolate=True)
+                served = serve_or_refuse(m, f, a, full["held_out_forces"])
+                if served is None:
+                    continue
                 hf_pred.append(served.depth_mm)
                 hf_true.append(true_profile(p, n, f, a))
                 hf_roi.append(roi(label, a, hf_true[-1]))
@@ -247,7 +263,9 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
             face = on_face(pts[k], normals[k])
             for f in ch.forces_n:
                 for a in (45.0, 90.0, 135.0):
-                    served = m.serve(f, a, extrapolate=True)
+                    served = serve_or_refuse(m, f, a, full["held_out_points"])
+                    if served is None:
+                        continue
                     hp_pred.append(served.depth_mm)
                     hp_true.append(true_profile(pts[k], normals[k], f, a))
                     hp_roi.append(roi(label, a, hp_true[-1]))
@@ -282,9 +300,11 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         "profile_max_abs_error_mm": {k: _num(v.max_abs()) for k, v in full.items()},
         "profile_full_span": "every sample predict serves (the full-data member, clipped to the model's "
                              "physical bounds) where the object's true surface continues from the contact, tip "
-                             "and shadow included; served_support_fraction and the RMSE by support: "
-                             "held-out angles",
+                             "and shadow included; queries predict refuses (outside a region's trained "
+                             "ranges) are counted, not scored; served_support_fraction and the RMSE by "
+                             "support: held-out angles",
         "profile_full_scored_fraction": {k: _num(v.scored_fraction()) for k, v in full.items()},
+        "held_out_queries_refused": {k: v.refused for k, v in full.items()},
         "served_support_fraction": full["held_out_angles"].support_fractions(),
         "profile_rmse_full_by_support_mm": full["held_out_angles"].rmse_by_support(),
         "mirror_admitted": mirror_admitted,
