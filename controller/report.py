@@ -632,7 +632,7 @@ def fig_training(data: ReportData) -> tuple[Any, bool]:
             if h.shape[1] > 1:
                 ax.semilogy(np.arange(1, len(h) + 1), h[:, 1:], color=_region_colour(r), alpha=0.3, lw=0.7)
         ax.set_xlabel("check (every few epochs)")
-        ax.set_ylabel("masked MSE (normalised depth)")
+        ax.set_ylabel("weighted MSE (normalised depth)")
         ax.legend(fontsize=7)
         return fig, True
     regions = sorted(data.models)
