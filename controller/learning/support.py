@@ -39,8 +39,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.interpolate import PchipInterpolator
-from scipy.special import fdtri
 
 MEASURED, MIRRORED, TIP, INFERRED, UNSUPPORTED = 0, 1, 2, 3, 4
 SUPPORT_NAMES: tuple[str, ...] = ("measured", "mirrored", "tip", "inferred", "unsupported")
@@ -119,6 +117,8 @@ def fill_gaps(x_mm: np.ndarray, values: np.ndarray) -> np.ndarray:
         return v.copy()
     if ok.sum() == 1:
         return np.full_like(v, v[ok][0])
+    from scipy.interpolate import PchipInterpolator   # training only: predict needs only the names here
+
     out = PchipInterpolator(x[ok], v[ok], extrapolate=False)(x)
     out[x < x[ok][0]] = v[ok][0]
     out[x > x[ok][-1]] = v[ok][-1]
@@ -218,6 +218,8 @@ def mirror_test(steps: RegionSteps, false_rejection: float = MIRROR_FALSE_REJECT
     if not expected_ms > 0.0:
         return MirrorTest(False, residual, None, len(mirror_res),
                           "not admitted: nothing measured the region's repeatability")
+    from scipy.special import fdtri   # training only, like scipy.interpolate above
+
     dof_yard = max(1, len(same_res) + len(view_res))
     limit = float(fdtri(len(mirror_res), dof_yard, 1.0 - false_rejection))
     peak = float(np.nanmax(np.concatenate([steps.depth_mm.ravel(), steps.tip_depth_mm.ravel(), [0.0]])))
@@ -341,6 +343,8 @@ def normal_profile_at(forces_n: np.ndarray, profiles_mm: np.ndarray, load_n: flo
     if f.shape[0] == 2:
         w = max(load_n, 0.0) / f[1]
         return (1.0 - w) * y[0] + w * y[1]
+    from scipy.interpolate import PchipInterpolator
+
     return PchipInterpolator(f, y, axis=0)(max(load_n, 0.0))
 
 
