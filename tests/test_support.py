@@ -116,6 +116,9 @@ def test_a_lopsided_material_is_not_mirrored_and_says_so() -> None:
     assert not done.mirror.admitted and "not admitted" in done.mirror.reason
     assert not np.isin(done.support, [sp.MIRRORED, sp.INFERRED]).any()
     assert np.all(np.isfinite(done.depth_mm))
+    # The unseen side falls off away from the dent instead of holding its deepest value.
+    ends = done.depth_mm[:, [0, -1]].max(axis=1)
+    assert np.all(ends <= 0.5 * np.nanmax(done.depth_mm, axis=1) + 0.05)
 
 
 def test_fill_gaps_stays_between_its_neighbours() -> None:

@@ -29,7 +29,9 @@ support code:
   half is a mirror);
 - ``unsupported``: none of the above; filled by shape-preserving interpolation between
   supported samples (held flat beyond the last one), so the value is bounded by its
-  supported neighbours, and flagged.
+  supported neighbours, and flagged. Where the mirror is not admitted the unseen side
+  of a row is first guessed from the row's own reflection about the tip (a dent falls
+  off beyond the tip on both sides), flagged unsupported all the same.
 
 Everything is numpy; depths in mm along -n (positive into the object), x in mm along t.
 """
@@ -273,6 +275,12 @@ def complete_targets(steps: RegionSteps, tip_radius_mm: float) -> CompletedTarge
             fill = ~np.isfinite(depth[k]) & np.isfinite(mirrored)
             depth[k, fill] = mirrored[fill]
             support[k, fill] = MIRRORED
+    if not mirror.admitted:
+        # Nothing supports the unseen side: rather than hold the last seen depth flat out to
+        # the grid's end, guess that the dent falls off beyond the tip as it does on the seen
+        # side (the row reflected about the tip), flagged unsupported.
+        for k in range(m):
+            _reflect_about_tip(x, depth[k], float(steps.tip_x_mm[k]))
     normal_rows = [k for k in range(m) if _is_normal(steps.angle_deg[k])]
     for k in normal_rows:
         _complete_normal(x, depth[k], support[k], float(steps.tip_x_mm[k]), float(steps.tip_depth_mm[k]),
@@ -289,6 +297,21 @@ def complete_targets(steps: RegionSteps, tip_radius_mm: float) -> CompletedTarge
         depth[k] = fill_gaps(x, depth[k])
     counts = {name: int(np.count_nonzero(support == code)) for code, name in enumerate(SUPPORT_NAMES)}
     return CompletedTargets(depth, support, mirror, counts)
+
+
+def _reflect_about_tip(x: np.ndarray, depth: np.ndarray, tip_x: float) -> None:
+    """Missing samples from the row's own reflection about the tip's position (0 if unknown);
+    the support code stays unsupported."""
+    centre = tip_x if np.isfinite(tip_x) else 0.0
+    seen = np.isfinite(depth)
+    if seen.sum() < 2:
+        return
+    reflected = np.interp(2.0 * centre - x, x[seen], depth[seen], left=np.nan, right=np.nan)
+    gap = ~seen & np.isfinite(reflected)
+    # Only where the reflection lands on seen samples (interp bridges gaps; keep to real ones).
+    near = np.abs(np.interp(2.0 * centre - x[gap], x, np.where(seen, 0.0, 1.0))) < 0.5
+    idx = np.flatnonzero(gap)[near]
+    depth[idx] = reflected[idx]
 
 
 def _complete_normal(x: np.ndarray, depth: np.ndarray, support: np.ndarray, tip_x: float, tip_depth: float,
