@@ -334,9 +334,7 @@ class RegionModel:
         return out
 
     def predict_batch_mm(self, force_n: np.ndarray, angle_deg: np.ndarray) -> np.ndarray:
-        """Depth profiles (Q,L) in mm for Q queries (full-data member)."""
-        f = np.asarray(force_n, dtype=float).reshape(-1, 1)
-        a = np.asarray(angle_deg, dtype=float).reshape(-1, 1)
+        """Depth profiles (Q,L) in mm for Q queries (full-data member), within the bounds."""
         return np.clip(self.raw_batch_mm(force_n, angle_deg), self._lo, self._hi)
 
     def raw_batch_mm(self, force_n: np.ndarray, angle_deg: np.ndarray) -> np.ndarray:

@@ -341,17 +341,22 @@ def _complete_normal(x: np.ndarray, depth: np.ndarray, support: np.ndarray, tip_
 def _normal_families(steps: RegionSteps, depth: np.ndarray, normal_rows: list[int]
                      ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """Point -> (forces (K,), complete 90-degree profiles (K,L)), forces increasing, with
-    the zero profile at 0 N first; repeated levels are averaged."""
-    by_point: dict[int, dict[float, list[np.ndarray]]] = {}
+    the zero profile at 0 N first. Steps are grouped by their planned force level (the
+    repeats of a level are averaged, and so are their measured forces): grouped by the
+    measured force instead, two repeats a few mN apart would make two knots whose profiles
+    differ by the scans' noise, and the interpolation between them swings by far more."""
+    by_point: dict[int, dict[float, list[int]]] = {}
     for k in normal_rows:
         if np.all(np.isfinite(depth[k])):
             by_point.setdefault(int(steps.point_ids[k]), {}).setdefault(
-                round(float(steps.force_n[k]), 3), []).append(depth[k])
+                round(float(steps.force_level_n[k]), 6), []).append(k)
     out = {}
     for p, levels in by_point.items():
-        forces = np.array(sorted(levels))
-        profiles = np.array([np.mean(levels[f], axis=0) for f in forces])
-        out[p] = (np.concatenate([[0.0], forces]), np.vstack([np.zeros(profiles.shape[1]), profiles]))
+        groups = [levels[level] for level in sorted(levels)]
+        forces = np.array([np.mean(steps.force_n[rows]) for rows in groups])
+        profiles = np.array([np.mean(depth[rows], axis=0) for rows in groups])
+        keep = np.concatenate([[True], np.diff(forces) > 0.0])   # the interpolation needs increasing forces
+        out[p] = (np.concatenate([[0.0], forces[keep]]), np.vstack([np.zeros(profiles.shape[1]), profiles[keep]]))
     return out
 
 
