@@ -35,7 +35,7 @@ import numpy as np
 
 from .atomic import atomic_write_text
 from .journal import FaultRecord, Journal, StepRecord
-from .learning.support import INFERRED, SUPPORT_NAMES, UNSUPPORTED
+from .learning.support import INFERRED, MEASURED, SUPPORT_NAMES, UNSUPPORTED
 from .predict import read_manifest
 
 MAX_CLOUD_POINTS = 6000          # points drawn of the cloud (subsampled, seeded)
@@ -457,6 +457,10 @@ def _shade_support(ax: Any, x: np.ndarray, codes: np.ndarray) -> None:
     half = 0.5 * float(x[1] - x[0]) if x.size > 1 else 0.5
     drawn: set[int] = set()
     for a, b, code in _support_runs(codes):
+        if code == MEASURED and code not in drawn:
+            # The legend names the unshaded background too, so every support is named.
+            ax.fill_between([], [], color="white", ec="0.6", lw=0.5, label=f"{SUPPORT_NAMES[code]} (no band)")
+            drawn.add(code)
         if not 0 < code < len(SUPPORT_NAMES):
             continue
         ax.axvspan(x[a] - half, x[b] + half, color=SUPPORT_COLOURS[code], alpha=0.6, lw=0,
