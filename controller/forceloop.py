@@ -38,7 +38,7 @@ import hashlib
 import itertools
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -539,18 +539,21 @@ class ForceSupervisor:
 
         A verdict with ``stop`` must be acted on before anything else; then call
         :meth:`tripped` (a trip) — the contact is already recorded."""
-        if not len(block):
-            return BlockVerdict()
-        fmag = force_magnitudes_n(block)
-        contact_at = self.first_contact(fmag)
-        self.remember(block.force_n)
-        contact_t = float(block.t_s[contact_at]) if contact_at is not None else None
+        contact_t: float | None = None
+        peak = 0.0
+        if len(block):
+            fmag = force_magnitudes_n(block)
+            contact_at = self.first_contact(fmag)
+            self.remember(block.force_n)
+            peak = float(fmag.max())
+            if contact_at is not None:
+                contact_t = float(block.t_s[contact_at])
         if trip is not None and (contact_t is None or trip.t_s <= contact_t):
-            verdict = self.verdict(trip, float(fmag.max()))
+            verdict = self.verdict(trip, peak)
             if verdict == Verdict.STOP:
                 # Nothing of the skill may command the arm after this (the stop follows).
                 self._end(MotionState.TRIPPED, trip.message)
-                return BlockVerdict(stop=True, trip=trip, peak_force_n=float(fmag.max()))
+                return BlockVerdict(stop=True, trip=trip, peak_force_n=peak)
             if verdict == Verdict.LET_THROUGH:
                 return BlockVerdict(let_through=True, trip=trip)
             return BlockVerdict(trip=trip)
@@ -578,6 +581,11 @@ class ForceSupervisor:
     def regulation_due(self, t_s: float) -> bool:
         return self.regulation is not None and t_s >= self._next_update_s - 1e-9
 
+    @property
+    def next_update_s(self) -> float | None:
+        """When the running regulation's next update is due (s), None without one."""
+        return self._next_update_s if self.regulation is not None else None
+
     def regulate(self, elapsed_s: float, force_n: float, u_mm: float) -> float:
         """One update of the running regulation, ``elapsed_s`` after it began: the speed along
         its direction (mm/s); the motion is DONE once settled."""
@@ -593,17 +601,19 @@ class ForceSupervisor:
                 self.counts.settled += 1
         return speed
 
-    def on_tick(self, t_s: float, position_mm: np.ndarray) -> TickCommand:
+    def on_tick(self, t_s: float, position_mm: np.ndarray, force_n: float | None = None) -> TickCommand:
         """The control path of a real-time backend at ``t_s`` (s) with the arm at
         ``position_mm`` (base): the search's distance, and the regulation once per period
-        (on schedule from its start; a late tick does not make up for missed ones)."""
+        (on schedule from its start; a late tick does not make up for missed ones) from
+        ``force_n`` (default: :meth:`force_now_n`)."""
         if self.search_exhausted(position_mm):
             return TickCommand(stop=True)
         reg = self.regulation
         if reg is None or not self.regulation_due(t_s):
             return TickCommand()
         period = self.gains.period_s
-        speed = self.regulate(t_s - self._reg_t0_s, self.force_now_n(), float(np.asarray(position_mm, float) @ reg.direction))
+        force = self.force_now_n() if force_n is None else float(force_n)
+        speed = self.regulate(t_s - self._reg_t0_s, force, float(np.asarray(position_mm, float) @ reg.direction))
         self._next_update_s += period
         if self._next_update_s <= t_s:
             self._next_update_s = t_s + period

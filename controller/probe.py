@@ -263,7 +263,8 @@ class ProbeExecutor:
         """After a fault: unload along the normal if in contact, then move up to travel height."""
         arm = self.cell.arm
         status = arm.status()
-        if status.emergency_stop or not status.connected:
+        # An operator who stopped the robot's program has the arm: it is not moved until resumed.
+        if status.emergency_stop or not status.connected or status.operator_stop:
             return
         arm.stop()
         pose = status.tcp_pose
@@ -509,8 +510,10 @@ class ProbeExecutor:
             raise ProbeFault("protective_stop", "the robot is in a protective stop")
         if not status.connected:
             raise ProbeFault("connection", "lost the connection to the robot")
+        if status.operator_stop:
+            raise ProbeFault("operator_stop", status.stop_reason or "the robot program was stopped at the robot")
         if self.should_stop():
-            raise ProbeFault("operator_stop", "stop requested by the operator")
+            raise ProbeFault("operator_stop", "stop requested with elastoprobe stop")
 
     def _wait(self, motion: Motion, timeout_s: float) -> MotionState:
         deadline = self.cell.clock.now_s() + timeout_s
@@ -536,6 +539,8 @@ class ProbeExecutor:
             raise ProbeFault("protective_stop", f"protective stop during {what}")
         if not status.connected:
             raise ProbeFault("connection", f"lost the connection to the robot during {what}")
+        if status.operator_stop:
+            raise ProbeFault("operator_stop", status.stop_reason or f"the robot program was stopped during {what}")
         raise ProbeFault("device", f"{what} ended {state.value}, expected {wanted.value}")
 
     def _poses_at(self, times_s: list[float]) -> np.ndarray:

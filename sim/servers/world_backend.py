@@ -27,14 +27,12 @@ controller's hardware process (controller/drivers/hardware.py), not to the robot
 """
 from __future__ import annotations
 
-import math
 import threading
 import time
 from dataclasses import replace
 
 import numpy as np
 
-from elastoprobe.controller.devices import MotionState
 from elastoprobe.controller.errors import MotionRefused
 from elastoprobe.controller.geometry import Pose
 from elastoprobe.controller.safety import SafetyLimits
