@@ -366,10 +366,15 @@ class ForceSupervisor:
         self._contact_threshold_n: float | None = None      # the last contact search's
 
     # ------------------------------------------------------------------ what runs here
-    def describe(self) -> dict:
-        """This loop's identity: its code (a hash of this module), its gains and what it did."""
+    def identity(self) -> dict:
+        """This loop's identity: its code (a hash of this module) and its gains (journaled with
+        the arm's identity: a dry run and a night on the arm can be shown to share them)."""
         return {"module": __name__, "class": type(self).__name__, "code_sha256": _CODE_SHA256,
-                "gains": asdict(self.gains), "counts": asdict(self.counts)}
+                "gains": asdict(self.gains)}
+
+    def describe(self) -> dict:
+        """:meth:`identity` and what the loop did."""
+        return {**self.identity(), "counts": asdict(self.counts)}
 
     # ------------------------------------------------------------------ commands
     def _begin(self, kind: str, direction_base: np.ndarray | None) -> SupervisedMotion:

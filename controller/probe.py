@@ -159,6 +159,8 @@ class ProbeExecutor:
         # Checks every reference and loaded scan burst against the registered object.
         self.placement = placement
         self.on_placement: Callable[[str, dict], None] = lambda what, est: None
+        # How each force level was reached (regulation_record): for the session's log.
+        self.on_regulated: Callable[[dict], None] = lambda record: None
 
     # ------------------------------------------------------------------ public
     def probe(self, target: ProbeTarget, angle_deg: float, levels: list[ForceLevel],
@@ -201,12 +203,17 @@ class ProbeExecutor:
             if k > 0:
                 self.machine.fire("next_level")
             before_level(level)
+            self._rec.clear()
+            t_command = self.cell.clock.now_s()
             motion = self.cell.arm.regulate_force(d, level.force_n, s.force_rate_n_s)
             ramp_s = level.force_n / s.force_rate_n_s
             state = self._wait(motion, timeout_s=ramp_s * 3.0 + 10.0)
             self._expect(state, MotionState.DONE, "regulate_force")
+            t_done = self.cell.clock.now_s()
             self.machine.fire("at_force")
             self._hold(s.settle_s)
+            self.on_regulated({"step": level.step_id, **regulation_record(
+                WrenchBlock.concat(self._rec.blocks), level.force_n, t_command, t_done, self.cell.ft.rate_hz)})
             self.machine.fire("settled")
             step_start_s = self.cell.clock.now_s()
             scans, poses = self._scan_burst(s.scans_per_step)
@@ -586,6 +593,26 @@ class ProbeExecutor:
         # The force must stay at the level while the scans are taken (the paper keeps it constant).
         if not np.isfinite(err) or err > max(self.s.force_tolerance_n * 3.0, 0.15 * target_n):
             raise ProbeFault("force_not_held", f"force strayed {err:.2f} N from {target_n:.1f} N during the scans")
+
+
+def regulation_record(block: WrenchBlock, target_n: float, t_command_s: float, t_done_s: float,
+                      rate_hz: float, window_s: float = 0.01, tail_s: float = 0.5) -> dict:
+    """How a force level was reached, from the F/T samples of its ramp and settle: ``peak_n``
+    and ``overshoot_n`` (peak minus target; negative: never reached) of |F| averaged over
+    ``window_s`` (the force loop's own reading, not single noisy samples), ``settle_s`` from
+    the command to DONE, and ``held_error_n``: mean |F| over the last ``tail_s`` minus target."""
+    fmag = block.force_magnitude_n() if len(block) else np.zeros(0)
+    n = max(1, int(round(window_s * rate_hz)))
+    if fmag.size >= n:
+        smooth = np.convolve(fmag, np.ones(n) / n, mode="valid")
+        peak = float(smooth.max())
+        tail = fmag[block.t_s >= block.t_s[-1] - tail_s]
+        held = float(tail.mean()) - target_n
+    else:
+        return {"target_n": round(float(target_n), 6), "peak_n": None, "overshoot_n": None, "held_error_n": None,
+                "settle_s": round(t_done_s - t_command_s, 4)}
+    return {"target_n": round(float(target_n), 6), "peak_n": round(peak, 4), "overshoot_n": round(peak - target_n, 4),
+            "held_error_n": round(held, 4), "settle_s": round(t_done_s - t_command_s, 4)}
 
 
 def _stack_scans(scans: list[Scan]) -> np.ndarray:

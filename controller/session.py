@@ -371,6 +371,7 @@ class Session:
         executor = ProbeExecutor(self.cell, machine, settings, validator, top_z,
                                  should_stop=lambda: self.flags.stop_now, placement=placement)
         executor.on_placement = self._on_placement
+        executor.on_regulated = lambda record: self._log("force_regulated", **record)
         return executor
 
     def _on_placement(self, what: str, estimate: dict[str, Any]) -> None:

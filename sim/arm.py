@@ -268,7 +268,8 @@ class SimArm:
     # ------------------------------------------------------------------ Arm protocol
     def identity(self) -> DeviceIdentity:
         return DeviceIdentity("arm", "UR5e (simulated)", self._serial, "5.15.0-sim",
-                              {"control_period_ms": self._world.control_period_us / 1000.0})
+                              {"control_period_ms": self._world.control_period_us / 1000.0,
+                               "force_loop": self.supervisor.identity()})
 
     def status(self) -> ArmStatus:
         """The arm's state bits; without a connection, the last known pose and connected=False."""

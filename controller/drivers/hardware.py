@@ -621,7 +621,7 @@ class _HardwareServer:
 
     def op_identity(self) -> dict[str, Any]:
         ft = self.ft.identity()
-        return {"arm": dict(self.link.identity()), "ft": {"model": ft.model, "serial": ft.serial,
+        return {"arm": {**self.link.identity(), "force_loop": self.sup.identity()}, "ft": {"model": ft.model, "serial": ft.serial,
                                                           "firmware": ft.firmware, "extra": dict(ft.extra)}}
 
     def op_stop_timings(self) -> list[dict[str, Any]]:
