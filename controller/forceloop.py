@@ -38,7 +38,7 @@ import hashlib
 import itertools
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -66,6 +66,12 @@ UNLOAD_RISE_FRACTION = 0.1
 # Kinds of crossing that a motion unloading the contact can keep above the limit for a
 # while; any other kind (stale or frozen stream, a status word, slip) always stops.
 FORCE_KINDS = frozenset({"force", "force_rate", "lateral_force", "torque"})
+
+# The regulation acts only on fresh readings: when the newest F/T sample is older than this
+# many loop periods (a stream that stalls: a network hiccup, a starved process), it commands
+# no speed and keeps its state until samples come again, instead of pushing on an old force.
+# The guard's own stale limit (ft_stale_ms) trips the arm if the stall goes on.
+STALE_PERIODS = 2.0
 
 _CODE_SHA256 = hashlib.sha256(Path(__file__).read_bytes()).hexdigest()
 
@@ -338,6 +344,7 @@ class SupervisorCounts:
     settled: int = 0
     trips: int = 0
     let_through: int = 0
+    stale_holds: int = 0
 
 
 class ForceSupervisor:
@@ -364,6 +371,7 @@ class ForceSupervisor:
         self._reg_t0_s = 0.0
         self._next_update_s = 0.0
         self._contact_threshold_n: float | None = None      # the last contact search's
+        self._newest_t_s: float | None = None               # the newest remembered sample's time
 
     # ------------------------------------------------------------------ what runs here
     def identity(self) -> dict:
@@ -437,8 +445,12 @@ class ForceSupervisor:
         self.regulation = None
 
     # ------------------------------------------------------------------ the sensor path
-    def remember(self, force_n: np.ndarray) -> None:
-        """Keep the latest force samples (rows, N, sensor frame) for the loop's reading."""
+    def remember(self, block: WrenchBlock) -> None:
+        """Keep the latest force samples of ``block`` (N, sensor frame) for the loop's reading."""
+        if not len(block):
+            return
+        self._newest_t_s = float(block.t_s[-1])
+        force_n = block.force_n
         buf = self._recent
         k = min(force_n.shape[0], buf.shape[0])
         if k == 0:
@@ -457,6 +469,7 @@ class ForceSupervisor:
     def forget_samples(self) -> None:
         """A deliberate step in the stream (a tare): the old samples no longer apply."""
         self._recent_n = 0
+        self._newest_t_s = None
 
     def first_contact(self, force_magnitude_n: np.ndarray) -> int | None:
         """Index of the first sample that ends a running contact search, or None."""
@@ -479,18 +492,21 @@ class ForceSupervisor:
         of the latched kind (any of the force kinds after a force trip) is let through for a
         motion commanded after the trip that unloads: it moves away from the contact
         (``direction . away > 0``, when the contact is known) and, for the force kinds, |F|
-        stays within ``UNLOAD_RISE_FRACTION`` of the latched peak (or the limit, if higher).
-        Anything else that moves is stopped; with nothing moving there is nothing to stop.
+        stays within ``UNLOAD_RISE_FRACTION`` of the latched peak (or the limit, if higher;
+        the peak follows the force while the arm stands stopped). Anything else that moves is
+        stopped; with nothing moving there is nothing to stop.
         """
         latch, m = self.latch, self.motion
         if latch is None:
             return Verdict.STOP
-        if m is None or not m.active:
-            return Verdict.IGNORE
-        if self._unloads(latch, m, trip, peak_force_n):
+        if m is not None and m.active and self._unloads(latch, m, trip, peak_force_n):
             self.counts.let_through += 1
             return Verdict.LET_THROUGH
-        return Verdict.STOP
+        # The latched level follows the force while the arm stands stopped (a motion stopped
+        # for pushing on adds to it): an unloading motion is judged against where it started.
+        if trip.kind in FORCE_KINDS and peak_force_n > latch.peak_force_n:
+            self.latch = replace(latch, peak_force_n=float(peak_force_n))
+        return Verdict.STOP if m is not None and m.active else Verdict.IGNORE
 
     def _unloads(self, latch: TripLatch, m: SupervisedMotion, trip: Trip, peak_force_n: float) -> bool:
         force_kind = trip.kind in FORCE_KINDS
@@ -549,7 +565,7 @@ class ForceSupervisor:
         if len(block):
             fmag = force_magnitudes_n(block)
             contact_at = self.first_contact(fmag)
-            self.remember(block.force_n)
+            self.remember(block)
             peak = float(fmag.max())
             if contact_at is not None:
                 contact_t = float(block.t_s[contact_at])
@@ -617,11 +633,14 @@ class ForceSupervisor:
         if reg is None or not self.regulation_due(t_s):
             return TickCommand()
         period = self.gains.period_s
-        force = self.force_now_n() if force_n is None else float(force_n)
-        speed = self.regulate(t_s - self._reg_t0_s, force, float(np.asarray(position_mm, float) @ reg.direction))
         self._next_update_s += period
         if self._next_update_s <= t_s:
             self._next_update_s = t_s + period
+        if self._newest_t_s is not None and t_s - self._newest_t_s > STALE_PERIODS * period:
+            self.counts.stale_holds += 1
+            return TickCommand(velocity_mm_s=np.zeros(3), accel_mm_s2=self.gains.accel_mm_s2)
+        force = self.force_now_n() if force_n is None else float(force_n)
+        speed = self.regulate(t_s - self._reg_t0_s, force, float(np.asarray(position_mm, float) @ reg.direction))
         return TickCommand(velocity_mm_s=reg.direction * speed, accel_mm_s2=self.gains.accel_mm_s2)
 
     def contact_began(self) -> None:

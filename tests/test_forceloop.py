@@ -123,6 +123,24 @@ def test_regulation_updates_come_once_per_period_from_the_cell_gains() -> None:
     np.testing.assert_allclose(np.diff(sent[1:]), 0.02, atol=1e-9)
 
 
+def test_regulation_holds_still_while_the_ft_stream_stalls() -> None:
+    """A stall shorter than the guard's stale limit: once the newest sample is two loop periods
+    old the loop commands no speed (no pushing on an old force), then carries on."""
+    limits = SafetyLimits(**{**LIMITS.__dict__, "ft_stale_ms": 100.0})
+    arm, clock = arm_on(spring(20.0), limits=limits)
+    assert wait(clock, arm.seek_contact(DOWN, 5.0, 0.4, 20.0)) == MotionState.CONTACT
+    motion = arm.regulate_force(DOWN, 10.0, 10.0)
+    clock.sleep_s(0.3)
+    t_stall = clock.now_s()
+    arm.stall_ft(0.08)
+    clock.sleep_s(0.08)
+    during = [(t, np.asarray(v)) for t, kind, v in arm.commands if kind == "speed_linear" and t > t_stall]
+    assert during and all(not v.any() for t, v in during if t > t_stall + 0.02 + 1e-9)
+    assert arm.supervisor.counts.stale_holds >= 5
+    assert arm.trip() is None
+    assert wait(clock, motion) == MotionState.DONE
+
+
 # ----------------------------------------------------------------------------- trips and unloading
 def _tripped_at_limit(max_force_n: float = 15.0) -> tuple[ScriptedArm, VirtualClock]:
     """A ramp to 25 N through a 15 N limit on a 20 N/mm spring, with a robot's 6 ms command

@@ -389,3 +389,99 @@ def test_kinematic_backend_joint_move_and_joints_follow_the_pose() -> None:
         arm.advance(t)
     assert arm.joints_rad() == pytest.approx(q1)
     assert Pose.from_ur(arm.tcp_pose_ur()).distance_to(kin.forward(model, q1))[0] < 1e-6
+
+
+# ---------------------------------------------------------------- faithful to a real controller
+_THREADS_CLIENT = r"""
+import json, sys, time
+import rtde_control, rtde_receive
+host = sys.argv[1]
+r = rtde_receive.RTDEReceiveInterface(host, frequency=125.0)
+c = rtde_control.RTDEControlInterface(host, frequency=125.0, flags=rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT)
+start = r.getActualTCPPose(); up = list(start); up[2] += 0.02
+out = {}
+c.speedL([0.0, 0.0, -0.01, 0.0, 0.0, 0.0], 0.5, 0.0)
+time.sleep(0.2)
+out["speed_stop"] = c.speedStop(2.0)
+out["after_speed_stop"] = c.moveL(up, 0.1, 0.5)
+out["running_after_speed_stop"] = c.isProgramRunning()
+c.speedL([0.0, 0.0, -0.01, 0.0, 0.0, 0.0], 0.5, 0.0)
+time.sleep(0.2)
+c.moveL(start, 0.1, 0.5, True)          # no speedStop: the speed thread still runs
+time.sleep(0.3)
+out["running_after_move_over_speed"] = c.isProgramRunning()
+print(json.dumps(out))
+"""
+
+
+@pytest.mark.loopback
+@pytest.mark.timeout(60)
+def test_a_move_while_the_speed_thread_runs_halts_the_program(emulator_at) -> None:
+    """ur_rtde 1.6.5's moveL stops only the async move thread: after speedL, a moveL without
+    speedStop makes two threads command the robot, and URScript halts the program."""
+    emulator = emulator_at(31)
+    out = _run_client(_THREADS_CLIENT, emulator.host)
+    assert out["speed_stop"] is True and out["after_speed_stop"] is True
+    assert out["running_after_speed_stop"] is True
+    assert out["running_after_move_over_speed"] is False
+    errors = emulator.events_of("runtime_error")
+    assert len(errors) == 1 and "Another thread is already controlling the robot" in errors[0].detail
+    assert emulator.events_of("program_stopped")[-1].detail == "runtime_error"
+    assert not emulator.is_moving()
+
+
+_REUPLOAD_CLIENT = r"""
+import json, sys, time
+import dashboard_client, rtde_control, rtde_receive
+host, clear = sys.argv[1], sys.argv[2] == "clear"
+db = dashboard_client.DashboardClient(host); db.connect()
+r = rtde_receive.RTDEReceiveInterface(host, frequency=125.0)
+c = rtde_control.RTDEControlInterface(host, frequency=125.0, flags=rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT)
+c.speedL([0.0, 0.0, -0.02, 0.0, 0.0, 0.0], 0.5, 0.0)
+print("speeding", flush=True)
+sys.stdin.readline()                     # the test protective-stops the arm, waits out the unlock delay
+db.unlockProtectiveStop()
+db.closeSafetyPopup()
+if clear:
+    c.kickWatchdog()                     # NO_CMD into input_int_register_0, with no program running
+c.reuploadScript()
+deadline = time.monotonic() + 5.0
+while not c.isProgramRunning() and time.monotonic() < deadline:
+    time.sleep(0.01)
+before = r.getActualTCPPose()
+time.sleep(0.5)
+after = r.getActualTCPPose()
+print(json.dumps({"running": c.isProgramRunning(), "before": before, "after": after}), flush=True)
+"""
+
+
+@pytest.mark.loopback
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("clear", [False, True])
+def test_input_registers_outlive_the_program(emulator_at, clear: bool) -> None:
+    """A protective stop during speedL, then the script uploaded again: without clearing the
+    command register first, the new program runs the last speedL again and the arm drives
+    itself down; cleared, it stays still."""
+    emulator = emulator_at(33, unlock_delay_s=0.3)
+    proc = subprocess.Popen([sys.executable, "-c", _REUPLOAD_CLIENT, emulator.host, "clear" if clear else "keep"],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "speeding"
+        time.sleep(0.2)
+        emulator.inject_protective_stop("test")
+        time.sleep(0.4)
+        assert emulator._inputs["input_int_register_0"] == Cmd.SPEEDL
+        proc.stdin.write("go\n")
+        proc.stdin.flush()
+        line = proc.stdout.readline()
+        assert line.startswith("{"), proc.stderr.read()
+        out = json.loads(line)
+    finally:
+        proc.kill()
+        proc.wait(5.0)
+    assert out["running"] is True
+    moved_mm = (out["before"][2] - out["after"][2]) * 1e3
+    if clear:
+        assert abs(moved_mm) < 0.01
+    else:
+        assert moved_mm > 5.0               # 0.5 s at the replayed 20 mm/s

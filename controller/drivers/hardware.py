@@ -64,7 +64,7 @@ import numpy as np
 
 from ..clock import Clock, RealClock
 from ..devices import ArmStatus, DeviceIdentity, MotionState, Trip, WrenchBlock
-from ..errors import DeviceError, DeviceTimeout, MotionRefused
+from ..errors import DeviceError, DeviceTimeout, MotionRefused, ProgramNotRunning
 from .supervised import await_ready, kill_child
 from ..forceloop import BlockVerdict, ForceLoopGains, ForceSupervisor, SupervisedMotion
 from ..geometry import Pose
@@ -382,6 +382,8 @@ class _HardwareServer:
                 self.state = self.link.state()
                 self._update_motion(self.state)
                 self._control_tick(self.state)
+            except ProgramNotRunning:
+                pass                    # a stop the next state explains (safety, operator, watchdog)
             except DeviceError as exc:
                 self._link_failed(str(exc))
             except Exception as exc:  # noqa: BLE001 — keep the loop alive; the controller hears of it
@@ -482,7 +484,6 @@ class _HardwareServer:
             with self.gate:
                 self.sup.faulted(why)
                 self.move = None
-                self.speeding = False
             return
         move = self.move
         if move is None or move[0] is not m:
@@ -664,6 +665,8 @@ class _HardwareServer:
                 self.conn.send(("ok", rid, result))
             except MotionRefused as exc:
                 self.conn.send(("refused", rid, str(exc)))
+            except ProgramNotRunning as exc:
+                self.conn.send(("not_running", rid, str(exc)))
             except DeviceTimeout as exc:
                 self.conn.send(("timeout", rid, str(exc)))
             except Exception as exc:  # noqa: BLE001 — every failure goes back to the controller
@@ -839,6 +842,8 @@ class HardwareProcess:
                     raise MotionRefused(payload)
                 if kind == "timeout":
                     raise DeviceTimeout(payload)
+                if kind == "not_running":
+                    raise ProgramNotRunning(payload)
                 raise DeviceError(f"hardware {name}: {payload}")
 
     def stats(self) -> dict[str, Any]:

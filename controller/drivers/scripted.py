@@ -75,6 +75,7 @@ class ScriptedArm:
         self._t_s = clock.now_s()
         self._next_tick_s = self._t_s
         self._seq = 0
+        self._silent_until_s = -np.inf
         self._bias = np.zeros(3)
         self._outbox: list[WrenchBlock] = []
         self.ft = _ScriptedFT(self)
@@ -175,7 +176,17 @@ class ScriptedArm:
         self.velocity_mm_s = target.copy() if norm <= limit else self.velocity_mm_s + change * (limit / norm)
         self.position_mm = self.position_mm + self.velocity_mm_s * dt
 
+    def stall_ft(self, duration_s: float) -> None:
+        """The F/T stream delivers nothing for ``duration_s`` from now (a network hiccup)."""
+        self._silent_until_s = self._t_s + float(duration_s)
+
     def _sample(self) -> None:
+        if self._t_s < self._silent_until_s:
+            trip = self.guard.check_stale(self._t_s)
+            if trip is not None and self.supervisor.on_block(WrenchBlock.empty(), trip).stop:
+                self._stop_primitive()
+                self.supervisor.tripped(trip, 0.0, None)
+            return
         force = np.asarray(self.force_of(self.position_mm), float).reshape(3)
         if self.noise_n > 0:
             force = force + self._rng.normal(0.0, self.noise_n, 3)

@@ -46,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import DeviceError, DeviceTimeout
+from ..errors import DeviceError, DeviceTimeout, ProgramNotRunning
 from .supervised import await_ready, kill_child
 
 UR_RTDE_VERSION = "1.6.5"
@@ -494,6 +494,8 @@ class _ChildLink:
                 self.conn.send(("ok", rid, result, stamps))
             else:
                 self.conn.send(("ok", rid, result))
+        except ProgramNotRunning as exc:
+            self.conn.send(("not_running", rid, str(exc)))
         except Exception as exc:  # noqa: BLE001 — every failure goes back to the parent
             self.conn.send(("err", rid, f"{type(exc).__name__}: {exc}"))
         finally:
@@ -512,7 +514,8 @@ class _ChildLink:
     # -- operations (each returns plain data)
     def _require_program(self) -> None:
         if not self.ctl.isProgramRunning():
-            raise DeviceError("the control program is not running (protective stop, e-stop or watchdog)")
+            raise ProgramNotRunning("the control program is not running (a protective stop, an e-stop, the "
+                                    "watchdog or an operator's stop)")
 
     def op_identity(self) -> dict[str, str]:
         return self.identity()
@@ -942,6 +945,8 @@ class URLink:
                     return msg[2]
                 if msg[0] == "err" and msg[1] == rid:
                     raise DeviceError(f"UR {name} failed: {msg[2]}")
+                if msg[0] == "not_running" and msg[1] == rid:
+                    raise ProgramNotRunning(f"UR {name}: {msg[2]}")
                 self._handle_unsolicited(msg)
                 if self._conn is None or (self._proc is not None and not self._proc.is_alive()):
                     self._raise_unreported()

@@ -834,7 +834,10 @@ class UREmulator:
         self._set_tcp_offset(self.installation_tcp_ur)
         self._write_async_progress(-1)
         self._out_int[self._reg_offset] = READY
-        self._event("program_started", f"{self._program_name} offset {self._reg_offset}")
+        # The input registers are the controller's, not the program's: what a client wrote
+        # before the upload is what the new program reads first.
+        command = self._cycle_inputs.get(f"input_int_register_{self._reg_offset}", 0)
+        self._event("program_started", f"{self._program_name} offset {self._reg_offset} command register {command}")
 
     def _end_program(self, reason: str) -> None:
         """The program stops (stop script, dashboard stop, watchdog, safety): so does the arm."""
