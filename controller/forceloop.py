@@ -403,9 +403,9 @@ class ForceSupervisor:
         return self._begin("move_linear", step / length if length > 1e-9 else None)
 
     def begin_seek(self, direction: np.ndarray, speed_mm_s: float, threshold_n: float, max_distance_mm: float,
-                   start_mm: np.ndarray) -> SupervisedMotion:
+                   start_mm: np.ndarray, t_s: float | None = None) -> SupervisedMotion:
         """A contact search; the caller commands :meth:`ContactSearch.velocity_mm_s` at
-        ``gains.seek_accel_mm_s2``."""
+        ``gains.seek_accel_mm_s2`` now (``t_s``), and :meth:`on_tick` repeats it every period."""
         if not (speed_mm_s > 0 and threshold_n > 0 and max_distance_mm > 0):
             raise MotionRefused("seek_contact needs a positive speed, force threshold and distance")
         d = _unit(direction)
@@ -413,6 +413,8 @@ class ForceSupervisor:
         self.search = ContactSearch(d, float(speed_mm_s), float(threshold_n), float(max_distance_mm),
                                     np.asarray(start_mm, float).copy())
         self._contact_threshold_n = float(threshold_n)
+        if t_s is not None:
+            self._next_update_s = float(t_s) + self.gains.period_s
         self.counts.seeks += 1
         return motion
 
@@ -599,13 +601,11 @@ class ForceSupervisor:
         self.counts.no_contacts += 1
         return True
 
-    def regulation_due(self, t_s: float) -> bool:
-        return self.regulation is not None and t_s >= self._next_update_s - 1e-9
-
     @property
     def next_update_s(self) -> float | None:
-        """When the running regulation's next update is due (s), None without one."""
-        return self._next_update_s if self.regulation is not None else None
+        """When the next speed command of the running regulation or contact search is due (s),
+        None without one."""
+        return self._next_update_s if (self.regulation is not None or self.search is not None) else None
 
     def regulate(self, elapsed_s: float, force_n: float, u_mm: float) -> float:
         """One update of the running regulation, ``elapsed_s`` after it began: the speed along
@@ -624,18 +624,23 @@ class ForceSupervisor:
 
     def on_tick(self, t_s: float, position_mm: np.ndarray, force_n: float | None = None) -> TickCommand:
         """The control path of a real-time backend at ``t_s`` (s) with the arm at
-        ``position_mm`` (base): the search's distance, and the regulation once per period
-        (on schedule from its start; a late tick does not make up for missed ones) from
-        ``force_n`` (default: :meth:`force_now_n`)."""
+        ``position_mm`` (base): the search's distance, and once per period (on schedule from
+        the start; a late tick does not make up for missed ones) the speed command: the
+        search's again (a speed command lost on its way must not leave the probe standing
+        short of the surface) or the regulation's update from ``force_n`` (default:
+        :meth:`force_now_n`)."""
         if self.search_exhausted(position_mm):
             return TickCommand(stop=True)
-        reg = self.regulation
-        if reg is None or not self.regulation_due(t_s):
+        reg, search = self.regulation, self.search
+        if (reg is None and search is None) or t_s < self._next_update_s - 1e-9:
             return TickCommand()
         period = self.gains.period_s
         self._next_update_s += period
         if self._next_update_s <= t_s:
             self._next_update_s = t_s + period
+        if search is not None:
+            return TickCommand(velocity_mm_s=search.velocity_mm_s(), accel_mm_s2=self.gains.seek_accel_mm_s2)
+        assert reg is not None
         if self._newest_t_s is not None and t_s - self._newest_t_s > STALE_PERIODS * period:
             self.counts.stale_holds += 1
             return TickCommand(velocity_mm_s=np.zeros(3), accel_mm_s2=self.gains.accel_mm_s2)

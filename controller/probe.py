@@ -107,7 +107,7 @@ class ProbeSettings:
     # While the arm holds still or holds a regulated force and the controller only records
     # F/T and poses (the settle wait, tare waits, scan bursts), it polls this often. The
     # safety check-and-stop runs where the data arrives on every sample whatever the poll
-    # (DESIGN §5): a crossing stops the arm at the same sample; the controller sees the
+    # (controller/forceloop.py): a crossing stops the arm at the same sample; the controller sees the
     # same F/T blocks in bigger pieces. Motion and contact search keep poll_period_s.
     hold_poll_period_s: float = 0.1
     reference_scans: int = 10

@@ -161,17 +161,19 @@ def test_a_force_trip_lets_its_retract_through_and_stops_a_push() -> None:
 
 @pytest.mark.loopback
 @pytest.mark.timeout(120)
-def test_a_dashboard_stop_leaves_the_arm_to_the_operator_until_recovery() -> None:
+@pytest.mark.parametrize("command, reply, state", [("stop", "Stopped", "STOPPED"),
+                                                   ("pause", "Pausing program", "PAUSED")])
+def test_a_dashboard_stop_leaves_the_arm_to_the_operator_until_recovery(command: str, reply: str, state: str) -> None:
     rig = make_rig(230, unlock_delay_s=1.0, link=FAST_RECOVERY)
     try:
         arm = rig.hw.arm
         _, motion = _pressing(rig)
         programs = len(rig.emulator.programs_received)
-        assert _dashboard(rig.emulator.host, "stop") == ["Stopped"]
+        assert _dashboard(rig.emulator.host, command) == [reply]
         assert wait_for(lambda: arm.status().operator_stop, 5.0)
         status = arm.status()
         assert not status.program_running and not status.protective_stop and status.connected
-        assert "pendant or the dashboard" in status.stop_reason and "STOPPED" in status.stop_reason
+        assert "pendant or the dashboard" in status.stop_reason and state in status.stop_reason
         assert wait_motion(motion, 2.0) == MotionState.FAULT
         # Nothing uploaded, nothing restarted, nothing moved: the operator has the arm.
         assert _still(rig, 2.0) < 0.01

@@ -1,6 +1,6 @@
 """The hardware process: owns the F/T stream and the arm driver and runs the check-and-stop path.
 
-Why a separate process (DESIGN §5): the safety path must keep running whatever the
+Why a separate process: the safety path must keep running whatever the
 controller does (a long journal fsync, model training, a Python exception, a debugger
 stop), and must stop when the controller is gone. So a ``spawn``-ed child — the
 hardware process — owns :class:`~.ati_netft.NetFTClient` and :class:`~.ur_link.URLink`
@@ -414,7 +414,7 @@ class _HardwareServer:
                                        cmd.accel_mm_s2 * 1e-3)
                 self.speeding = True
                 reg = self.sup.regulation
-                if reg is not None:
+                if reg is not None and m.kind == "regulate_force":
                     self.trace.append((t_call, reg.last_force_n, float(np.linalg.norm(cmd.velocity_mm_s)),
                                        reg.stiffness_n_mm, time.monotonic() - t_call))
 
@@ -550,7 +550,7 @@ class _HardwareServer:
         st = self._ready_state()
         with self.gate:
             m = self.sup.begin_seek(np.asarray(direction, float), speed_mm_s, contact_force_n, max_distance_mm,
-                                    st.tcp_pose_ur[:3] * 1e3)
+                                    st.tcp_pose_ur[:3] * 1e3, time.monotonic())
             self._publish(m)
             self.move = None
             search = self.sup.search

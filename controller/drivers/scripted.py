@@ -113,7 +113,8 @@ class ScriptedArm:
 
     def seek_contact(self, direction: np.ndarray, speed_mm_s: float, contact_force_n: float,
                      max_distance_mm: float) -> Motion:
-        motion = self.supervisor.begin_seek(direction, speed_mm_s, contact_force_n, max_distance_mm, self.position_mm)
+        motion = self.supervisor.begin_seek(direction, speed_mm_s, contact_force_n, max_distance_mm, self.position_mm,
+                                            self._t_s)
         search = self.supervisor.search
         assert search is not None
         self._send("speed_linear", search.velocity_mm_s(),

@@ -1,6 +1,6 @@
 """The low-level UR link: the real ur_rtde 1.6.5 in a supervised child process.
 
-Why a child process (DESIGN §5, §9): ur_rtde 1.6.5 can crash its process (segfault)
+Why a child process (docs/ur_emulation.md, "Behaviour of ur_rtde 1.6.5"): ur_rtde 1.6.5 can crash its process (segfault)
 while reconnecting after a dropped connection, its constructors hold the GIL while they
 block on the network, and a blocking call starves the RTDE watchdog. So the library
 runs in a ``spawn``-ed child that
