@@ -63,8 +63,10 @@ _STIFFNESS_BLEND = 0.2
 # contact instead passes this margin within a few millimetres on any probed material.
 UNLOAD_RISE_FRACTION = 0.1
 
-# Kinds of crossing that a motion unloading the contact can keep above the limit for a
-# while; any other kind (stale or frozen stream, a status word, slip) always stops.
+# The force kinds of crossing: after a trip of one of them, an unloading motion may go on
+# through any of them (unloading moves the force, its rate and the torque together) while the
+# force does not rise. A crossing of another kind (a stale or frozen stream, a status word,
+# slip) goes through only after a trip of that same kind, for a motion away from the contact.
 FORCE_KINDS = frozenset({"force", "force_rate", "lateral_force", "torque"})
 
 # The regulation acts only on fresh readings: when the newest F/T sample is older than this
