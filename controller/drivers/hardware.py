@@ -70,6 +70,7 @@ from ..forceloop import BlockVerdict, ForceLoopGains, ForceSupervisor, Supervise
 from ..geometry import Pose
 from ..safety import SafetyGuard, SafetyLimits
 from .ur_link import LinkMove, URLinkConfig, URState
+from .ur_primitives import URPrimitives
 
 PR_SET_PDEATHSIG = 1
 _ACTIVE = (MotionState.RUNNING,)
@@ -323,10 +324,8 @@ class _HardwareServer:
         self.motions: collections.OrderedDict[int, SupervisedMotion] = collections.OrderedDict()
         # The moveL in flight: its motion, the link's handle, its target (ur units).
         self.move: tuple[SupervisedMotion, LinkMove, np.ndarray] | None = None
-        # ur_rtde's speed thread runs (a speedL since the last speedStop or program start): a
-        # moveL or stopL now would make a second thread command the robot, which halts the
-        # program (docs/ur_emulation.md).
-        self.speeding = False
+        # The arm's primitives (moveL, speedL, stops: the supervisor's commands go through them).
+        self.arm = URPrimitives(self.link, cfg.stop_decel_m_s2 * 1e3, cfg.direct_stop)
         self.trace: collections.deque = collections.deque(maxlen=2000)   # (t, F, v, k, send s)
         self.state: URState | None = None
         self.pending_errors: list[str] = []
@@ -410,9 +409,7 @@ class _HardwareServer:
                 self._send_stop()
             elif cmd.velocity_mm_s is not None and m is not None and m.active and m is self.sup.motion:
                 t_call = time.monotonic()
-                self.link.speed_linear(np.concatenate([cmd.velocity_mm_s * 1e-3, np.zeros(3)]),
-                                       cmd.accel_mm_s2 * 1e-3)
-                self.speeding = True
+                self.arm.speed_linear(cmd.velocity_mm_s, cmd.accel_mm_s2)
                 reg = self.sup.regulation
                 if reg is not None and m.kind == "regulate_force":
                     self.trace.append((t_call, reg.last_force_n, float(np.linalg.norm(cmd.velocity_mm_s)),
@@ -423,23 +420,15 @@ class _HardwareServer:
         self.sup.faulted(message)
         self.move = None
         # A failed link restarts its child: the new program runs no speed thread.
-        self.speeding = False
+        self.arm.program_restarted()
         self.state = None
 
     # ------------------------------------------------------------------ stops (safety thread)
     def _send_stop(self) -> int | None:
-        """Stop the arm now: speedStop while ur_rtde's speed thread runs, stopL otherwise.
-        Returns the direct channel's sequence number (None for a call through the request pipe).
-        The caller holds the gate."""
-        decel = self.cfg.stop_decel_m_s2
-        speed_stop, self.speeding = self.speeding, False
+        """Stop the arm now (URPrimitives.stop). Returns the direct channel's sequence number
+        (None for a call through the request pipe). The caller holds the gate."""
         try:
-            if self.cfg.direct_stop:
-                return self.link.stop_now(not speed_stop, decel)
-            if speed_stop:
-                self.link.speed_stop(decel)
-            else:
-                self.link.stop_linear(decel)
+            return self.arm.stop()
         except DeviceError as exc:
             # The link restarts its child, whose new program stops the arm anyway.
             self.pending_errors.append(f"stop failed: {exc}")
@@ -516,14 +505,6 @@ class _HardwareServer:
             st = self.state = self.link.state()
         return st
 
-    def _end_speed(self) -> None:
-        """speedStop before a moveL: in ur_rtde 1.6.5's control script a moveL stops only the
-        move thread, and a moveL while the speed thread still runs halts the program ("Another
-        thread is already controlling the robot"). The caller holds the gate."""
-        if self.speeding:
-            self.link.speed_stop(self.cfg.stop_decel_m_s2)
-            self.speeding = False
-
     def op_status(self) -> dict[str, Any]:
         self._raise_pending()
         st = self._ready_state()
@@ -540,8 +521,7 @@ class _HardwareServer:
         with self.gate:
             m = self.sup.begin_move(start[:3] * 1e3, target[:3] * 1e3)
             self._publish(m)
-            self._end_speed()
-            self.move = (m, self.link.move_linear(target, speed_mm_s * 1e-3, accel_mm_s2 * 1e-3), target)
+            self.move = (m, self.arm.move_linear(target, speed_mm_s, accel_mm_s2), target)
         return m.id
 
     def op_seek_contact(self, direction: list[float], speed_mm_s: float, contact_force_n: float,
@@ -555,9 +535,7 @@ class _HardwareServer:
             self.move = None
             search = self.sup.search
             assert search is not None
-            self.link.speed_linear(np.concatenate([search.velocity_mm_s() * 1e-3, np.zeros(3)]),
-                                   self.cfg.force_loop.seek_accel_mm_s2 * 1e-3)
-            self.speeding = True
+            self.arm.speed_linear(search.velocity_mm_s(), self.cfg.force_loop.seek_accel_mm_s2)
         return m.id
 
     def op_regulate_force(self, direction: list[float], target_force_n: float, rate_n_s: float) -> int:
@@ -600,8 +578,7 @@ class _HardwareServer:
     def op_recover(self) -> bool:
         with self.gate:
             result = self.link.recover_protective_stop()
-            # A new program: no speed thread runs.
-            self.speeding = False
+            self.arm.program_restarted()
         self.state = None
         return bool(result.get("ok", False))
 
