@@ -18,7 +18,6 @@ Each test runs on its own 127.0.0.x; everything is closed in ``finally``.
 from __future__ import annotations
 
 import math
-import socket
 import time
 
 import numpy as np
@@ -32,7 +31,7 @@ from elastoprobe.controller.geometry import Pose
 from elastoprobe.sim.cell import SimCell, params_from_cell
 from elastoprobe.sim.servers.ur_backend import KinematicBackend
 from elastoprobe.sim.servers.ur_emulator import Cmd, UREmulator
-from test_loopback_rig import CELL, make_rig, wait_for, wait_motion
+from test_loopback_rig import CELL, dashboard, make_rig, wait_for, wait_motion
 
 FAST_RECOVERY = URLinkConfig(frequency_hz=125.0, call_timeout_s=3.0, start_timeout_s=30.0, unlock_wait_s=1.0)
 
@@ -50,18 +49,6 @@ def _pressing(rig, force_n: float = 5.0, rate_n_s: float = 10.0, wait_done: bool
     if wait_done:
         assert wait_motion(motion, 15.0) == MotionState.DONE, (motion.note, arm.trip(), rig.emulator.events[-6:])
     return d, motion
-
-
-def _dashboard(host: str, *lines: str) -> list[str]:
-    with socket.create_connection((host, 29999), timeout=2.0) as s:
-        f = s.makefile("rwb")
-        f.readline()
-        out = []
-        for line in lines:
-            f.write(line.encode() + b"\n")
-            f.flush()
-            out.append(f.readline().decode().strip())
-        return out
 
 
 def _still(rig, seconds: float) -> float:
@@ -169,7 +156,7 @@ def test_a_dashboard_stop_leaves_the_arm_to_the_operator_until_recovery(command:
         arm = rig.hw.arm
         _, motion = _pressing(rig)
         programs = len(rig.emulator.programs_received)
-        assert _dashboard(rig.emulator.host, command) == [reply]
+        assert dashboard(rig.emulator.host, command) == [reply]
         assert wait_for(lambda: arm.status().operator_stop, 5.0)
         status = arm.status()
         assert not status.program_running and not status.protective_stop and status.connected

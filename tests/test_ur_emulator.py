@@ -19,6 +19,7 @@ import pytest
 from elastoprobe.sim.servers.ur_backend import KinematicBackend, trapezoid_position
 from elastoprobe.sim.servers.ur_emulator import Cmd, UREmulator
 from elastoprobe.sim.servers.ur_rtde_protocol import HEADER, frame
+from test_loopback_rig import dashboard, read_exact
 
 START_POSE = [0.4, -0.1, 0.3, 0.0, np.pi, 0.0]
 
@@ -108,20 +109,10 @@ def emulator_at():
 def _rtde_request(sock: socket.socket, command: int, payload: bytes = b"") -> tuple[int, bytes]:
     sock.sendall(frame(command, payload))
     while True:
-        size, cmd = HEADER.unpack(_read(sock, 3))
-        body = _read(sock, size - 3)
+        size, cmd = HEADER.unpack(read_exact(sock, 3))
+        body = read_exact(sock, size - 3)
         if cmd == command:
             return cmd, body
-
-
-def _read(sock: socket.socket, n: int) -> bytes:
-    buf = b""
-    while len(buf) < n:
-        chunk = sock.recv(n - len(buf))
-        if not chunk:
-            raise ConnectionError("closed")
-        buf += chunk
-    return buf
 
 
 def _run_client(code: str, host: str, timeout_s: float = 40.0) -> dict:
@@ -155,8 +146,8 @@ def test_rtde_negotiation_recipes_and_input_ownership(emulator_at) -> None:
         assert body[1:].decode() == "IN_USE"          # another client owns it
         _, body = _rtde_request(a, ord("S"))
         assert body == b"\x01"
-        size, cmd = HEADER.unpack(_read(a, 3))
-        data = _read(a, size - 3)
+        size, cmd = HEADER.unpack(read_exact(a, 3))
+        data = read_exact(a, size - 3)
         assert cmd == ord("U") and data[0] == 1
         values = struct.unpack(">6dI", data[1:])
         assert values[:6] == pytest.approx(START_POSE)
@@ -172,38 +163,26 @@ def test_rtde_negotiation_recipes_and_input_ownership(emulator_at) -> None:
         b.close()
 
 
-def _dashboard(host: str, *lines: str) -> list[str]:
-    with socket.create_connection((host, 29999), timeout=2.0) as s:
-        f = s.makefile("rwb")
-        assert f.readline().startswith(b"Connected: Universal Robots Dashboard Server")
-        out = []
-        for line in lines:
-            f.write(line.encode() + b"\n")
-            f.flush()
-            out.append(f.readline().decode().strip())
-        return out
-
-
 @pytest.mark.loopback
 @pytest.mark.timeout(30)
 def test_dashboard_refuses_unlock_for_the_delay_and_never_clears_an_estop(emulator_at) -> None:
     emu = emulator_at(23, unlock_delay_s=1.0)
-    assert _dashboard(emu.host, "PolyscopeVersion", "get serial number", "is in remote control") == [
+    assert dashboard(emu.host, "PolyscopeVersion", "get serial number", "is in remote control") == [
         "URSoftware 5.11.1.108318 (Mar 22 2021)", "20235500042", "true"]
     emu.inject_protective_stop()
-    assert _dashboard(emu.host, "safetystatus") == ["Safetystatus: PROTECTIVE_STOP"]
-    assert _dashboard(emu.host, "unlock protective stop")[0].startswith("Cannot unlock protective stop")
+    assert dashboard(emu.host, "safetystatus") == ["Safetystatus: PROTECTIVE_STOP"]
+    assert dashboard(emu.host, "unlock protective stop")[0].startswith("Cannot unlock protective stop")
     assert emu.protective_stopped
     time.sleep(1.1)
-    assert _dashboard(emu.host, "unlock protective stop", "close safety popup", "safetystatus") == [
+    assert dashboard(emu.host, "unlock protective stop", "close safety popup", "safetystatus") == [
         "Protective stop releasing", "closing safety popup", "Safetystatus: NORMAL"]
     emu.inject_emergency_stop()
-    replies = _dashboard(emu.host, "unlock protective stop", "close safety popup", "safetystatus")
+    replies = dashboard(emu.host, "unlock protective stop", "close safety popup", "safetystatus")
     assert replies[0] != "Protective stop releasing"
     assert replies[2] == "Safetystatus: ROBOT_EMERGENCY_STOP"
     assert emu.emergency_stopped
     emu.release_emergency_stop()
-    assert _dashboard(emu.host, "safetystatus") == ["Safetystatus: NORMAL"]
+    assert dashboard(emu.host, "safetystatus") == ["Safetystatus: NORMAL"]
 
 
 # ---------------------------------------------------------------- the real ur_rtde against it
