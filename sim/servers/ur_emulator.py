@@ -35,6 +35,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+import select
 import socket
 import struct
 import threading
@@ -925,7 +926,8 @@ class UREmulator:
             self._start_program(text, now)
         if not self._program_running:
             return
-        if self._watchdog is not None and now - self._watchdog_last_s > self._watchdog[1]:
+        if (self._watchdog is not None and now - self._watchdog_last_s > self._watchdog[1]
+                and not self._watched_input_waiting()):
             self._event("watchdog_expired", f"{now - self._watchdog_last_s:.3f} s without {self._watchdog[0]}")
             self._end_program("watchdog")
             return
@@ -939,6 +941,21 @@ class UREmulator:
             self._sync_wait = None
             self._out_int[self._reg_offset] = DONE
         self._process_register_command(now)
+
+    def _watched_input_waiting(self) -> bool:
+        """True when the connection that writes the watched register has bytes this emulator
+        has not read yet: they reached the controller in time, and only this process's own
+        threads (sharing one interpreter with the served world) are late to read them. A
+        real controller's RTDE server is real-time; its watchdog would have seen them."""
+        assert self._watchdog is not None
+        owner = self._input_owner.get(self._watchdog[0])
+        if owner is None or owner.closed:
+            return False
+        try:
+            readable, _, _ = select.select([owner.sock], [], [], 0.0)
+        except (OSError, ValueError):
+            return False
+        return bool(readable)
 
     def _process_register_command(self, now: float) -> None:
         off = self._reg_offset
