@@ -609,11 +609,16 @@ class ForceSupervisor:
         None without one."""
         return self._next_update_s if (self.regulation is not None or self.search is not None) else None
 
-    def regulate(self, elapsed_s: float, force_n: float, u_mm: float) -> float:
+    def regulate(self, elapsed_s: float, force_n: float, u_mm: float, sample_age_s: float = 0.0) -> float:
         """One update of the running regulation, ``elapsed_s`` after it began: the speed along
-        its direction (mm/s); the motion is DONE once settled."""
+        its direction (mm/s); the motion is DONE once settled. ``sample_age_s``: how old the
+        newest F/T sample is; beyond ``STALE_PERIODS`` periods the loop commands no speed and
+        keeps its state (it does not push on an old force)."""
         reg = self.regulation
         assert reg is not None, "no regulation runs"
+        if sample_age_s > STALE_PERIODS * self.gains.period_s:
+            self.counts.stale_holds += 1
+            return 0.0
         speed = reg.update(elapsed_s, force_n, u_mm)
         self.counts.updates += 1
         m = self.motion
@@ -643,11 +648,9 @@ class ForceSupervisor:
         if search is not None:
             return TickCommand(velocity_mm_s=search.velocity_mm_s(), accel_mm_s2=self.gains.seek_accel_mm_s2)
         assert reg is not None
-        if self._newest_t_s is not None and t_s - self._newest_t_s > STALE_PERIODS * period:
-            self.counts.stale_holds += 1
-            return TickCommand(velocity_mm_s=np.zeros(3), accel_mm_s2=self.gains.accel_mm_s2)
+        age = 0.0 if self._newest_t_s is None else t_s - self._newest_t_s
         force = self.force_now_n() if force_n is None else float(force_n)
-        speed = self.regulate(t_s - self._reg_t0_s, force, float(np.asarray(position_mm, float) @ reg.direction))
+        speed = self.regulate(t_s - self._reg_t0_s, force, float(np.asarray(position_mm, float) @ reg.direction), age)
         return TickCommand(velocity_mm_s=reg.direction * speed, accel_mm_s2=self.gains.accel_mm_s2)
 
     def contact_began(self) -> None:

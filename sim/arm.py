@@ -689,7 +689,9 @@ class SimArm:
     # ------------------------------------------------------------------ the force loop's updates
     def _regulate_update(self, t_us: int) -> None:
         """The supervisor's regulation update due at ``t_us``; its speed along the line."""
-        speed = self.supervisor.regulate((t_us - self._reg_t0_us) / US_PER_S, self._measured_force_n(), self._u)
+        newest = self._world.ft._sim_newest_us()
+        age_s = 0.0 if newest is None else (t_us - newest) / US_PER_S
+        speed = self.supervisor.regulate((t_us - self._reg_t0_us) / US_PER_S, self._measured_force_n(), self._u, age_s)
         self._next_update_us = t_us + self.loop_period_us
         self._law = _Law("ramp", t_us, self._u, v0=self._du, v1=speed, accel=self.gains.accel_mm_s2)
 

@@ -234,7 +234,9 @@ def test_the_verdict_needs_a_known_contact_for_force_kinds() -> None:
 
 # ----------------------------------------------------------------------------- the cell file
 def _cell_with(tmp_path: Path, block: str) -> Path:
+    """The shipped simulated cell with its ``force_loop:`` section replaced by ``block``."""
     text = (ROOT / "config" / "cells" / "sim.yaml").read_text()
+    text = text[:text.index("force_loop:\n")] + text[text.index("simulation:\n"):]
     text = text.replace("object:\n  file: ../objects/composite.yaml",
                         f"object:\n  file: {ROOT / 'config' / 'objects' / 'composite.yaml'}")
     path = tmp_path / "cell.yaml"
