@@ -59,6 +59,9 @@ ROBOT_STATUS_BIT_PROGRAM_RUNNING = 1
 
 # How long a program stop may stay unexplained by the safety bits before it is a fault.
 UNEXPLAINED_STOP_GRACE_S = 0.2
+# A program stop this soon after the child's kick loop came late is the watchdog's (the link's
+# own failure: restarted), not an operator's: the late turn, the watchdog's period and the grace.
+LATE_KICK_MEMORY_S = 1.0
 
 # Child operations that write input_int_register_0 (and so also feed the watchdog).
 _REGISTER_WRITING_OPS = frozenset({"move_linear", "stop_linear", "speed_linear", "speed_stop", "force_mode",
@@ -303,6 +306,7 @@ class _ChildLink:
         self.unexplained_since_s: float | None = None
         self.kicking = False
         self.stop_reason = ""            # an operator's stop, in the controller's words (op_state)
+        self.late_at_s = -math.inf       # when a turn of the kick loop last came late
         self.last_write_s = 0.0
         self.t_lib_call_s = 0.0          # when the last stop op entered ur_rtde
         self.t_wait_s = self.t_woke_s = 0.0   # the loop's last wait for requests began / ended
@@ -381,7 +385,14 @@ class _ChildLink:
 
     def run(self) -> int:
         end_s = time.monotonic() + self.cfg.child_lifetime_s
+        # A loop turn later than this may have let the watchdog's period pass without a kick.
+        late_limit_s = 0.5 / self.cfg.watchdog_min_hz
+        last_turn_s = time.monotonic()
         while time.monotonic() < end_s:
+            now = time.monotonic()
+            if now - last_turn_s > late_limit_s:
+                self.late_at_s = now
+            last_turn_s = now
             if not self.parent_alive():
                 return 0
             if not (self.ctl.isConnected() and self.rcv.isConnected()):
@@ -415,6 +426,12 @@ class _ChildLink:
                     if not self.heartbeat_fresh():
                         self.conn.send(("fault", "program_stopped", "the control program stopped (watchdog: the "
                                         "safety heartbeat was stale)"))
+                    elif now - self.late_at_s < LATE_KICK_MEMORY_S:
+                        # This process's own kicks came late (it was starved): the watchdog
+                        # stopped the program, the link's failure, not an operator's.
+                        self.conn.send(("fault", "connection_lost", "the control program stopped (watchdog: the "
+                                        "link's kicks came late)"))
+                        return 3
                     else:
                         self.stop_reason = self._program_stop_reason()
                         self.conn.send(("fault", "operator_stop", self.stop_reason))
