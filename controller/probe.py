@@ -13,7 +13,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from .devices import Cell, Motion, MotionState, Scan, Trip, WrenchBlock
+from .devices import ArmStatus, Cell, Motion, MotionState, Scan, Trip, WrenchBlock
 from .errors import DeviceError, DeviceTimeout, MotionRefused
 from .geometry import Pose, probe_tcp_pose, rotvec_to_matrix
 from .machine import SessionMachine
@@ -517,8 +517,8 @@ class ProbeExecutor:
             raise ProbeFault("protective_stop", "the robot is in a protective stop")
         if not status.connected:
             raise ProbeFault("connection", "lost the connection to the robot")
-        if status.operator_stop:
-            raise ProbeFault("operator_stop", status.stop_reason or "the robot program was stopped at the robot")
+        if not status.program_running:
+            raise self._program_stopped(status, "the probe")
         if self.should_stop():
             raise ProbeFault("operator_stop", "stop requested with elastoprobe stop")
 
@@ -546,9 +546,33 @@ class ProbeExecutor:
             raise ProbeFault("protective_stop", f"protective stop during {what}")
         if not status.connected:
             raise ProbeFault("connection", f"lost the connection to the robot during {what}")
-        if status.operator_stop:
-            raise ProbeFault("operator_stop", status.stop_reason or f"the robot program was stopped during {what}")
+        if not status.program_running:
+            raise self._program_stopped(status, what)
         raise ProbeFault("device", f"{what} ended {state.value}, expected {wanted.value}")
+
+    def _program_stopped(self, status: ArmStatus, what: str, wait_s: float = 1.0) -> ProbeFault:
+        """The robot's program stopped with no safety stop: whose stop was it?
+
+        The arm says so a moment later (a link tells an operator's stop from its own watchdog
+        once the safety bits have had time to explain it), so wait for that (bounded) before
+        naming the fault: an operator's stop pauses the session, nothing else may take the arm
+        back from them."""
+        clock = self.cell.clock
+        deadline = clock.now_s() + wait_s
+        while (not status.program_running and not status.operator_stop and not status.protective_stop
+               and not status.emergency_stop and status.connected and clock.now_s() < deadline):
+            clock.sleep_s(0.05)
+            try:
+                status = self.cell.arm.status()
+            except DeviceError as exc:
+                return ProbeFault("device", f"the robot program stopped during {what}: {exc}")
+        if status.operator_stop:
+            return ProbeFault("operator_stop", status.stop_reason or f"the robot program was stopped during {what}")
+        if status.emergency_stop:
+            return ProbeFault("emergency_stop", "emergency stop is pressed")
+        if status.protective_stop:
+            return ProbeFault("protective_stop", f"protective stop during {what}")
+        return ProbeFault("device", f"the robot program stopped during {what} (no safety stop, no operator's)")
 
     def _poses_at(self, times_s: list[float]) -> np.ndarray:
         """TCP poses (mm + rotation vector) at the given times, from the poses logged while waiting."""
