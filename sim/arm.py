@@ -254,7 +254,6 @@ class SimArm:
         self._last_plan_u: np.ndarray | None = None
         self._last_plan_du: np.ndarray | None = None
         self._move_target: Pose | None = None
-        self._motion_started_us = world.now_us
         self._protective_since_us: int | None = None
         self._estop = False
         self._connected = True
@@ -497,7 +496,6 @@ class SimArm:
             self._motion.finish(MotionState.STOPPED, "superseded")
         self._path, self._law, self._u, self._du = path, law, float(law.u0), 0.0
         self._motion = motion
-        self._motion_started_us = self._world.now_us
         self._move_target = None
         self._speed_line = None
         return motion
@@ -521,9 +519,6 @@ class SimArm:
         return measured_force_n(recent)
 
     # ------------------------------------------------------------------ world hooks (simulator internals)
-    def _sim_motion_started_after(self, t_us: int) -> bool:
-        return self._motion is not None and self._motion_started_us > t_us
-
     def _sim_tcp_pose(self) -> Pose:
         return self._path.pose(self._u)
 
