@@ -378,9 +378,10 @@ class _HardwareServer:
         end = next_poll + self.cfg.lifetime_s
         while not self.stop_event.is_set() and time.monotonic() < end:
             try:
-                self.state = self.link.state()
-                self._update_motion(self.state)
-                self._control_tick(self.state)
+                # A local: a recovery (main thread) sets self.state to None at any moment.
+                st = self.state = self.link.state()
+                self._update_motion(st)
+                self._control_tick(st)
             except ProgramNotRunning:
                 pass                    # a stop the next state explains (safety, operator, watchdog)
             except DeviceError as exc:
