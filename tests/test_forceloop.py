@@ -12,7 +12,8 @@ import pytest
 
 from elastoprobe.controller.clock import VirtualClock
 from elastoprobe.controller.config import load_cell
-from elastoprobe.controller.devices import MotionState
+from elastoprobe.controller.devices import MotionState, Trip
+from elastoprobe.controller.drivers.real_cell import hardware_config
 from elastoprobe.controller.drivers.scripted import ScriptedArm
 from elastoprobe.controller.errors import InputError
 from elastoprobe.controller.forceloop import ForceLoopGains, ForceSupervisor, SupervisedMotion, Verdict
@@ -219,7 +220,6 @@ def test_the_verdict_needs_a_known_contact_for_force_kinds() -> None:
     motion unloads it, so the supervisor stops it."""
     sup = ForceSupervisor(ForceLoopGains(), LIMITS)
     sup.begin_move(np.zeros(3), np.array([10.0, 0.0, 0.0]))
-    from elastoprobe.controller.devices import Trip
     trip = Trip("force", 1.0, 50.0, 45.0, "force 50 N exceeds 45 N")
     assert sup.verdict(trip, 50.0) == Verdict.STOP
     sup.tripped(trip, 50.0, np.array([-50.0, 0.0, 0.0]))
@@ -274,8 +274,6 @@ def test_the_simulated_arm_runs_this_loop_with_the_cell_gains() -> None:
     """The in-process cell's contact search and regulation are the supervisor's: its counters
     move, its identity (code hash and gains) is what the arm reports, and it is the identity
     the real cell's hardware process is configured with from the same cell file."""
-    from elastoprobe.controller.drivers.real_cell import hardware_config
-
     cell = make_cell()
     sup = cell.arm.supervisor
     assert isinstance(sup, ForceSupervisor)
