@@ -115,9 +115,10 @@ def _rtde_request(sock: socket.socket, command: int, payload: bytes = b"") -> tu
             return cmd, body
 
 
-def _run_client(code: str, host: str, timeout_s: float = 40.0) -> dict:
-    """Run real ur_rtde code in a subprocess; it prints one JSON line."""
-    done = subprocess.run([sys.executable, "-c", code, host], capture_output=True, text=True, timeout=timeout_s)
+def _run_client(code: str, host: str, *args: str, timeout_s: float = 40.0) -> dict:
+    """Run real ur_rtde code in a subprocess (argv: host, then ``args``); it prints one JSON line."""
+    done = subprocess.run([sys.executable, "-c", code, host, *args], capture_output=True, text=True,
+                          timeout=timeout_s)
     lines = [ln for ln in done.stdout.splitlines() if ln.startswith("{")]
     assert done.returncode == 0 and lines, f"client failed:\n{done.stdout}\n{done.stderr}"
     return json.loads(lines[-1])
@@ -386,7 +387,13 @@ out["after_speed_stop"] = c.moveL(up, 0.1, 0.5)
 out["running_after_speed_stop"] = c.isProgramRunning()
 c.speedL([0.0, 0.0, -0.01, 0.0, 0.0, 0.0], 0.5, 0.0)
 time.sleep(0.2)
-c.moveL(start, 0.1, 0.5, True)          # no speedStop: the speed thread still runs
+# No speedStop: the speed thread still runs.
+if sys.argv[2] == "moveL":
+    c.moveL(start, 0.1, 0.5, True)
+elif sys.argv[2] == "stopL":
+    c.stopL(2.0, True)
+else:
+    c.forceModeStop()
 time.sleep(0.3)
 out["running_after_move_over_speed"] = c.isProgramRunning()
 print(json.dumps(out))
@@ -395,11 +402,13 @@ print(json.dumps(out))
 
 @pytest.mark.loopback
 @pytest.mark.timeout(60)
-def test_a_move_while_the_speed_thread_runs_halts_the_program(emulator_at) -> None:
-    """ur_rtde 1.6.5's moveL stops only the async move thread: after speedL, a moveL without
-    speedStop makes two threads command the robot, and URScript halts the program."""
-    emulator = emulator_at(31)
-    out = _run_client(_THREADS_CLIENT, emulator.host)
+@pytest.mark.parametrize("octet, second", [(31, "moveL"), (35, "stopL"), (37, "forceModeStop")])
+def test_a_move_while_the_speed_thread_runs_halts_the_program(emulator_at, octet: int, second: str) -> None:
+    """ur_rtde 1.6.5's moveL stops only the async move thread, and stopL and forceModeStop
+    run stopl in the main thread: after speedL, any of them without speedStop makes two
+    threads command the robot, and URScript halts the program."""
+    emulator = emulator_at(octet)
+    out = _run_client(_THREADS_CLIENT, emulator.host, second)
     assert out["speed_stop"] is True and out["after_speed_stop"] is True
     assert out["running_after_speed_stop"] is True
     assert out["running_after_move_over_speed"] is False

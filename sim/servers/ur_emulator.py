@@ -95,8 +95,9 @@ class Cmd:
     # The script treats these as real-time: process and stay "ready", no "done".
     REALTIME = frozenset({6, 9, 10, 11, 24, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
     # Motion commands the script runs in its main thread or its async move thread (not the
-    # speed thread): while the speed thread runs, each is a second thread controlling the robot.
-    MOTION_IN_MAIN_OR_MOVE_THREAD = frozenset({1, 2, 3, 4, 33, 34})
+    # speed thread): while the speed thread runs, each is a second thread controlling the robot
+    # (moveJ/moveJ_IK/moveL/moveL_FK, stopL/stopJ, and forceModeStop, which ends with stopl(10)).
+    MOTION_IN_MAIN_OR_MOVE_THREAD = frozenset({1, 2, 3, 4, 7, 33, 34})
 
 
 READY = 1
@@ -999,8 +1000,8 @@ class UREmulator:
     def _execute(self, cmd: int, now: float) -> None:
         b = self.backend
         if self._speed_thread and cmd in Cmd.MOTION_IN_MAIN_OR_MOVE_THREAD:
-            # ur_rtde 1.6.5's moveL/moveJ stop only the async move thread (stop_async_move) and
-            # stopL/stopJ run stopl/stopj in the main thread: the speed thread still runs
+            # ur_rtde 1.6.5's moveL/moveJ stop only the async move thread (stop_async_move),
+            # stopL/stopJ and forceModeStop run stopl/stopj in the main thread: the speed thread still runs
             # speedl, so two threads command the robot.
             self._event("runtime_error", f"command {cmd}: Another thread is already controlling the robot")
             self._end_program("runtime_error")
