@@ -106,11 +106,12 @@ def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.
     ``face_normals``): the ray point h0 + s dir lies at depth d below the plane point
     q = h0 + s dir + d n when s = -d (n . n_f) / (dir . n_f). The ray meets the dented
     surface where f(d) = d - d(q(d)) = 0; the depth there is not the depth at h0 wherever
-    the dent slopes and the ray is oblique (the ray moves along t as it goes in). Where
-    the depth does not change over that step (a uniform sink, far from the tip) one check
-    settles it; elsewhere a root bracketed by 0 and the depth at h0 (or the deepest depth)
-    is found by the Illinois variant of regula falsi, vectorised — a plain fixed-point
-    step would diverge where a steep foam dent is seen at a low angle.
+    the dent slopes and the ray is oblique (the ray moves along t as it goes in). Two
+    secant steps from f(0) = -d(h0) settle nearly every ray (f is close to linear: exactly
+    so where the depth does not change over the step, a uniform sink far from the tip);
+    the rest are bracketed from the points seen (stepping out by the deepest depth where
+    all lie on one side) and solved by the Illinois variant of regula falsi, vectorised —
+    a plain fixed-point step would diverge where a steep foam dent is seen at a low angle.
 
     ``advance_at(d, rows)``, if given, replaces the face's plane by the mesh itself: the
     advance (mm) along rows' rays at which the undeformed surface lies d mm further along
@@ -139,25 +140,46 @@ def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.
 
     d0 = np.asarray(depth_at(h0), dtype=float)
     depth = d0.copy()
+    advance = depth * along
     rows = np.flatnonzero(np.abs(d0) > _DENT_TOL_MM)
     if rows.size == 0:
-        return depth, depth * along
-    advance = depth * along
-    f0, advance[rows] = f_of(d0[rows], rows)
-    open_ = np.abs(f0) > _DENT_TOL_MM
-    rows, f0, d_start = rows[open_], f0[open_], d0[rows][open_]
+        return depth, advance
+    d_start = d0[rows]
+    # f is close to linear in d (the dent's depth changes little between where the ray meets
+    # the undeformed surface and where it meets the dent): secant steps from f(0) = -d0 find
+    # the root within the tolerance mostly at once. The first takes its second point on the
+    # hit face's plane (a depth lookup without the mesh), the second is exact.
+    q_plane = h0[rows] + d_start[:, None] * (along[rows, None] * dirs[rows] + n)
+    d1 = _secant_from_zero(d_start, d_start, d_start - np.asarray(depth_at(q_plane), dtype=float))
+    f1, adv1 = f_of(d1, rows)
+    settled = np.abs(f1) <= _DENT_TOL_MM
+    depth[rows], advance[rows] = d1, adv1
+    rows, d_start, d1, f1 = rows[~settled], d_start[~settled], d1[~settled], f1[~settled]
     if rows.size == 0:
         return depth, advance
-    # The bracket [lo, hi] with f(lo) <= 0 <= f(hi), from f(0) = -d0 and f(d0).
-    lo, hi = np.minimum(0.0, d_start), np.maximum(0.0, d_start)
-    f_zero = -d_start
-    f_lo = np.where(d_start > 0, f_zero, f0)
-    f_hi = np.where(d_start > 0, f0, f_zero)
+    d2 = _secant_from_zero(d_start, d1, f1)
+    f2, adv2 = f_of(d2, rows)
+    settled = np.abs(f2) <= _DENT_TOL_MM
+    depth[rows], advance[rows] = d2, adv2
+    keep = ~settled
+    rows, d_start = rows[keep], d_start[keep]
+    if rows.size == 0:
+        return depth, advance
+    # The three points in increasing d; f rises through its root (f(lo) <= 0 <= f(hi)): take
+    # the tightest pair around a sign change, or the pair at the end the root lies beyond.
+    xs = np.column_stack([np.zeros(rows.size), d1[keep], d2[keep]])
+    fs = np.column_stack([-d_start, f1[keep], f2[keep]])
+    order = np.argsort(xs, axis=1)
+    xs, fs = np.take_along_axis(xs, order, axis=1), np.take_along_axis(fs, order, axis=1)
+    first_up = np.argmax(fs >= 0.0, axis=1)
+    first_up = np.where((fs >= 0.0).any(axis=1), first_up, 3)
+    k = np.clip(first_up, 1, 2)
+    idx = np.arange(rows.size)
+    lo, f_lo, hi, f_hi = xs[idx, k - 1], fs[idx, k - 1], xs[idx, k], fs[idx, k]
     deepest = float(np.max(np.abs(d0))) * 1.05 + _DENT_TOL_MM
     for _ in range(8):
-        # The root lies beyond the pair (f(0) and f(d0) of one sign): step out past it by at
-        # least the deepest depth seen, keeping the old end as the other side. With d0 > 0
-        # only hi moves, with d0 < 0 (a raised rim) only lo.
+        # The root lies beyond the pair (f of one sign at both): step out past it by at least
+        # the deepest depth seen, keeping the old end as the other side.
         below, above = f_hi < 0, f_lo > 0
         moved = below | above
         if not np.any(moved):
@@ -170,14 +192,17 @@ def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.
                               np.where(below, f_hi, np.where(above, f_probe, f_lo)),
                               np.where(above, lo, np.where(below, probe, hi)),
                               np.where(above, f_lo, np.where(below, f_probe, f_hi)))
-    side = np.zeros(rows.size, dtype=int)         # Illinois: which end was replaced last
-    d = d_start.copy()
+    # Illinois on the bracket, row by row: a row that meets the tolerance is settled and
+    # leaves the iteration.
+    side = np.zeros(rows.size, dtype=int)         # which end was replaced last
     for _ in range(_DENT_ITERATIONS):
         denom = f_hi - f_lo
         safe = np.abs(denom) > 1e-15
         d = np.where(safe, hi - f_hi * (hi - lo) / np.where(safe, denom, 1.0), 0.5 * (lo + hi))
         f, adv = f_of(d, rows)
-        if np.max(np.abs(f)) <= _DENT_TOL_MM:
+        settled = np.abs(f) <= _DENT_TOL_MM
+        depth[rows], advance[rows] = d, adv
+        if settled.all():
             break
         up = f > 0
         hi, f_hi = np.where(up, d, hi), np.where(up, f, f_hi)
@@ -185,9 +210,17 @@ def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.
         f_lo = np.where(up & (side == 1), 0.5 * f_lo, f_lo)
         f_hi = np.where(~up & (side == -1), 0.5 * f_hi, f_hi)
         side = np.where(up, 1, -1)
-    depth[rows] = d
-    advance[rows] = adv
+        go = ~settled
+        rows, lo, f_lo, hi, f_hi, side = rows[go], lo[go], f_lo[go], hi[go], f_hi[go], side[go]
     return depth, advance
+
+
+def _secant_from_zero(d0: np.ndarray, d: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Where the line through (0, -``d0``) and (``d``, ``f``) crosses zero (mm); 2 ``d`` where
+    it is flat (the bracket search takes over from there)."""
+    slope = (f + d0) / np.where(d != 0.0, d, 1.0)
+    steep = (np.abs(slope) > 1e-6) & (d != 0.0)
+    return np.where(steep, d - f / np.where(steep, slope, 1.0), 2.0 * d)
 
 
 class SimLineScanner:
@@ -222,6 +255,7 @@ class SimLineScanner:
         self._dropout_rng = np.random.default_rng(0)
         self._burst_index = 0
         self._shadow_cache: tuple | None = None
+        self._advance_cache: tuple | None = None
         self._face_cache: tuple | None = None
         self._lateral_cache: tuple | None = None
         self.stats = {"captures": 0, "cuts": 0}
@@ -252,6 +286,7 @@ class SimLineScanner:
         # Each burst of a step gets its own correlated shape, keyed by its index in the step.
         self._burst_index += 1
         self._shadow_cache = None
+        self._advance_cache = None
         seed, step, attempt = w.step_key
         rng = np.random.default_rng([seed & 0xFFFFFFFF, step & 0xFFFFFFFF, attempt & 0xFFFFFFFF,
                                      int(Stream.SCAN_CORRELATED), self._burst_index])
@@ -270,6 +305,7 @@ class SimLineScanner:
         self._dropout_rng = w.rng(Stream.SCAN_DROPOUT)
         self._burst_index = 0
         self._shadow_cache = None
+        self._advance_cache = None
 
     def _sim_due(self, start_us: int, end_us: int) -> list[int]:
         """Exposure instants in (start, end]."""
@@ -370,8 +406,18 @@ class SimLineScanner:
         uses the hit face's plane)."""
         if rows.size == 0 or cut.p1.shape[0] == 0:
             return None
-        seg_a = np.column_stack([(cut.p1 - o) @ x_ax, (cut.p1 - o) @ z_ax])
-        seg_b = np.column_stack([(cut.p2 - o) @ x_ax, (cut.p2 - o) @ z_ax])
+        # Within a burst the scanner holds its plane and turns not at all; it moves only along
+        # the probe's push, inside that plane. What prepare() computes from the cut's segments
+        # relative to the scanner is then reused from the burst's first profile, corrected by
+        # the origin's shift (a per-ray offset and range). Reset every burst and every step.
+        key = (x_ax.tobytes(), z_ax.tobytes(), rows.tobytes())
+        cached = self._advance_cache if self._s.cache_cuts else None
+        if cached is not None and cached[0] is cut and cached[1] == key:
+            o_ref, prepared = cached[2], cached[3]
+        else:
+            o_ref, prepared = o.copy(), {}
+            if self._s.cache_cuts:
+                self._advance_cache = (cut, key, o_ref, prepared)
         rays = np.column_stack([np.sin(self._angles[rows]), np.cos(self._angles[rows])])
         # The shift in the plane per mm of depth, per ray: n's in-plane part, plus, for its
         # part across the plane, the in-plane step that keeps to the hit face's slope there.
@@ -379,30 +425,47 @@ class SimLineScanner:
         nf2_sq = np.einsum("ij,ij->i", nf2, nf2)
         fold = np.where(nf2_sq > 1e-6, float(n @ y_ax) * (face_normals @ y_ax) / np.maximum(nf2_sq, 1e-6), 0.0)
         n2 = np.array([float(n @ x_ax), float(n @ z_ax)])[None, :] + fold[:, None] * nf2
-        prepared: dict[str, np.ndarray] = {}
+        k_all = n2[:, 0] * rays[:, 1] - n2[:, 1] * rays[:, 0]
+        along_all = np.einsum("ij,ij->i", rays, n2)
+        # The origin's shift from the reference: it lowers each segment's offset across a ray by
+        # (shift x u) and its range along it by (shift . u).
+        shift = o - o_ref
+        shift2 = np.array([float(shift @ x_ax), float(shift @ z_ax)])
+        off_shift = shift2[0] * rays[:, 1] - shift2[1] * rays[:, 0]
+        rng_shift = rays @ shift2
 
         def prepare(sub: np.ndarray) -> None:
-            # Once per profile, for the rays the root find asks about first (those in the dent):
-            # each near segment's offset across the ray (p x u) and range along it (p . u) at its
-            # start, and their changes along it. The ray shifted by d n2, d n2 + r u, is the line
-            # p x u = d (n2 x u): a segment meets it where its offset passes that value, at
-            # r = p . u - d (n2 . u).
+            # For the rays the root find asks about first (those in the dent), relative to the
+            # reference origin: each near segment's offset across the ray (p x u) and range along
+            # it (p . u) at its start, and their changes along it. The ray shifted by d n2,
+            # d n2 + r u, is the line p x u = d (n2 x u): a segment meets it where its offset
+            # passes that value, at r = p . u - d (n2 . u).
+            seg_a = np.column_stack([(cut.p1 - o_ref) @ x_ax, (cut.p1 - o_ref) @ z_ax])
+            seg_b = np.column_stack([(cut.p2 - o_ref) @ x_ax, (cut.p2 - o_ref) @ z_ax])
             ray = rays[sub]
-            hits = r0_mm[sub, None] * ray
-            # Only segments near these hits: q moves a few dent depths along the surface at most.
-            margin_mm = 25.0
-            lo, hi = hits.min(axis=0) - margin_mm, hits.max(axis=0) + margin_mm
-            near = np.all((np.minimum(seg_a, seg_b) <= hi) & (np.maximum(seg_a, seg_b) >= lo), axis=1)
-            a, e = seg_a[near], seg_b[near] - seg_a[near]
+            e = seg_b - seg_a
+            off_a = seg_a[None, :, 0] * ray[:, None, 1] - seg_a[None, :, 1] * ray[:, None, 0]
             d_off = e[None, :, 0] * ray[:, None, 1] - e[None, :, 1] * ray[:, None, 0]
-            parallel = np.abs(d_off) <= 1e-12
+            rng_a, d_rng = ray @ seg_a.T, ray @ e.T
+            # Per ray only the segments near its hit (within 25 mm across it and along it): q
+            # moves a few dent depths along the surface at most. Packed per ray, in the cut's
+            # order, padded with entries that never cross.
+            margin_mm = 25.0
+            r0 = r0_mm[sub, None]
+            near = ((np.minimum(off_a, off_a + d_off) <= margin_mm) & (np.maximum(off_a, off_a + d_off) >= -margin_mm)
+                    & (np.minimum(rng_a, rng_a + d_rng) <= r0 + margin_mm)
+                    & (np.maximum(rng_a, rng_a + d_rng) >= r0 - margin_mm))
+            width = int(near.sum(axis=1).max(initial=0))
+            pick = np.argsort(~near, axis=1, kind="stable")[:, :width]
+            valid = np.take_along_axis(near, pick, axis=1)
+            d_off = np.take_along_axis(d_off, pick, axis=1)
+            crossed = valid & (np.abs(d_off) > 1e-12)
+            prepared.clear()
             prepared.update(
                 rows=sub.copy(),
-                off_a=a[None, :, 0] * ray[:, None, 1] - a[None, :, 1] * ray[:, None, 0],
-                inv_off=np.where(parallel, np.nan, 1.0 / np.where(parallel, 1.0, d_off)),   # NaN: never crossed
-                rng_a=ray @ a.T, d_rng=ray @ e.T,
-                k=n2[sub, 0] * ray[:, 1] - n2[sub, 1] * ray[:, 0],
-                along_n=np.einsum("ij,ij->i", ray, n2[sub]))
+                off_a=np.take_along_axis(off_a, pick, axis=1),
+                inv_off=np.where(crossed, 1.0 / np.where(crossed, d_off, 1.0), np.nan),   # NaN: never crossed
+                rng_a=np.take_along_axis(rng_a, pick, axis=1), d_rng=np.take_along_axis(d_rng, pick, axis=1))
 
         def advance_at(d: np.ndarray, sub: np.ndarray) -> np.ndarray:
             if not prepared:
@@ -418,8 +481,8 @@ class SimLineScanner:
             P = prepared
             if P["off_a"].shape[1] == 0:
                 return np.full(sub.size, np.nan)
-            frac = ((d * P["k"][pick])[:, None] - P["off_a"][pick]) * P["inv_off"][pick]
-            r = P["rng_a"][pick] + frac * P["d_rng"][pick] - (d * P["along_n"][pick])[:, None]
+            frac = ((d * k_all[sub] + off_shift[sub])[:, None] - P["off_a"][pick]) * P["inv_off"][pick]
+            r = P["rng_a"][pick] + frac * P["d_rng"][pick] - (d * along_all[sub] + rng_shift[sub])[:, None]
             ok = (frac >= -1e-9) & (frac <= 1.0 + 1e-9) & (r > 0.0)
             # Of several crossings, the one nearest the original hit (the dent is local).
             gap = np.where(ok, np.abs(r - r0_mm[sub, None]), np.inf)
