@@ -443,29 +443,39 @@ class SimLineScanner:
             seg_a = np.column_stack([(cut.p1 - o_ref) @ x_ax, (cut.p1 - o_ref) @ z_ax])
             seg_b = np.column_stack([(cut.p2 - o_ref) @ x_ax, (cut.p2 - o_ref) @ z_ax])
             ray = rays[sub]
+            # Per ray only the segments near its hit (within 25 mm across it and along it): q
+            # moves a few dent depths along the surface at most. First those near any hit.
+            margin_mm = 25.0
+            hits = r0_mm[sub, None] * ray
+            lo, hi = hits.min(axis=0) - 2.0 * margin_mm, hits.max(axis=0) + 2.0 * margin_mm
+            near_any = np.all((np.minimum(seg_a, seg_b) <= hi) & (np.maximum(seg_a, seg_b) >= lo), axis=1)
+            seg_a, seg_b = seg_a[near_any], seg_b[near_any]
             e = seg_b - seg_a
             off_a = seg_a[None, :, 0] * ray[:, None, 1] - seg_a[None, :, 1] * ray[:, None, 0]
             d_off = e[None, :, 0] * ray[:, None, 1] - e[None, :, 1] * ray[:, None, 0]
             rng_a, d_rng = ray @ seg_a.T, ray @ e.T
-            # Per ray only the segments near its hit (within 25 mm across it and along it): q
-            # moves a few dent depths along the surface at most. Packed per ray, in the cut's
-            # order, padded with entries that never cross.
-            margin_mm = 25.0
+            # Packed per ray, in the cut's order, padded with entries that never cross.
             r0 = r0_mm[sub, None]
             near = ((np.minimum(off_a, off_a + d_off) <= margin_mm) & (np.maximum(off_a, off_a + d_off) >= -margin_mm)
                     & (np.minimum(rng_a, rng_a + d_rng) <= r0 + margin_mm)
                     & (np.maximum(rng_a, rng_a + d_rng) >= r0 - margin_mm))
-            width = int(near.sum(axis=1).max(initial=0))
-            pick = np.argsort(~near, axis=1, kind="stable")[:, :width]
-            valid = np.take_along_axis(near, pick, axis=1)
-            d_off = np.take_along_axis(d_off, pick, axis=1)
-            crossed = valid & (np.abs(d_off) > 1e-12)
+            row, col = np.nonzero(near)                 # by row, then in the cut's order
+            count = np.bincount(row, minlength=near.shape[0])
+            slot = np.arange(row.size) - np.repeat(np.cumsum(count) - count, count)
+            width = int(count.max(initial=0))
+
+            def packed(values: np.ndarray, fill: float) -> np.ndarray:
+                out = np.full((near.shape[0], width), fill)
+                out[row, slot] = values[row, col]
+                return out
+
+            d_off = packed(d_off, 0.0)
+            crossed = np.abs(d_off) > 1e-12
             prepared.clear()
             prepared.update(
-                rows=sub.copy(),
-                off_a=np.take_along_axis(off_a, pick, axis=1),
+                rows=sub.copy(), off_a=packed(off_a, 0.0),
                 inv_off=np.where(crossed, 1.0 / np.where(crossed, d_off, 1.0), np.nan),   # NaN: never crossed
-                rng_a=np.take_along_axis(rng_a, pick, axis=1), d_rng=np.take_along_axis(d_rng, pick, axis=1))
+                rng_a=packed(rng_a, 0.0), d_rng=packed(d_rng, 0.0))
 
         def advance_at(d: np.ndarray, sub: np.ndarray) -> np.ndarray:
             if not prepared:
