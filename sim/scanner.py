@@ -67,6 +67,10 @@ class ScannerSettings:
     tip_dropout_prob: float = 0.3          # extra loss where the surface is pressed in near the tip
     probe_shadow: bool = True              # tests of the contact physics can switch the probe off
     cache_cuts: bool = True                # plane cuts and burst shadow masks (the benchmark's baseline: off)
+    # The dented-hit root find starts with secant steps, and keeps the cut's offsets through a
+    # burst (with cache_cuts); off: bracketed from 0 and the depth at the crossing, offsets
+    # prepared per profile (the benchmark's previous renderer).
+    secant_root_find: bool = True
 
 
 @dataclass(frozen=True)
@@ -97,8 +101,8 @@ _DENT_ITERATIONS = 30        # bound of the root find (Illinois: a handful suffi
 
 def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.ndarray, dirs: np.ndarray,
                         face_normals: np.ndarray, n: np.ndarray,
-                        advance_at: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
-                        ) -> tuple[np.ndarray, np.ndarray]:
+                        advance_at: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+                        secant_start: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Where rays that met the undeformed surface at ``h0_mm`` (M,3) meet the dented one.
 
     The dented surface is {q - d(q) n : q on the undeformed surface}, d = ``depth_at`` (mm,
@@ -118,6 +122,9 @@ def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.
     n, NaN where it cannot tell (the plane is used there). On a curved surface a deep dent
     seen obliquely moves q off the hit face, and the plane misplaces it by ~ step^2 / 2R
     (0.3 mm for a 5 mm sponge dent on the 65 mm ball).
+
+    ``secant_start=False`` skips the secant steps: the bracket comes from f(0) and f(d(h0))
+    (the same roots within the tolerance, more evaluations; kept for the benchmark).
 
     Returns (depth mm at the meeting point along -n, advance mm along each ray).
     """
@@ -145,35 +152,36 @@ def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.
     if rows.size == 0:
         return depth, advance
     d_start = d0[rows]
-    # f is close to linear in d (the dent's depth changes little between where the ray meets
-    # the undeformed surface and where it meets the dent): secant steps from f(0) = -d0 find
-    # the root within the tolerance mostly at once. The first takes its second point on the
-    # hit face's plane (a depth lookup without the mesh), the second is exact.
-    q_plane = h0[rows] + d_start[:, None] * (along[rows, None] * dirs[rows] + n)
-    d1 = _secant_from_zero(d_start, d_start, d_start - np.asarray(depth_at(q_plane), dtype=float))
-    f1, adv1 = f_of(d1, rows)
-    settled = np.abs(f1) <= _DENT_TOL_MM
-    depth[rows], advance[rows] = d1, adv1
-    rows, d_start, d1, f1 = rows[~settled], d_start[~settled], d1[~settled], f1[~settled]
-    if rows.size == 0:
-        return depth, advance
-    d2 = _secant_from_zero(d_start, d1, f1)
-    f2, adv2 = f_of(d2, rows)
-    settled = np.abs(f2) <= _DENT_TOL_MM
-    depth[rows], advance[rows] = d2, adv2
-    keep = ~settled
-    rows, d_start = rows[keep], d_start[keep]
-    if rows.size == 0:
-        return depth, advance
-    # The three points in increasing d; f rises through its root (f(lo) <= 0 <= f(hi)): take
+    if secant_start:
+        # f is close to linear in d (the dent's depth changes little between where the ray
+        # meets the undeformed surface and where it meets the dent): secant steps from
+        # f(0) = -d0 find the root within the tolerance mostly at once. The first takes its
+        # second point on the hit face's plane (a depth lookup without the mesh), the second
+        # is exact.
+        q_plane = h0[rows] + d_start[:, None] * (along[rows, None] * dirs[rows] + n)
+        d_try = _secant_from_zero(d_start, d_start, d_start - np.asarray(depth_at(q_plane), dtype=float))
+    else:
+        d_try = d_start
+    points = [(np.zeros(rows.size), -d_start)]          # (d, f(d)) seen, per row
+    for step in range(2 if secant_start else 1):
+        if step:
+            d_try = _secant_from_zero(d_start, *points[-1])
+        f_try, adv = f_of(d_try, rows)
+        settled = np.abs(f_try) <= _DENT_TOL_MM
+        depth[rows], advance[rows] = d_try, adv
+        keep = ~settled
+        rows, d_start = rows[keep], d_start[keep]
+        points = [(x[keep], f[keep]) for x, f in points] + [(d_try[keep], f_try[keep])]
+        if rows.size == 0:
+            return depth, advance
+    # The points seen in increasing d; f rises through its root (f(lo) <= 0 <= f(hi)): take
     # the tightest pair around a sign change, or the pair at the end the root lies beyond.
-    xs = np.column_stack([np.zeros(rows.size), d1[keep], d2[keep]])
-    fs = np.column_stack([-d_start, f1[keep], f2[keep]])
-    order = np.argsort(xs, axis=1)
+    xs = np.column_stack([x for x, _ in points])
+    fs = np.column_stack([f for _, f in points])
+    order = np.argsort(xs, axis=1, kind="stable")
     xs, fs = np.take_along_axis(xs, order, axis=1), np.take_along_axis(fs, order, axis=1)
-    first_up = np.argmax(fs >= 0.0, axis=1)
-    first_up = np.where((fs >= 0.0).any(axis=1), first_up, 3)
-    k = np.clip(first_up, 1, 2)
+    rising = fs >= 0.0
+    k = np.clip(np.where(rising.any(axis=1), np.argmax(rising, axis=1), xs.shape[1]), 1, xs.shape[1] - 1)
     idx = np.arange(rows.size)
     lo, f_lo, hi, f_hi = xs[idx, k - 1], fs[idx, k - 1], xs[idx, k], fs[idx, k]
     deepest = float(np.max(np.abs(d0))) * 1.05 + _DENT_TOL_MM
@@ -372,7 +380,8 @@ class SimLineScanner:
             rows = np.flatnonzero(on_obj)
             h0 = o + r[rows, None] * dirs[rows]
             advance_at = self._advance_on_cut(cut, o, x_ax, y_ax, z_ax, rows, r[rows], normals[rows], n_dent)
-            depth_rows, advance = dented_hit_depth_mm(depth_at, h0, dirs[rows], normals[rows], n_dent, advance_at)
+            depth_rows, advance = dented_hit_depth_mm(depth_at, h0, dirs[rows], normals[rows], n_dent, advance_at,
+                                                      secant_start=s.secant_root_find)
             r[rows] += advance
             depth = np.zeros(n_s)
             depth[rows] = depth_rows
@@ -411,12 +420,13 @@ class SimLineScanner:
         # relative to the scanner is then reused from the burst's first profile, corrected by
         # the origin's shift (a per-ray offset and range). Reset every burst and every step.
         key = (x_ax.tobytes(), z_ax.tobytes(), rows.tobytes())
-        cached = self._advance_cache if self._s.cache_cuts else None
+        reuse = self._s.cache_cuts and self._s.secant_root_find
+        cached = self._advance_cache if reuse else None
         if cached is not None and cached[0] is cut and cached[1] == key:
             o_ref, prepared = cached[2], cached[3]
         else:
             o_ref, prepared = o.copy(), {}
-            if self._s.cache_cuts:
+            if reuse:
                 self._advance_cache = (cut, key, o_ref, prepared)
         rays = np.column_stack([np.sin(self._angles[rows]), np.cos(self._angles[rows])])
         # The shift in the plane per mm of depth, per ray: n's in-plane part, plus, for its
@@ -443,22 +453,18 @@ class SimLineScanner:
             seg_a = np.column_stack([(cut.p1 - o_ref) @ x_ax, (cut.p1 - o_ref) @ z_ax])
             seg_b = np.column_stack([(cut.p2 - o_ref) @ x_ax, (cut.p2 - o_ref) @ z_ax])
             ray = rays[sub]
-            # Per ray only the segments near its hit (within 25 mm across it and along it): q
-            # moves a few dent depths along the surface at most. First those near any hit.
-            margin_mm = 25.0
-            hits = r0_mm[sub, None] * ray
-            lo, hi = hits.min(axis=0) - 2.0 * margin_mm, hits.max(axis=0) + 2.0 * margin_mm
-            near_any = np.all((np.minimum(seg_a, seg_b) <= hi) & (np.maximum(seg_a, seg_b) >= lo), axis=1)
-            seg_a, seg_b = seg_a[near_any], seg_b[near_any]
             e = seg_b - seg_a
             off_a = seg_a[None, :, 0] * ray[:, None, 1] - seg_a[None, :, 1] * ray[:, None, 0]
             d_off = e[None, :, 0] * ray[:, None, 1] - e[None, :, 1] * ray[:, None, 0]
             rng_a, d_rng = ray @ seg_a.T, ray @ e.T
-            # Packed per ray, in the cut's order, padded with entries that never cross.
-            r0 = r0_mm[sub, None]
+            # Per ray only the segments in front of the scanner that pass within 25 mm of the
+            # ray's line (the shifted ray lies d (n2 x u) off it: a few dent depths at most),
+            # wherever along it: at an edge the dented ray may pass the near surface and meet
+            # one behind it. Packed per ray, in the cut's order, padded with entries that
+            # never cross.
+            margin_mm = 25.0
             near = ((np.minimum(off_a, off_a + d_off) <= margin_mm) & (np.maximum(off_a, off_a + d_off) >= -margin_mm)
-                    & (np.minimum(rng_a, rng_a + d_rng) <= r0 + margin_mm)
-                    & (np.maximum(rng_a, rng_a + d_rng) >= r0 - margin_mm))
+                    & (np.maximum(rng_a, rng_a + d_rng) > 0.0))
             row, col = np.nonzero(near)                 # by row, then in the cut's order
             count = np.bincount(row, minlength=near.shape[0])
             slot = np.arange(row.size) - np.repeat(np.cumsum(count) - count, count)
