@@ -108,6 +108,13 @@ class SweepSettings:
         lo, hi = self.footprint_mm
         return max((hi - lo) * (1.0 - self.overlap), self.spacing_mm)
 
+    @property
+    def seen_within_mm(self) -> float:
+        """A surface point is seen when a cloud point lies this close: SEEN_WITHIN_MM, or, for
+        profiles further apart than twice that, half their spacing (a point midway between two
+        profiles is that far from both) and the 0.5 mm between samples along a profile."""
+        return max(SEEN_WITHIN_MM, 0.5 * self.spacing_mm + 0.5)
+
 
 @dataclass(frozen=True)
 class SweepLine:
@@ -229,7 +236,8 @@ class SweepResult:
     lines: int = 0                                         # lines planned (raster and fill)
     fill_lines: int = 0                                    # of which planned for unseen surface
     top_mm2: float = 0.0                                   # the top surface to cover (area)
-    unseen_mm2: float = 0.0                                # of it, not within 2 mm of a point
+    unseen_mm2: float = 0.0                                # of it, no point within seen_within_mm
+    seen_within_mm: float = 0.0
     unseen_where: list[dict] = field(default_factory=list)   # describe_unseen
 
     @property
@@ -240,7 +248,8 @@ class SweepResult:
         """JSON-able figures for the journal's cloud phase."""
         return {"lines": self.lines, "fill_lines": self.fill_lines, "lines_replanned": list(self.replanned),
                 "lines_refused": list(self.refused), "top_surface_mm2": round(self.top_mm2, 1),
-                "unseen_mm2": round(self.unseen_mm2, 1), "coverage": round(self.coverage, 5),
+                "unseen_mm2": round(self.unseen_mm2, 1), "seen_within_mm": round(self.seen_within_mm, 3),
+                "coverage": round(self.coverage, 5),
                 "unseen_patches": self.unseen_where}
 
 
@@ -328,29 +337,33 @@ def acquire_cloud(executor: ProbeExecutor, object_mesh: trimesh.Trimesh, setting
     for line in lines:
         sweeper.scan(line)
     top = top_surface(object_mesh, TOP_GRID_MM, settings.max_tilt_deg)
-    seen = seen_mask(top.points_mm, sweeper.object_points())
+    within = settings.seen_within_mm
+    seen = seen_mask(top.points_mm, sweeper.object_points(), within)
     fill = fill_unseen(sweeper, top, seen, tcp_z, max_lines=len(lines) // 2)
     obj_pts = sweeper.object_points()
-    if len(obj_pts) > settings.max_points:
-        rng = np.random.default_rng(settings.seed)
-        obj_pts = obj_pts[np.sort(rng.choice(len(obj_pts), settings.max_points, replace=False))]
     if len(obj_pts) == 0:
         raise MotionRefused("no sweep line could be scanned: " + "; ".join(sweeper.refused))
-    seen = seen_mask(top.points_mm, obj_pts)
-    return SweepResult(obj_pts, cell.clock.now_s() - t0, sweeper.refused, sweeper.replanned,
-                       lines=len(lines) + fill, fill_lines=fill, top_mm2=top.total_mm2,
-                       unseen_mm2=float(top.area_mm2[~seen].sum()), unseen_where=describe_unseen(top, seen))
+    # What the sweep saw, before the plan's max_points thins the cloud it keeps.
+    result = SweepResult(obj_pts, cell.clock.now_s() - t0, sweeper.refused, sweeper.replanned,
+                         lines=len(lines) + fill, fill_lines=fill, top_mm2=top.total_mm2,
+                         unseen_mm2=float(top.area_mm2[~seen].sum()), seen_within_mm=within,
+                         unseen_where=describe_unseen(top, seen, within))
+    if len(obj_pts) > settings.max_points:
+        rng = np.random.default_rng(settings.seed)
+        result.points_mm = obj_pts[np.sort(rng.choice(len(obj_pts), settings.max_points, replace=False))]
+    return result
 
 
-# An unseen patch smaller than the neighbourhood one cloud point vouches for (a square
-# of twice SEEN_WITHIN_MM) is a hole between points (dropouts), not a band a line missed.
-MIN_PATCH_MM2 = (2.0 * SEEN_WITHIN_MM) ** 2
+def min_patch_mm2(seen_within_mm: float) -> float:
+    """An unseen patch smaller than the neighbourhood one cloud point vouches for (a square
+    of twice ``seen_within_mm``) is a hole between points (dropouts), not a band a line missed."""
+    return (2.0 * seen_within_mm) ** 2
 
 
-def describe_unseen(top: TopSurface, seen: np.ndarray, max_patches: int = 10) -> list[dict]:
+def describe_unseen(top: TopSurface, seen: np.ndarray, seen_within_mm: float, max_patches: int = 10) -> list[dict]:
     """The largest unseen patches of the top surface: object-frame x and y ranges (mm) and
     area (mm^2); smaller holes between points summed in one last entry."""
-    patches = unseen_patches(top, seen, MIN_PATCH_MM2)
+    patches = unseen_patches(top, seen, min_patch_mm2(seen_within_mm))
     out = []
     for p in patches[:max_patches]:
         xy = top.points_mm[p, :2]
@@ -383,7 +396,7 @@ def fill_unseen(sweeper: _Sweeper, top: TopSurface, seen: np.ndarray, tcp_z_mm: 
     normals = b2o.apply_vector(top.normals)
     faces_y = (np.abs(normals[:, 1]) > np.abs(normals[:, 0])) & (np.abs(normals[:, 1]) > np.sin(np.radians(15.0)))
     patches = [(p, axis) for axis, group in ((0, faces_y), (1, ~faces_y))
-               for p in unseen_patches(top, seen | ~group, MIN_PATCH_MM2)]
+               for p in unseen_patches(top, seen | ~group, min_patch_mm2(s.seen_within_mm))]
     patches.sort(key=lambda item: -float(top.area_mm2[item[0]].sum()))
     planned = 0
     for patch, axis in patches:
@@ -403,5 +416,5 @@ def fill_unseen(sweeper: _Sweeper, top: TopSurface, seen: np.ndarray, tcp_z_mm: 
                     break
                 planned += 1
                 got = sweeper.scan(SweepLine(at - heading * centre, t0, t1, tcp_z_mm, heading, axis))
-                seen[mine] |= seen_mask(top.points_mm[mine], got)
+                seen[mine] |= seen_mask(top.points_mm[mine], got, s.seen_within_mm)
     return planned

@@ -150,6 +150,27 @@ def test_bands_the_raster_misses_get_lines_of_their_own():
     assert result.unseen_mm2 < 0.005 * result.top_mm2, result.unseen_where
 
 
+def test_profiles_further_apart_than_twice_the_seen_distance_leave_no_unseen_surface():
+    # Profiles 8 mm apart along the line: a point midway between two is 4 mm from both. The
+    # surface between them was scanned, and a fill line (at the same spacing) would not see it
+    # any closer: it is neither unseen nor worth lines of its own.
+    sparse = SweepSettings(8.0, HEIGHT_MM, footprint(), max_tilt_deg=20.0)
+    assert sparse.seen_within_mm == pytest.approx(4.5)
+    result, _, _ = sweep_ball([], sparse, flat_slab())
+    assert result.fill_lines == 0
+    assert result.unseen_mm2 < 0.005 * result.top_mm2, result.unseen_where
+    assert result.outputs()["seen_within_mm"] == pytest.approx(4.5)
+
+
+def test_unseen_area_is_what_the_sweep_saw_before_the_cloud_is_thinned():
+    # max_points thins the cloud the session keeps; the surface the sweep saw is not unseen
+    # for that (3000 of the slab's points leave most of it without one within 2 mm).
+    thin = SweepSettings(4.0, HEIGHT_MM, footprint(), max_tilt_deg=20.0, max_points=3000)
+    result, _, _ = sweep_ball([], thin, flat_slab())
+    assert len(result.points_mm) == 3000
+    assert result.unseen_mm2 < 0.005 * result.top_mm2, result.unseen_where
+
+
 def test_top_surface_is_what_is_seen_from_above_within_the_tilt():
     composite = load_object(ROOT / "config" / "objects" / "composite.yaml").mesh
     top = top_surface(composite, 1.0, 20.0)
