@@ -334,6 +334,28 @@ def _pca_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return c, vecs
 
 
+REGISTRATION_GATE_MM = 3.0     # a scanned point farther than this from the mesh is not on it
+
+
+def truncated_cost_mm2(points: np.ndarray, mesh_from_cloud: Pose, mesh_pts: np.ndarray, mesh_nrm: np.ndarray,
+                       tree: cKDTree, gate_mm: float = REGISTRATION_GATE_MM) -> float:
+    """How well a placement fits every scanned point (mm^2): the mean over ``points`` of the squared
+    point-to-plane distance, capped at ``gate_mm`` squared for points off the mesh. Unlike a trimmed
+    RMS, a pose that leaves a few constraining points (an edge, a wall) off the surface pays for them."""
+    moved = mesh_from_cloud.apply(points)
+    dist, idx = tree.query(moved, workers=-1)
+    plane = np.einsum("ij,ij->i", moved - mesh_pts[idx], mesh_nrm[idx])
+    return float(np.mean(np.where(dist < gate_mm, plane**2, gate_mm**2)))
+
+
+def refine_untrimmed(points: np.ndarray, mesh_pts: np.ndarray, mesh_nrm: np.ndarray, tree: cKDTree,
+                     mesh_from_cloud: Pose, max_iter: int = 60, gate_mm: float = REGISTRATION_GATE_MM) -> Pose:
+    """Point-to-plane ICP from a pose already near the answer, pairing every point within ``gate_mm``
+    (none trimmed): the last refinement after trimmed ICP has found the basin."""
+    pose, _, _ = icp(points, mesh_pts, mesh_from_cloud, max_iter, 1e-6, mesh_nrm, 0.0, gate_mm, tree=tree)
+    return pose
+
+
 def register_mesh_to_cloud(mesh: object, cloud_points: np.ndarray, init: Pose | None = None,
                            n_mesh_samples: int = 60_000, n_cloud_samples: int = 20_000, seed: int = 0,
                            max_iter: int = 60, trim_fraction: float = 0.2) -> tuple[Pose, float]:
@@ -364,13 +386,13 @@ def register_mesh_to_cloud(mesh: object, cloud_points: np.ndarray, init: Pose | 
     # Trimming keeps parts only the cloud has (table remnants, clutter) out of the fit, but
     # on a scene of large planes it can also drop the few edge points that stop a slide
     # along them: the fit then rests at a pose slid along the planes (7.7 mm on the box on
-    # the pillow) with an RMS nearly as good. Refine again trimming less, and keep whichever
-    # fits best by the same measure (max_iter 0: the RMS at that pose, trimmed as above).
-    for lighter in (0.5 * trim_fraction, 0.25 * trim_fraction):
-        candidate, _, _ = icp(cloud, mesh_pts, pose, max_iter, 1e-5, mesh_nrm, lighter, tree=tree)
-        _, candidate_rms, _ = icp(cloud, mesh_pts, candidate, 0, 1e-5, mesh_nrm, trim_fraction, tree=tree)
-        if candidate_rms < rms:
-            pose, rms = candidate, candidate_rms
+    # the pillow) with a trimmed RMS nearly as good. Refine again with every point within
+    # the gate, and keep whichever pose fits every point better.
+    refined = refine_untrimmed(cloud, mesh_pts, mesh_nrm, tree, pose, max_iter)
+    if truncated_cost_mm2(cloud, refined, mesh_pts, mesh_nrm, tree) < truncated_cost_mm2(cloud, pose, mesh_pts,
+                                                                                         mesh_nrm, tree):
+        pose = refined
+        _, rms, _ = icp(cloud, mesh_pts, pose, 0, 1e-5, mesh_nrm, trim_fraction, tree=tree)
     return pose.inverse(), rms
 
 
