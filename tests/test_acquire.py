@@ -11,12 +11,15 @@ import pytest
 import trimesh
 
 from elastoprobe.controller.acquire import SweepSettings, acquire_cloud, line_footprint_mm, sweep_lines
+from elastoprobe.controller.cellfactory import ground_truth_for
+from elastoprobe.controller.cli import main
 from elastoprobe.controller.collision import Box, SceneChecker, boxes_from_cell, shapes_from_cell
 from elastoprobe.controller.config import load_cell, load_session_inputs
 from elastoprobe.controller.coverage import seen_mask, top_surface
 from elastoprobe.controller.geometry import Pose, probe_tcp_pose
 from elastoprobe.controller.journal import Journal
 from elastoprobe.controller.kinematics import ur5e
+from elastoprobe.controller.learning.evaluate import truth_surface_scores
 from elastoprobe.controller.machine import SessionMachine
 from elastoprobe.controller.probe import ProbeExecutor, ProbeSettings
 from elastoprobe.controller.session import EXIT_PAUSED, Session
@@ -204,3 +207,26 @@ def test_session_journals_and_reports_the_unseen_area(tmp_path: Path):
     assert '"sweep_line_replanned"' in log and '"sweep_unseen"' in log
     cloud = snapshot(tmp_path / "s")["cloud"]
     assert cloud["coverage"] == sweep["coverage"] and cloud["lines_replanned"] == len(sweep["lines_replanned"])
+
+
+def test_a_generated_object_is_covered_on_its_true_surface(tmp_path: Path):
+    # An object nobody tuned for (the suite's seed 1006, a dome, docs/generated_objects.md)
+    # with the plan the rule gives it: its raster line nearest the robot's column has the
+    # scanner in the column and is planned again (skipped, with lines a scanner's width and
+    # more apart, the cloud covered 85 % of the top); the cloud then covers the true top
+    # within the plan's tilt, scored as evaluate scores it (>= 98 %: issue 16's goal).
+    assert main(["sim", "object", "--seed", "1006", "--out", str(tmp_path / "obj")]) == 0
+    inputs = load_session_inputs(tmp_path / "obj" / "plan.yaml")
+    session = Session(inputs, tmp_path / "s", seed=1)
+    session.flags.pause_requested = True
+    assert session.run() == EXIT_PAUSED
+    with Journal.open_readonly(tmp_path / "s") as j:
+        cloud = j.phase("cloud", 0)
+    sweep = cloud.outputs["sweep"]
+    assert sweep["lines_refused"] == [] and any("robot_column" in r for r in sweep["lines_replanned"])
+    top = ground_truth_for(inputs, 1).top_surface(inputs.plan.sampling.max_tilt_deg)
+    pts, nrm = cloud.arrays["points_mm"].astype(float), cloud.arrays["normals"].astype(float)
+    scores = truth_surface_scores(top.points_mm, top.normals, top.labels, top.area_mm2, pts, nrm,
+                                  np.zeros(len(pts), dtype=int), top.spacing_mm)
+    print(f"coverage {scores['coverage']:.4f} of {scores['area_mm2']:.0f} mm^2; sweep: {sweep['coverage']}")
+    assert scores["coverage"] >= 0.98
