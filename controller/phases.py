@@ -247,21 +247,31 @@ def phase_cloud(ctx: PhaseContext) -> None:
     else:
         # Keyed at the sweep, not before: a resumed session reaches it after other
         # motions (the resume retract) than an uninterrupted one.
-        pts, robot_s, skipped = s.sweep_object(SWEEP_STEP_KEY)
-        for why in skipped:
+        swept = s.sweep_object(SWEEP_STEP_KEY)
+        pts, robot_s = swept.points_mm, swept.robot_s
+        for why in swept.replanned:
+            s._log("sweep_line_replanned", reason=why)
+        for why in swept.refused:
             s._log("sweep_line_skipped", reason=why)
+        sweep = swept.outputs()
+        s._log("sweep_unseen", unseen_mm2=sweep["unseen_mm2"], top_surface_mm2=sweep["top_surface_mm2"],
+               coverage=sweep["coverage"], patches=sweep["unseen_patches"])
         normals = None
         j.add_robot_time("sweep", robot_s)
     obj_pts, plane = remove_table_below(pts, seed=s.seed)
     if normals is None or len(normals) != len(obj_pts):
         normals = orient_outward_from_above(obj_pts, cl.estimate_normals(obj_pts, k=16))
     normals = canonical(normals, 6)
-    j.commit_phase("cloud", 0, {"n_points": int(len(obj_pts)), "cloud_sha256": cl.cloud_hash(obj_pts),
-                                "table_plane": {"normal": canonical(plane[0], 9).tolist(),
-                                                "offset_mm": float(canonical(np.array([plane[1]]), 6)[0])},
-                                "robot_s": round(float(robot_s), 3)},
+    outputs = {"n_points": int(len(obj_pts)), "cloud_sha256": cl.cloud_hash(obj_pts),
+               "table_plane": {"normal": canonical(plane[0], 9).tolist(),
+                               "offset_mm": float(canonical(np.array([plane[1]]), 6)[0])},
+               "robot_s": round(float(robot_s), 3)}
+    if plan.cloud.source != "file":
+        outputs["sweep"] = sweep
+    j.commit_phase("cloud", 0, outputs,
                    {"points_mm": obj_pts.astype(np.float32), "normals": normals.astype(np.float32)})
-    s._log("phase", name="cloud", n_points=int(len(obj_pts)))
+    s._log("phase", name="cloud", n_points=int(len(obj_pts)),
+           **({"unseen_mm2": sweep["unseen_mm2"], "coverage": sweep["coverage"]} if plan.cloud.source != "file" else {}))
     # Continue from the committed (float32) cloud, exactly as a resumed session will.
     rec = j.phase("cloud", 0)
     assert rec is not None

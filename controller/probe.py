@@ -242,9 +242,11 @@ class ProbeExecutor:
     def scan_while_moving(self, start: Pose, end: Pose, speed_mm_s: float) -> tuple[list[Scan], np.ndarray]:
         """Travel to ``start``, then scan continuously while moving in a straight line to ``end``.
 
-        Returns the scans and the TCP pose (mm + rotation vector) at each exposure.
+        The scan's path is validated with the route to its start, before the arm moves: a
+        refused scan raises MotionRefused with the arm where it was. Returns the scans and
+        the TCP pose (mm + rotation vector) at each exposure.
         """
-        self._travel_to(start)
+        self._travel_to(start, then=(start, end))
         self.validator.validate_path(start, end)
         scanner = self.cell.scanner
         length_mm = float(np.linalg.norm(end.position_mm - start.position_mm))
@@ -284,8 +286,10 @@ class ProbeExecutor:
         self._move(Pose(pose.position_mm + up * lift_mm, pose.rotation), self.s.free_speed_mm_s, check=False)
 
     # ------------------------------------------------------------------ motions
-    def _travel_to(self, standoff: Pose) -> None:
+    def _travel_to(self, standoff: Pose, then: tuple[Pose, Pose] | None = None) -> None:
         """Up to travel height, across, then down to the standoff; every leg validated.
+        ``then``, a move to make from there, is validated with each route (and not made): a
+        route it cannot follow from is not taken.
 
         If the direct route is refused (e.g. the wrist would swing the scanner into a
         keep-out), go by the park pose, where the arm started the session. If that is
@@ -306,7 +310,7 @@ class ProbeExecutor:
         refused: MotionRefused | None = None
         for route in routes:
             try:
-                self._travel_legs(route())
+                self._travel_legs(route(), then)
                 return
             except MotionRefused as exc:
                 refused = refused or exc       # the direct route's reason is the telling one
@@ -388,11 +392,16 @@ class ProbeExecutor:
             start = leg
         return route
 
-    def _travel_legs(self, route: list[tuple[Pose, Pose]]) -> None:
+    def _travel_legs(self, route: list[tuple[Pose, Pose]], then: tuple[Pose, Pose] | None = None) -> None:
         saved = getattr(self.validator, "seed_joints", None)
         try:
             for start, leg in route:
                 self.validator.validate_path(start, leg)
+            arrived = getattr(self.validator, "seed_joints", None)
+            if then is not None:
+                self.validator.validate_path(*then)
+                if arrived is not None:
+                    self.validator.seed_joints = arrived   # type: ignore[attr-defined]
         except MotionRefused:
             if saved is not None:
                 self.validator.seed_joints = saved   # type: ignore[attr-defined]

@@ -34,6 +34,7 @@ from typing import Any, Callable, Iterable
 import numpy as np
 
 from .atomic import atomic_write_text
+from .coverage import cloud_summary, describe_cloud
 from .journal import FaultRecord, Journal, StepRecord
 from .learning.support import INFERRED, MEASURED, SUPPORT_NAMES, UNSUPPORTED
 from .predict import read_manifest
@@ -90,6 +91,7 @@ class ReportData:
     phases: list[dict[str, Any]]
     steps: list[StepRecord]
     cloud_mm: np.ndarray | None = None
+    cloud_outputs: dict[str, Any] = field(default_factory=dict)
     cloud_labels: np.ndarray | None = None
     targets_mm: dict[int, np.ndarray] = field(default_factory=dict)
     target_labels: dict[int, int] = field(default_factory=dict)
@@ -209,6 +211,7 @@ def collect(j: Journal) -> ReportData:
     cloud = j.phase("cloud", 0)
     if cloud is not None:
         data.cloud_mm = np.asarray(cloud.arrays["points_mm"], dtype=float)
+        data.cloud_outputs = cloud.outputs
     final = j.phase("final", 0)
     if final is not None and "cloud_labels" in final.arrays:
         data.cloud_labels = np.asarray(final.arrays["cloud_labels"])
@@ -290,6 +293,7 @@ def _numbers(data: ReportData) -> dict[str, Any]:
             "faults": len(data.faults), "faults_by_kind": dict(sorted(kinds.items())),
             "regions": data.n_regions, "regions_round": data.regions_round, "model_round": data.model_round,
             "runs": len(data.runs), "densify_rounds": len(data.densify),
+            "cloud": cloud_summary(data.cloud_outputs) if data.cloud_outputs else None,
             "model_errors": _model_table(data), "models": data.model_rows}
 
 
@@ -799,6 +803,8 @@ def _section_numbers(data: ReportData, numbers: dict[str, Any]) -> str:
     rows.insert(7, ("steps by status", numbers["steps"]))
     rows.insert(12, ("robot time by category (s)", numbers["robot_time_s"]))
     rows.insert(14, ("faults by kind", numbers["faults_by_kind"]))
+    if numbers["cloud"] is not None:
+        rows.insert(7, ("cloud", describe_cloud(numbers["cloud"])))
     out = _table(rows)
     errs = numbers["model_errors"]
     if errs:
