@@ -171,55 +171,6 @@ def test_a_damaged_model_file_is_not_served(finished: Path, tmp_path: Path,
     assert f"{model}: " in err and "changed since the session recorded it" in err, err
 
 
-# ----------------------------------------------------------------------------- case 9 (predict, train)
-def _predict(session: Path, *extra: str, force: str = "8", angle: str = "90") -> tuple[int, dict | None, str]:
-    import contextlib
-    import io
-
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main(["predict", str(session), "--region", "0", "--force", force, "--angle", angle, "--json", *extra])
-    return code, json.loads(out.getvalue()) if code == 0 else None, err.getvalue()
-
-
-def test_case9_predict_refuses_a_query_outside_the_fitted_ranges(finished: Path) -> None:
-    """The tiny plan presses at 4-12 N and 75-105 deg: 1000 N or 10 deg is refused (exit 2,
-    the fitted range named), answered only with --extrapolate and then flagged."""
-    code, answer, _ = _predict(finished)
-    assert code == 0 and answer["extrapolated"] == []
-    for force, angle, word in (("1000", "90", "--force 1000 N is outside"), ("8", "10", "--angle 10 deg is outside"),
-                               ("0.5", "90", "--force 0.5 N is outside")):
-        code, _, err = _predict(finished, force=force, angle=angle)
-        assert code == 2 and word in err and "--extrapolate" in err and "Traceback" not in err, err
-        code, answer, _ = _predict(finished, "--extrapolate", force=force, angle=angle)
-        assert code == 0 and len(answer["extrapolated"]) == 1 and word in answer["extrapolated"][0]
-
-
-def test_case9_train_on_a_killed_session_is_what_predict_serves(setup: dict, tmp_path: Path) -> None:
-    """Killed in its first learning phase (before the models were committed): predict has
-    nothing to serve and says how to fit; after `train` it serves exactly the refitted files."""
-    from elastoprobe.controller.learning.models import RegionModel
-
-    out = tmp_path / "killed"
-    env = {**setup["env"], "ELASTOPROBE_JOURNAL_CRASH_AT": "models:before_commit"}
-    child = subprocess.run(CLI + ["run", str(setup["plan"]), "--out", str(out), "--seed", str(SEED), "--quiet"],
-                           env=env, capture_output=True, text=True, timeout=900)
-    assert child.returncode == -signal.SIGKILL, child.stderr[-2000:]
-    code, _, err = _predict(out)
-    assert code == 2 and "no trained models yet" in err and f"elastoprobe train {out}" in err, err
-    trained = run_cli(["train", str(out)], setup["env"])
-    assert trained.returncode == 0, trained.stderr
-    code, answer, err = _predict(out)
-    assert code == 0, err
-    model = RegionModel.load(out / "models" / "retrained" / "region0.npz")
-    mean, _ = model.predict_ensemble(8.0, 90.0)
-    assert answer["depth_mm"] == [round(v, 5) for v in mean.reshape(-1).tolist()]
-    # A retrained file changed afterwards is not served either.
-    (out / "models" / "retrained" / "region0.npz").write_bytes(os.urandom(300))
-    code, _, err = _predict(out)
-    assert code == 2 and "since elastoprobe train recorded it" in err, err
-
-
 # ----------------------------------------------------------------------------- case 5
 @pytest.fixture()
 def read_only_dir(tmp_path: Path) -> Iterator[tuple[Path, callable]]:
