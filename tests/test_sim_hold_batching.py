@@ -160,8 +160,7 @@ def test_a_protective_stop_due_at_a_loop_update_ends_the_hold_without_a_batch():
     press(cell, POINTS["rubber_ball"], UP, 90.0, 5.0, settle_s=0.2)
     log = Log()
     _hold_and_scan(cell, log, 0.6, 0)                  # batched
-    period = cell.arm._settings.force_loop_period_us
-    due_us = cell.arm._regulator.next_update_us + 5 * period
+    due_us = cell.arm._next_update_us + 5 * cell.arm.loop_period_us
     cell.faults.inject("protective_stop", delay_s=(due_us - cell.world.now_us) / 1e6)
     _hold_and_scan(cell, log, 0.8, 0)
-    assert cell.arm._regulator is None and cell.arm._protective_since_us == due_us
+    assert cell.arm.supervisor.regulation is None and cell.arm._protective_since_us == due_us
