@@ -67,6 +67,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import subprocess
 import sys
 import tempfile
 import time
@@ -79,6 +80,8 @@ from types import SimpleNamespace
 from typing import Any, Callable
 
 import numpy as np
+
+from elastoprobe.sim import generate as gen
 
 ROOT = Path(__file__).resolve().parent.parent
 STRATEGIES = ("raster", "random", "neural_gas", "densify", "gp")
@@ -509,17 +512,11 @@ INCLUSION_PATTERNS = ("disc", "ellipse", "ring", "two_inclusions", "disc_and_str
 
 
 def suite_inclusion_seeds() -> list[int]:
-    from elastoprobe.sim import generate as gen
-
     return [e.seed for e in gen.suite() if e.pattern in INCLUSION_PATTERNS]
 
 
 def generate_objects(seeds: list[int], out: Path) -> list[tuple[str, Path]]:
     """``elastoprobe sim object`` for each suite object (by seed) into ``out``: (label, plan path)."""
-    import subprocess
-
-    from elastoprobe.sim import generate as gen
-
     entries = {e.seed: e for e in gen.suite()}
     unknown = [s for s in seeds if s not in entries]
     if unknown:
@@ -586,8 +583,14 @@ def main(argv: list[str] | None = None) -> int:
     else:
         plans = [(Path(p).stem, Path(p)) for p in args.plans.split(",") if p.strip()]
         if args.suite_objects != "none":
-            seeds = (suite_inclusion_seeds() if args.suite_objects is None
-                     else [int(v) for v in args.suite_objects.split(",") if v.strip()])
+            try:
+                seeds = (suite_inclusion_seeds() if args.suite_objects is None
+                         else [int(v) for v in args.suite_objects.split(",") if v.strip()])
+            except ValueError:
+                ap.error(f"--suite-objects: expected object seeds like 1001,1009 or 'none', got {args.suite_objects!r}")
+            known = {e.seed for e in gen.suite()}
+            if not set(seeds) <= known:
+                ap.error(f"--suite-objects: {sorted(set(seeds) - known)} are not suite objects ({sorted(known)})")
             out = args.objects_dir or Path(tempfile.mkdtemp(prefix="sampling_efficiency_objects_"))
             plans += generate_objects(seeds, out)
     jobs = [(str(path), seed) for _, path in plans for seed in range(args.first_seed, args.first_seed + args.seeds)]
