@@ -13,7 +13,7 @@ For every seed in ``--seeds`` (default 1; the run's --seed drives noise only) th
   (iii) ``after_calibration``: another copy of it, after ``elastoprobe calibrate ft``, ``tcp``,
                                ``scanner`` and ``object`` wrote its calibration file;
 
-and with ``--oracle`` also
+and (unless ``--no-oracle``) also
 
   (iv)  ``perfect_calibration``: a third copy whose calibration file holds the simulator's
                                truth (believed == true on the same physical cell as (ii)/(iii)):
@@ -41,7 +41,10 @@ difference within the NOISE FLOOR = 2 standard errors of the difference of the m
 errors are a few square millimetres of ~110 000 (a few points of the cloud's ~40 000) and
 swing by more than 10 % between equivalent runs, so a smaller difference cannot be
 resolved by these seeds. The strict
-figure is never hidden.
+figure is never hidden. Issue 16 restates the goal (``goal_restated_met``): after calibration
+within max(10 %, the noise floor) of an exact calibration of the same cell (iii against
+(iv)), and on the truth surface within the same margin of the calibrated cell (iii against
+(i)); both are the ``floored`` verdicts of those comparisons.
 
 Caveat on the boundary distances: the scored top of the composite is the box's top and the
 pillow; the box's walls are too steep to probe and are not scored, so the two materials do
@@ -268,6 +271,24 @@ def compare(reference: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
             "other_no_worse_by_10pct": bool(mb <= (1.0 + GOAL_REL_DIFF) * ma)}
 
 
+def restated_goal(comparisons: dict[str, Any], vs_calibrated_key: str, oracle_draw: int | None) -> dict[str, Any]:
+    """Issue 16's restated goal on the truth surface's region_map_error: after calibration, within
+    max(10 %, the seed-to-seed noise floor) of an exact calibration of the same cell, and within
+    the same margin of the calibrated cell. "Within max(10 % of the reference, noise floor)" is
+    :func:`compare`'s ``floored_met``. None without the exact-calibration case (``--no-oracle``)."""
+    what = ("|mean(after) - mean(exact)| <= max(10 % of mean(exact), noise floor) on the first draw, and "
+            "|mean(after) - mean(calibrated)| <= max(10 % of mean(calibrated), noise floor) (issue 16)")
+    if oracle_draw is None:
+        return {"goal_restated": what, "goal_restated_met": None,
+                "goal_restated_why": "needs the exact-calibration case (run without --no-oracle)"}
+    vs_exact = comparisons[f"after_calibration_draw{oracle_draw}_vs_perfect_calibration"]
+    vs_calibrated = comparisons[vs_calibrated_key]
+    return {"goal_restated": what,
+            "goal_restated_met": bool(vs_exact["floored_met"] and vs_calibrated["floored_met"]),
+            "goal_restated_parts": {"vs_exact_calibration": bool(vs_exact["floored_met"]),
+                                    "vs_calibrated_cell": bool(vs_calibrated["floored_met"])}}
+
+
 def draw_cell(src: Path, dest_dir: Path, cell_seed: int) -> Path:
     """A copy of the miscalibrated cell whose miscalibration is drawn from ``cell_seed``."""
     from ruamel.yaml import YAML
@@ -317,8 +338,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None, help="folder for the cells and sessions (default: temporary)")
     ap.add_argument("--reuse", action="store_true", help="keep sessions and calibrations that already finished in --out")
     ap.add_argument("--parallel", type=int, default=1, choices=(1, 2, 3, 4), help="demo runs at once")
-    ap.add_argument("--oracle", action="store_true",
-                    help="also run the first miscalibration draw with its exact calibration (the simulator's truth)")
+    ap.add_argument("--oracle", action=argparse.BooleanOptionalAction, default=True,
+                    help="also run the first miscalibration draw with its exact calibration (the simulator's truth; "
+                         "the restated goal needs it; default on)")
     args = ap.parse_args(argv)
     seeds = [args.seed] if args.seed is not None else args.seeds
     t0 = time.perf_counter()
@@ -405,6 +427,7 @@ def main(argv: list[str] | None = None) -> int:
         "goal_comparison": goal_key,
         "goal_met_strict": comparisons[goal_key]["strict_met"],
         "goal_met_floored": comparisons[goal_key]["floored_met"],
+        **restated_goal(comparisons, goal_key, draws[0] if args.oracle else None),
         "calibration": {f"draw{d}": c for d, c in calibrations.items()},
         "wall_time_s": {"runs": {f"{case_name(c, d)}/seed{s}": r["wall_time_s"] for (c, d, s), r in runs.items()},
                         "total": round(time.perf_counter() - t0, 1)},
