@@ -71,6 +71,8 @@ from typing import Any
 
 import numpy as np
 
+import cli_runs
+
 ROOT = Path(__file__).resolve().parent.parent
 PLAN = ROOT / "config" / "plans" / "demo.yaml"
 CALIBRATED_CELL = ROOT / "config" / "cells" / "sim.yaml"
@@ -81,10 +83,8 @@ RUN_TIMEOUT_S = 3600.0           # a demo run takes minutes; this only bounds a 
 
 
 def cli(*args: str, timeout_s: float = RUN_TIMEOUT_S) -> subprocess.CompletedProcess:
-    """``elastoprobe ARGS`` in a subprocess (the installed entry point's module)."""
-    cmd = [sys.executable, "-m", "elastoprobe.controller.cli", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, cwd=ROOT,
-                          stdin=subprocess.DEVNULL)
+    """``elastoprobe ARGS`` in a subprocess (bench/cli_runs.py)."""
+    return cli_runs.cli(*args, timeout_s=timeout_s)
 
 
 def copy_cell(src: Path, dest_dir: Path) -> Path:
@@ -104,13 +104,7 @@ def copy_cell(src: Path, dest_dir: Path) -> Path:
 
 def session_status(session_dir: Path) -> dict[str, Any] | None:
     """``elastoprobe status DIR --json`` (None when there is no session)."""
-    if not (session_dir / "journal.sqlite").exists():
-        return None
-    proc = cli("status", str(session_dir), "--json", timeout_s=60.0)
-    try:
-        return json.loads(proc.stdout) if proc.returncode == 0 else None
-    except json.JSONDecodeError:
-        return None
+    return cli_runs.session_status(session_dir, timeout_s=60.0)
 
 
 def session_done(session_dir: Path) -> bool:
@@ -315,23 +309,13 @@ def calibration_complete(cell: Path) -> bool:
     return all(k in sections for k in KINDS)
 
 
-def parse_ints(text: str) -> list[int]:
-    try:
-        vals = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-    if not vals:
-        raise argparse.ArgumentTypeError("expected at least one integer")
-    return vals
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--plan", type=Path, default=PLAN)
-    ap.add_argument("--seeds", type=parse_ints, default=[1],
+    ap.add_argument("--seeds", type=cli_runs.parse_ints, default=[1],
                     help="the demo runs' seeds, e.g. 1,2,3,4,5 (noise only; the miscalibration is the cell's)")
     ap.add_argument("--seed", type=int, default=None, help="one seed (same as --seeds N)")
-    ap.add_argument("--cell-seeds", type=parse_ints, default=None,
+    ap.add_argument("--cell-seeds", type=cli_runs.parse_ints, default=None,
                     help="miscalibration draws: copies of the miscalibrated cell with these "
                          "simulation.miscalibration.seed values (default: the shipped cell's own)")
     ap.add_argument("--calibration-seed", type=int, default=0, help="seed of the calibration runs' noise")

@@ -79,6 +79,7 @@ from typing import Any
 import numpy as np
 from ruamel.yaml import YAML
 
+import cli_runs
 from elastoprobe.controller.provenance import git_revision
 from elastoprobe.sim import generate as gen
 
@@ -105,10 +106,8 @@ GOALS: dict[str, dict[str, Any]] = {
 
 def cli(*args: str, timeout_s: float = RUN_TIMEOUT_S, env: dict[str, str] | None = None
         ) -> subprocess.CompletedProcess:
-    """``elastoprobe ARGS`` in a subprocess (the installed entry point's module)."""
-    cmd = [sys.executable, "-m", "elastoprobe.controller.cli", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, cwd=ROOT,
-                          stdin=subprocess.DEVNULL, env=env)
+    """``elastoprobe ARGS`` in a subprocess (bench/cli_runs.py)."""
+    return cli_runs.cli(*args, timeout_s=timeout_s, env=env)
 
 
 def last_line(text: str) -> str:
@@ -206,13 +205,7 @@ class Job:
 
 def session_status(session_dir: Path) -> dict[str, Any] | None:
     """``elastoprobe status DIR --json`` (None when there is no session)."""
-    if not (session_dir / "journal.sqlite").exists():
-        return None
-    proc = cli("status", str(session_dir), "--json", timeout_s=120.0)
-    try:
-        return json.loads(proc.stdout) if proc.returncode == 0 else None
-    except json.JSONDecodeError:
-        return None
+    return cli_runs.session_status(session_dir)
 
 
 def densify_rounds(session_dir: Path) -> list[dict[str, Any]]:
@@ -408,16 +401,6 @@ def paired(full: list[dict[str, Any]], base: list[dict[str, Any]]) -> dict[str, 
 
 # --------------------------------------------------------------------------- main
 
-def parse_ints(text: str) -> list[int]:
-    try:
-        vals = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-    if not vals:
-        raise argparse.ArgumentTypeError("expected at least one integer")
-    return vals
-
-
 def positive(text: str) -> int:
     try:
         v = int(text)
@@ -431,7 +414,7 @@ def positive(text: str) -> int:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     ap.add_argument("--objects", type=positive, default=12, help="the suite's first N objects (generate.suite(N))")
-    ap.add_argument("--select", type=parse_ints, default=None,
+    ap.add_argument("--select", type=cli_runs.parse_ints, default=None,
                     help="only these suite objects, by object seed (e.g. 1003,1007)")
     ap.add_argument("--seeds", type=positive, default=2, help="run seeds per object")
     ap.add_argument("--first-seed", type=int, default=1)
