@@ -371,6 +371,7 @@ class Session:
         executor = ProbeExecutor(self.cell, machine, settings, validator, top_z,
                                  should_stop=lambda: self.flags.stop_now, placement=placement)
         executor.on_placement = self._on_placement
+        executor.on_regulated = lambda record: self._log("force_regulated", **record)
         return executor
 
     def _on_placement(self, what: str, estimate: dict[str, Any]) -> None:
@@ -466,8 +467,9 @@ class Session:
                 return
             self._current_step = data.step_id
             attempt = j.begin_step(data.step_id)
-            profile, x = phases.step_profile(self, target, data)
-            result = StepResult.from_step_data(data, profile, x)
+            measured = phases.measure_step_data(self, target, data)
+            result = StepResult.from_step_data(data, measured.depth_mm, phases.session_grid(self).x_mm,
+                                               summary=measured.facts())
             self._inject_disk_error(data.step_id, retry)
             j.commit_step(data.step_id, attempt, result)
             step_time += data.robot_time_s
@@ -544,8 +546,8 @@ class Session:
         open_steps = [r for r in group if j.step(r.step_id).status not in ("done", "skipped")]
         step_id = open_steps[0].step_id if open_steps else None
         if fault.kind == "operator_stop":
-            self._log("operator_stop", step=step_id)
-            raise SessionPaused("stopped by the operator")
+            self._log("operator_stop", step=step_id, message=fault.message)
+            raise SessionPaused(f"stopped by the operator: {fault.message}")
         policy = self.inputs.plan.fault_policy.for_kind(fault.kind)
         retries_so_far = self._retry_index(step_id) if step_id is not None else 0
         action = policy.action

@@ -1,4 +1,4 @@
-"""Honest metrics against the simulator's ground truth (DESIGN §7).
+"""Honest metrics against the simulator's ground truth.
 
 Profiles: RMSE in mm against the noise-free truth over a region of interest (ROI):
 by default, per profile, the samples where the true depth exceeds ``ROI_FRACTION``
@@ -20,7 +20,7 @@ from typing import Any, Callable
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from .profiles import mirror, mirror_angle_deg
+from .profiles import MAX_FACE_SLOPE, mirror, mirror_angle_deg
 
 ROI_FRACTION = 0.05
 
@@ -30,6 +30,40 @@ def roi_mask(truth_mm: np.ndarray, fraction: float = ROI_FRACTION) -> np.ndarray
     t = np.atleast_2d(np.asarray(truth_mm, dtype=float))
     peak = np.nanmax(np.where(np.isfinite(t), t, -np.inf), axis=1, keepdims=True)
     return np.isfinite(t) & (t > fraction * np.maximum(peak, 0.0)) & (peak > 0)
+
+
+def profile_face_mask(truth: Any, point_mm: np.ndarray, normal: np.ndarray, t: np.ndarray, x_mm: np.ndarray,
+                      max_slope: float = MAX_FACE_SLOPE) -> np.ndarray:
+    """(L,) where a profile's true surface is defined: the samples x along the line
+    point + x t whose nearest true surface is the contact's own material, facing within
+    atan(``max_slope``) of its normal, reached from the contact without a step steeper
+    than ``max_slope`` (the same rule the measurement uses for the probed face).
+
+    Past the object's rim, or where the line runs onto another part (a box on a
+    pillow), the analytic dent of the contact says nothing true: those samples are not
+    scored (their share is reported). ``truth`` needs ``closest_surface(points) ->
+    (points, normals, labels)``.
+    """
+    p = np.asarray(point_mm, dtype=float)
+    n = np.asarray(normal, dtype=float) / np.linalg.norm(normal)
+    tt = np.asarray(t, dtype=float) / np.linalg.norm(t)
+    x = np.asarray(x_mm, dtype=float)
+    closest, normals, labels = truth.closest_surface(p[None, :] + x[:, None] * tt[None, :])
+    _, _, own = truth.closest_surface(p[None, :])
+    h = (closest - p) @ n
+    facing = normals @ n >= 1.0 / np.sqrt(1.0 + max_slope ** 2)
+    ok = (labels == own[0]) & facing & np.isfinite(h)
+    out = np.zeros(x.shape, dtype=bool)
+    start = int(np.argmin(np.abs(x)))
+    if not ok[start]:
+        return out
+    out[start] = True
+    for step in (1, -1):
+        k = start
+        while 0 <= k + step < x.size and ok[k + step] and abs(h[k + step] - h[k]) <= max_slope * abs(x[k + step] - x[k]):
+            k += step
+            out[k] = True
+    return out
 
 
 def window_mask(x_mm: np.ndarray, half_width_mm: float) -> np.ndarray:
