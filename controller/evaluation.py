@@ -337,16 +337,22 @@ def _within_reach(inputs: Any, points_mm: np.ndarray, normals: np.ndarray,
     return ok[which.reshape(-1)]
 
 
+def scored_top_surface(inputs: Any, truth: Any) -> tuple[Any, float]:
+    """The surface a region map is scored on: the object's true top seen from above within the
+    plan's tilt (``truth.top_surface``, one sample per mm^2 of projected area), the samples
+    inside the arm's reach only. Returns (that TopSurface, the area out of reach in mm^2)."""
+    top = truth.top_surface(inputs.plan.sampling.max_tilt_deg)
+    reach = _within_reach(inputs, top.points_mm, top.normals)
+    return top.subset(reach), float(top.area_mm2[~reach].sum())
+
+
 def _truth_surface_map(inputs: Any, truth: Any, cloud_mm: np.ndarray, cloud_normals: np.ndarray,
                        cloud_labels: np.ndarray) -> dict[str, Any]:
     """The map scored on the object's true top (within the plan's tilt, inside the arm's reach),
     sampled at one point per mm^2 of projected area (sim/truth_surface.py); the cloud's labels
     carried onto it by learning.evaluate.carry_labels (docs/generated_objects.md)."""
     max_tilt = inputs.plan.sampling.max_tilt_deg
-    top = truth.top_surface(max_tilt)
-    reach = _within_reach(inputs, top.points_mm, top.normals)
-    out_of_reach = float(top.area_mm2[~reach].sum())
-    top = top.subset(reach)
+    top, out_of_reach = scored_top_surface(inputs, truth)
     s = ev.truth_surface_scores(top.points_mm, top.normals, top.labels, top.area_mm2, cloud_mm, cloud_normals,
                                 cloud_labels, top.spacing_mm, seam_distance_mm=truth.boundary_distance_mm)
     wrong = s["wrong"]

@@ -375,6 +375,27 @@ def spread_along_surface(points_mm: np.ndarray, labels: np.ndarray, known: np.nd
     return out
 
 
+def carried_sources(surface_points_mm: np.ndarray, surface_normals: np.ndarray, cloud_points_mm: np.ndarray,
+                    cloud_normals: np.ndarray, spacing_mm: float, covered_mm: float = COVERED_MM
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Which cloud point each surface sample takes its label from, as :func:`truth_surface_scores`
+    carries a map: (source index (S,) into the cloud, distance (S,) mm from the sample to the
+    cloud point :func:`carry_labels` chose for it; > ``covered_mm``: not covered).
+
+    The label of a map over the cloud on the samples is ``cloud_labels[source]``: the
+    sources depend on the cloud and the samples only, so scoring many maps of one cloud
+    needs them once (bench/sampling_efficiency.py). An uncovered sample takes the source
+    of the nearest covered sample along the surface (:func:`spread_along_surface`).
+    """
+    index = np.arange(np.asarray(cloud_points_mm).reshape(-1, 3).shape[0])
+    source, dist = carry_labels(surface_points_mm, surface_normals, cloud_points_mm, cloud_normals, index)
+    # An unscanned band takes its labels from its own edges, along the face it lies on: the
+    # nearest scanned point in space may lie across a step (the pillow beside the box: the
+    # box's top edge is nearer than the pillow beyond the scanner's shadow).
+    source = spread_along_surface(surface_points_mm, source, dist <= covered_mm, SPREAD_STEP_SPACINGS * spacing_mm)
+    return source, dist
+
+
 def truth_surface_scores(surface_points_mm: np.ndarray, surface_normals: np.ndarray, true_labels: np.ndarray,
                          area_mm2: np.ndarray, cloud_points_mm: np.ndarray, cloud_normals: np.ndarray,
                          cloud_labels: np.ndarray, spacing_mm: float, covered_mm: float = COVERED_MM,
@@ -400,12 +421,9 @@ def truth_surface_scores(surface_points_mm: np.ndarray, surface_normals: np.ndar
     pts = np.asarray(surface_points_mm, dtype=float).reshape(-1, 3)
     true = np.asarray(true_labels).reshape(-1)
     w = np.asarray(area_mm2, dtype=float).reshape(-1)
-    carried, dist = carry_labels(pts, surface_normals, cloud_points_mm, cloud_normals, cloud_labels)
+    source, dist = carried_sources(pts, surface_normals, cloud_points_mm, cloud_normals, spacing_mm, covered_mm)
     covered = dist <= covered_mm
-    # An unscanned band takes its labels from its own edges, along the face it lies on: the
-    # nearest scanned point in space may lie across a step (the pillow beside the box: the
-    # box's top edge is nearer than the pillow beyond the scanner's shadow).
-    carried = spread_along_surface(pts, carried, covered, SPREAD_STEP_SPACINGS * spacing_mm)
+    carried = np.asarray(cloud_labels).reshape(-1)[source]
     radius = 1.5 * spacing_mm
     scores = region_map_scores(carried, true, w, pts, radius_mm=radius)
     if scores["boundary_mm_mean"] is None and seam_distance_mm is not None \
