@@ -8,6 +8,7 @@ geometry and object placement, with simulated devices behind them.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from .config import SessionInputs
@@ -83,6 +84,14 @@ def ground_truth_for(inputs: SessionInputs, seed: int) -> Any:
     from elastoprobe.sim.objects import load_object
 
     return SimGroundTruth(load_object(inputs.object_file()), inputs.cell.tool.tip_radius_mm)
+
+
+def object_mesh_for(object_file: Path) -> Any:
+    """The nominal surface (trimesh.Trimesh, object frame, mm) of a simulated object file: what a
+    plan is sized from (controller/planrule.py)."""
+    from elastoprobe.sim.objects import load_object
+
+    return load_object(object_file).mesh
 
 
 def check_real_cell_ready(inputs: SessionInputs, allow_stale_calibration: bool = False) -> None:

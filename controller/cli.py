@@ -273,11 +273,58 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
+    if args.sim_command == "object":
+        return cmd_sim_object(args)
     from elastoprobe.sim.servers.serve import main_serve
 
     from .config import DEFAULT_CELL
 
     return main_serve(Path(args.cell) if args.cell else DEFAULT_CELL, args.seed, run_dir=args.run_dir)
+
+
+def cmd_sim_object(args: argparse.Namespace) -> int:
+    """Generate a painted object (sim/generate.py) and a plan for it by the plan rule (planrule.py)."""
+    from elastoprobe.sim import generate as gen
+
+    from .atomic import atomic_write_text
+    from .config import DEFAULT_CELL, load_cell, load_session_inputs
+    from .planrule import fit_problems, forces_for_height, outline_of, plan_for_object, plan_yaml_text
+
+    cell_path = Path(args.cell) if args.cell else DEFAULT_CELL
+    cell, _ = load_cell(cell_path)
+    try:
+        obj = gen.generate(args.seed, args.shape, args.pattern, args.pairs,
+                           forces=lambda height_mm: forces_for_height(height_mm, cell),
+                           tip_radius_mm=cell.tool.tip_radius_mm)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    outline = outline_of(obj.mesh())
+    problems = fit_problems(outline, cell)
+    if problems:
+        raise InputError(f"generated object {obj.name} does not fit the cell: " + "; ".join(problems),
+                         path=str(cell_path))
+    out = Path(args.out)
+    object_path = gen.write_object(obj, out)
+    plan = plan_for_object(outline, cell, obj.name, object_path.name,
+                           str(cell_path.resolve()) if args.cell else None, seed=1)
+    plan_path = out / "plan.yaml"
+    header = (f"# The plan for {obj.name} by the plan rule (controller/planrule.py, docs/generated_objects.md):\n"
+              f"# sized from the object alone (height {outline.height_mm:.0f} mm, footprint "
+              f"{outline.footprint_area_mm2:.0f} mm^2). Run: elastoprobe run {plan_path} --seed 1\n")
+    atomic_write_text(plan_path, header + plan_yaml_text(plan))
+    load_session_inputs(plan_path, cell_path)          # what was written is a valid plan for the cell
+    summary = {**obj.summary(), "object": str(object_path), "plan": str(plan_path)}
+    if args.json:
+        print(json.dumps(summary, allow_nan=False))
+    else:
+        mats = ", ".join(f"{m['name']} ({m['family']}, {m['E_mpa']:g} MPa, dent {m['survey_dent_mm']:.3g} mm)"
+                         for m in summary["materials"])
+        print(f"{obj.name}: {obj.shape.kind} {' x '.join(f'{x:.0f}' for x in summary['size_mm'])} mm, "
+              f"pattern {obj.pattern.kind}, {mats}")
+        if summary["contrast"]["min"] is not None:
+            print(f"  smallest survey-dent contrast {summary['contrast']['min']:.2f}x")
+        print(f"wrote {object_path}, {object_path.with_suffix('.ply')}, {plan_path}")
+    return EXIT_DONE
 
 
 COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
@@ -369,6 +416,19 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--cell", help="cell file (default: the simulated cell)")
     sv.add_argument("--seed", type=_seed, default=0)
     sv.add_argument("--run-dir", help="write the servers' addresses (state file) here")
+
+    so = smsub.add_parser("object", help="generate a painted object (mesh + object YAML) and a plan for it")
+    so.add_argument("--seed", type=_seed, required=True, help="the object's seed (the same seed: the same object)")
+    so.add_argument("--out", required=True, help="folder to write object.ply, object.yaml and plan.yaml into")
+    so.add_argument("--shape", help="slab, block, dome, sheet or composite (default: drawn from the seed)")
+    so.add_argument("--pattern", help="plain, disc, ellipse, strip, wavy_seam, curved_seam, ring, two_inclusions, "
+                                      "disc_and_strip or two_inclusions_and_strip; a composite's: box or plate "
+                                      "(default: drawn from the seed)")
+    so.add_argument("--pairs", default="drawn",
+                    help="near: one pair of materials about 3x apart in survey dent; far: none; drawn (default): "
+                         "near with probability 0.35")
+    so.add_argument("--cell", help="cell the object and plan must suit (default: the simulated cell)")
+    so.add_argument("--json", action="store_true", help="print one JSON object")
 
     d = sub.add_parser("diagram", help="write the state machine's Mermaid diagram")
     d.add_argument("--out", default=str(Path(__file__).resolve().parent.parent / "docs" / "state_machine.md"))

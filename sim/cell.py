@@ -41,6 +41,7 @@ from .arm import ArmSettings, SimArm
 from .faults import FaultInjector, FaultPlan
 from .ft import FTSettings, SimForceTorque
 from .scanner import ProbeGeometry, ScannerSettings, SimLineScanner
+from .truth_surface import DEFAULT_SPACING_MM, TopSurface, top_surface
 from .world import SimWorld
 
 
@@ -163,6 +164,11 @@ class SimGroundTruth:
     def boundary_distance_mm(self, points_mm: np.ndarray) -> np.ndarray:
         """(N,) distance (mm) of each point to the nearest boundary between materials (inf: none)."""
         return self._obj.boundary_distance_mm(np.atleast_2d(points_mm))[0]
+
+    def top_surface(self, max_tilt_deg: float, spacing_mm: float = DEFAULT_SPACING_MM) -> TopSurface:
+        """The true top seen from above within ``max_tilt_deg``, one sample per ``spacing_mm``^2 of
+        projected area with its surface area and true label (sim/truth_surface.py)."""
+        return top_surface(self._obj, max_tilt_deg, spacing_mm)
 
 
 def _random_unit(rng: np.random.Generator) -> np.ndarray:

@@ -44,6 +44,7 @@ Size3 = tuple[Annotated[float, Field(gt=0, le=5000)], Annotated[float, Field(gt=
 RGB = tuple[Annotated[int, Field(ge=0, le=255)], Annotated[int, Field(ge=0, le=255)],
             Annotated[int, Field(ge=0, le=255)]]
 CACHE_SIZE = 4096
+BOUNDARY_CHUNK_ELEMENTS = 2_000_000     # point x segment pairs per chunk (~150 MB of temporaries)
 
 
 # --------------------------------------------------------------------------- schema
@@ -228,6 +229,10 @@ class SimObject:
     def _normals(self, closest_mm: np.ndarray, faces: np.ndarray) -> np.ndarray:
         return self.mesh.face_normals[faces]
 
+    def surface_normals(self, points_mm: np.ndarray, faces: np.ndarray) -> np.ndarray:
+        """Outward unit normals (N,3) at surface points (N,3) lying on the given faces (N,)."""
+        return self._normals(np.atleast_2d(points_mm), np.asarray(faces, dtype=np.int64))
+
     def _closest_on_region(self, point_mm: np.ndarray, label: int) -> tuple[np.ndarray, np.ndarray]:
         """Closest point and its normal on the faces of one region."""
         if label not in self._region_index:
@@ -249,13 +254,20 @@ class SimObject:
         return v[edges[:, 0]], v[edges[:, 1]], np.column_stack([la[differ], lb[differ]])
 
     def boundary_distance_mm(self, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(distance (N,) to the nearest region boundary in mm, index of that segment); inf if none."""
+        """(distance (N,) to the nearest region boundary in mm, index of that segment); inf if none.
+        Exact (every segment); in chunks, so many points against a long seam stay within memory."""
         pts = np.atleast_2d(np.asarray(points_mm, dtype=float))
         if self._boundary_a.shape[0] == 0:
             return np.full(pts.shape[0], np.inf), np.zeros(pts.shape[0], dtype=int)
-        dist = point_segment_distance_mm(pts, self._boundary_a, self._boundary_b)
-        seg = np.argmin(dist, axis=1)
-        return dist[np.arange(pts.shape[0]), seg], seg
+        dist_out = np.empty(pts.shape[0])
+        seg_out = np.empty(pts.shape[0], dtype=int)
+        rows = max(1, BOUNDARY_CHUNK_ELEMENTS // self._boundary_a.shape[0])
+        for start in range(0, pts.shape[0], rows):
+            dist = point_segment_distance_mm(pts[start:start + rows], self._boundary_a, self._boundary_b)
+            seg = np.argmin(dist, axis=1)
+            dist_out[start:start + rows] = dist[np.arange(seg.shape[0]), seg]
+            seg_out[start:start + rows] = seg
+        return dist_out, seg_out
 
     # -- shape-specific physics (overridden)
     def _plate_span_mm(self, point_mm: np.ndarray, normal: np.ndarray, material: Material) -> float:
@@ -428,6 +440,11 @@ class BallObject(SimObject):
 
     def _body_radius_mm(self, label: int) -> float:
         return self.radius_mm
+
+    def _normals(self, closest_mm: np.ndarray, faces: np.ndarray) -> np.ndarray:
+        """Analytic: the true sphere's normal, not its facet's."""
+        v = np.atleast_2d(closest_mm) - self.centre_mm
+        return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
 
     def _support(self, label: int, normal: np.ndarray, d: np.ndarray) -> SupportSink | None:
         """The ball flattens on the rigid table too (Hertz, ball radius): the whole ball sinks."""

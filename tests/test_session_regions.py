@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 from ruamel.yaml import YAML
 
 from elastoprobe.controller.evaluation import evaluate_session
@@ -38,10 +39,16 @@ def test_plan_min_contrast_decides_whether_box_and_foam_are_two_regions(tmp_path
     assert found[100.0] == (1, 1)
 
     # One region where there are two: every point of the smaller material is mislabelled,
-    # up to the farthest one from the seam; the evaluation counts and places them.
+    # up to the farthest one from the seam; the evaluation counts and places them (on the
+    # scanned cloud) and weighs them (on the true surface: the box's whole top, 25 600 mm^2).
     one, two = evaluate_session(tmp_path / "session_100.0"), evaluate_session(tmp_path / "session_None")
-    assert one["regions_found"] == 1 and one["mislabelled_points"] > 1000
-    assert one["mislabelled_points"] == round(one["region_map_error"] * one["scored_points"])
-    assert one["mislabelled_max_from_true_boundary_mm"] > 50.0
-    assert two["mislabelled_points"] == round(two["region_map_error"] * two["scored_points"])
-    assert two["mislabelled_points"] < one["mislabelled_points"]
+    c1, c2 = one["cloud"], two["cloud"]
+    assert one["regions_found"] == 1 and c1["mislabelled_points"] > 1000
+    assert c1["mislabelled_points"] == round(c1["region_map_error"] * c1["scored_points"])
+    assert c1["mislabelled_max_from_true_boundary_mm"] > 50.0
+    assert c2["mislabelled_points"] == round(c2["region_map_error"] * c2["scored_points"])
+    assert c2["mislabelled_points"] < c1["mislabelled_points"]
+    truth_area = one["truth_surface"]["area_mm2"]
+    assert one["region_map_error"] * truth_area == pytest.approx(160.0 * 160.0, rel=0.01)
+    assert one["worst_region_iou"] == 0.0 and one["boundary_mm_mean"] is None
+    assert two["region_map_error"] < one["region_map_error"] and 0.0 < two["coverage"] <= 1.0

@@ -7,9 +7,11 @@ the error), or any mask the caller passes (e.g. a fixed |x| window). The noise f
 is the same RMSE of the averaged measured profiles themselves, the best a model
 trained on them can be expected to reach.
 
-Region maps: scored over the points the caller passes, which must be the reachable
-scanned surface only (cloud points with their area weights), after optimal matching
-of predicted to true labels (Hungarian, maximising the matched area).
+Region maps: scored over the points the caller passes, after optimal matching of
+predicted to true labels (Hungarian, maximising the matched area). The reference is the
+object's true top (:func:`truth_surface_scores`: samples of the true surface at a fixed
+density, the session's labels carried onto them, coverage beside); the same scores over
+the reachable scanned cloud itself remain a secondary figure.
 """
 from __future__ import annotations
 
@@ -236,7 +238,7 @@ def region_map_scores(pred_labels: np.ndarray, true_labels: np.ndarray, area_wei
         both = np.concatenate([d_pt, d_tp])
         b_mean, b_p90 = float(both.mean()), float(np.percentile(both, 90))
     return {
-        "mislabelled_fraction": 1.0 - matched / total if total > 0 else None,
+        "mislabelled_fraction": max(0.0, (total - matched) / total) if total > 0 else None,
         "worst_region_iou": min(per_iou.values()) if per_iou else None,
         "per_region_iou": per_iou,
         "matching": {p_ids[r].item(): t_ids[c].item() for r, c in zip(rows, cols)},
@@ -246,6 +248,100 @@ def region_map_scores(pred_labels: np.ndarray, true_labels: np.ndarray, area_wei
         "boundary_mm_p90": b_p90,
         "boundary_radius_mm": radius,
     }
+
+
+# -- region maps on the true surface --------------------------------------------------------------
+
+COVERED_MM = 2.0              # a surface point this close to a cloud point counts as scanned
+CARRY_MAX_ANGLE_DEG = 20.0    # labels come from cloud points facing within this of the surface point
+CARRY_K = 16                  # nearest cloud points tried before the per-orientation search
+_NORMAL_BIN = 0.1             # per-orientation search: surface normals binned by (n_x, n_y) in steps of this
+
+
+def carry_labels(surface_points_mm: np.ndarray, surface_normals: np.ndarray, cloud_points_mm: np.ndarray,
+                 cloud_normals: np.ndarray, cloud_labels: np.ndarray,
+                 max_angle_deg: float = CARRY_MAX_ANGLE_DEG) -> tuple[np.ndarray, np.ndarray]:
+    """The map a user holds, read at surface points: (labels (S,), distance (S,) mm to the cloud
+    point each label was carried from).
+
+    Each surface point takes the label of the nearest cloud point (in space) whose normal
+    lies within ``max_angle_deg`` of the surface point's own: a point of the same face.
+    At a fold the cloud's PCA normals blend the two faces over a few points, and those
+    points lie nearer to the foot of a wall than the top's next sweep profile does; the
+    session's own map never carries a label across a fold (learning/surface_map.py), and
+    neither does this. 20 degrees is about four times the normal noise of the darkest
+    shipped material's cloud (0.12 mm over a 3 mm neighbourhood) and far below the turn
+    of a fold. Every surface point gets a label, however far its source (an unscanned
+    band is labelled from the nearest scanned point of its face); the distance says how
+    far that was. The nearest ``CARRY_K`` cloud points are tried first; a point with no
+    such neighbour (beside a wall, all its neighbours on the wall) is searched among the
+    cloud points facing within ``max_angle_deg`` of its orientation bin (surface normals
+    binned by (n_x, n_y), steps of 0.1: the angle holds to about +-3 degrees there), and
+    among all cloud points when none faces that way.
+    """
+    from scipy.spatial import cKDTree
+
+    sp = np.asarray(surface_points_mm, dtype=float).reshape(-1, 3)
+    sn = np.asarray(surface_normals, dtype=float).reshape(-1, 3)
+    cloud = np.asarray(cloud_points_mm, dtype=float).reshape(-1, 3)
+    cn = np.asarray(cloud_normals, dtype=float).reshape(-1, 3)
+    labels_in = np.asarray(cloud_labels).reshape(-1)
+    cos_max = float(np.cos(np.radians(max_angle_deg)))
+    k = min(CARRY_K, cloud.shape[0])
+    dist, idx = cKDTree(cloud).query(sp, k=k)
+    dist, idx = dist.reshape(-1, k), idx.reshape(-1, k)
+    facing = np.einsum("skj,sj->sk", cn[idx], sn) >= cos_max
+    found = facing.any(axis=1)
+    first = np.argmax(facing, axis=1)
+    rows = np.arange(sp.shape[0])
+    out_idx = idx[rows, first]
+    out_dist = dist[rows, first]
+    rest = np.flatnonzero(~found)
+    if rest.size:
+        bins, which = np.unique(np.round(sn[rest, :2] / _NORMAL_BIN).astype(np.int64), axis=0, return_inverse=True)
+        for b in range(bins.shape[0]):
+            members = rest[which.reshape(-1) == b]
+            centre = sn[members].mean(axis=0)
+            centre /= max(float(np.linalg.norm(centre)), 1e-12)
+            source = np.flatnonzero(cn @ centre >= cos_max)
+            if source.size == 0:
+                source = np.arange(cloud.shape[0])
+            d, i = cKDTree(cloud[source]).query(sp[members])
+            out_idx[members], out_dist[members] = source[i], d
+    return labels_in[out_idx], out_dist
+
+
+def truth_surface_scores(surface_points_mm: np.ndarray, surface_normals: np.ndarray, true_labels: np.ndarray,
+                         area_mm2: np.ndarray, cloud_points_mm: np.ndarray, cloud_normals: np.ndarray,
+                         cloud_labels: np.ndarray, spacing_mm: float, covered_mm: float = COVERED_MM) -> dict[str, Any]:
+    """Score a session's region map (over its cloud) on samples of the object's true surface.
+
+    The surface samples (S,3) carry their true normals and labels and the area (mm^2) each
+    stands for (sim/truth_surface.py). The cloud's labels are carried onto them (:func:`carry_labels`)
+    and scored with :func:`region_map_scores`, area-weighted, boundary points within 1.5
+    sample spacings. ``coverage``: the area fraction within ``covered_mm`` of the cloud
+    point its label came from (the nearest one of the same face). The uncovered part is scored too (the user receives a map
+    there as well); ``error_covered`` / ``error_uncovered``: the mislabelled fraction of
+    each part's own area (None for an empty part).
+    """
+    pts = np.asarray(surface_points_mm, dtype=float).reshape(-1, 3)
+    true = np.asarray(true_labels).reshape(-1)
+    w = np.asarray(area_mm2, dtype=float).reshape(-1)
+    carried, dist = carry_labels(pts, surface_normals, cloud_points_mm, cloud_normals, cloud_labels)
+    scores = region_map_scores(carried, true, w, pts, radius_mm=1.5 * spacing_mm)
+    matched = np.array([scores["matching"].get(v.item(), -1) for v in np.unique(carried)])
+    wrong = matched[np.searchsorted(np.unique(carried), carried)] != true
+    covered = dist <= covered_mm
+
+    def error_of(part: np.ndarray) -> float | None:
+        area = float(w[part].sum())
+        return float(w[part & wrong].sum() / area) if area > 0 else None
+
+    total = float(w.sum())
+    return {**scores, "wrong": wrong, "carried_labels": carried, "carried_from_mm": dist,
+            "coverage": float(w[covered].sum() / total) if total > 0 else None,
+            "area_mm2": total, "uncovered_area_mm2": float(w[~covered].sum()),
+            "error_covered": error_of(covered), "error_uncovered": error_of(~covered)}
 
 
 def heldout_profile_rmse_mm(model: Any, forces_n: np.ndarray, angles_deg: np.ndarray,
