@@ -208,11 +208,15 @@ def neural_gas_targets(surface: SurveySurface, rules: tg.TargetRules, n_units: i
                        reference_dir: np.ndarray = np.array([0.0, 1.0, 0.0]), geometry_weight: float = 1.0,
                        steps_per_unit: int = 200) -> tg.Targets:
     """Targets from geometry-aware neural gas with ``n_units`` units, as the session's sampling phase
-    (features xyz + scaled normals, curvature-weighted draws, 256-sample minibatches)."""
+    (trained on the probe-able surface, features xyz + scaled normals, curvature-weighted
+    draws, 256-sample minibatches)."""
     from . import neural_gas as ng
 
-    feats, weights = ng.geometry_aware_inputs(surface.points_mm, surface.normals, surface.curvature,
-                                              normal_weight_mm=10.0 * geometry_weight)
+    where = tg.probeable(surface.points_mm, surface.normals, surface.curvature, rules)
+    if np.count_nonzero(where) < n_units:
+        where = np.ones(len(surface), bool)
+    feats, weights = ng.geometry_aware_inputs(surface.points_mm[where], surface.normals[where],
+                                              surface.curvature[where], normal_weight_mm=10.0 * geometry_weight)
     result = ng.train_neural_gas(feats, n_units=int(n_units), n_steps=max(200, n_units * steps_per_unit // 16),
                                  batch_size=256, seed=seed, sample_weights=weights)
     units = np.asarray(result.units)[:, :3].astype(np.float64)
