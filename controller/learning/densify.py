@@ -35,6 +35,8 @@ from typing import Any, Mapping, Protocol
 
 import numpy as np
 
+from . import surface_map as sm
+
 ROI_FRACTION = 0.05
 DEFAULT_THRESHOLD = 3.0
 
@@ -208,14 +210,15 @@ def snap_to_surface(points_mm: np.ndarray, surface_points_mm: np.ndarray) -> np.
 
 def candidate_points(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np.ndarray,
                      point_score: np.ndarray | None = None, surface_points_mm: np.ndarray | None = None,
-                     min_length_mm: float = 0.0, return_lengths: bool = False
-                     ) -> tuple[np.ndarray, ...]:
+                     min_length_mm: float = 0.0, return_lengths: bool = False,
+                     fraction: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """Candidate new survey points (C,3) and their scores (C,) [and edge lengths (C,) mm].
 
-    Midpoints of edges longer than ``min_length_mm`` (a shorter edge has already placed
-    its piece of the boundary within that length) with a positive score: their own (a
-    crossing edge), or the larger ``point_score`` of their two ends (a ring around a
-    doubtful point: ambiguous features, or a misfit of its region).
+    Points on edges longer than ``min_length_mm`` (a shorter edge has already placed its
+    piece of the boundary within that length) with a positive score: their own (a crossing
+    edge), or the larger ``point_score`` of their two ends (a ring around a doubtful point:
+    ambiguous features, or a misfit of its region). Each lies ``fraction`` (E,) of the way
+    from the edge's first end to its second (default 0.5, the midpoint).
     """
     pos = np.asarray(positions_mm, dtype=float).reshape(-1, 3)
     e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
@@ -226,7 +229,8 @@ def candidate_points(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np
         s = np.maximum(s, np.maximum(ps[e[:, 0]], ps[e[:, 1]]))
     s[lengths <= min_length_mm] = 0.0
     keep = s > 0
-    mids = 0.5 * (pos[e[keep, 0]] + pos[e[keep, 1]])
+    t = np.full(e.shape[0], 0.5) if fraction is None else np.asarray(fraction, dtype=float).reshape(-1)
+    mids = pos[e[keep, 0]] + t[keep, None] * (pos[e[keep, 1]] - pos[e[keep, 0]])
     if surface_points_mm is not None and mids.shape[0]:
         mids = snap_to_surface(mids, surface_points_mm)
     if return_lengths:
@@ -310,6 +314,22 @@ class DensifyRound:
         return out
 
 
+def _crossing_fraction(edges: np.ndarray, labels: np.ndarray, levels: np.ndarray,
+                       clip: tuple[float, float] = (0.2, 0.8)) -> np.ndarray:
+    """(E,) where along each crossing edge the interpolated level crosses midway between its
+    two regions (0.5 on edges within a region or when the regions' levels overlap)."""
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    out = np.full(e.shape[0], 0.5)
+    cross = np.flatnonzero(np.asarray(labels)[e[:, 0]] != np.asarray(labels)[e[:, 1]])
+    if cross.size == 0:
+        return out
+    s_a, s_b, usable = sm.seam_fractions(levels, labels, e[cross, 0], e[cross, 1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(np.abs(s_b - s_a) > 1e-9, (0.5 - s_a) / (s_b - s_a), 0.5)
+    out[cross] = np.where(usable, np.clip(t, *clip), 0.5)
+    return out
+
+
 def _finite_or_none(v: float) -> float | None:
     return float(v) if np.isfinite(v) else None
 
@@ -320,7 +340,7 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
                threshold: float = DEFAULT_THRESHOLD, posterior: np.ndarray | None = None,
                surface_points_mm: np.ndarray | None = None,
                survey_scores: Mapping[tuple[int, int], float] | None = None,
-               misfit: np.ndarray | None = None) -> DensifyRound:
+               misfit: np.ndarray | None = None, levels: np.ndarray | None = None) -> DensifyRound:
     """Score the current map, apply the stop rule and propose the next survey points.
 
     ``forces_n``, ``angles_deg``: the survey probe settings; ``posterior`` (N,K) optional
@@ -328,9 +348,13 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
     (where a target may go); ``survey_scores``: pair scores from the survey itself
     (:func:`survey_pair_scores`); ``misfit`` (N,): how far each point lies beyond what its
     region explains (regions.survey_misfit; > 1: maybe another material), its ring of
-    edges scores ``threshold`` x misfit. Candidates are taken longest edge first (the
-    widest unresolved gap). When resolved, nothing is proposed; when nothing can be placed
-    (spacing), the reason says so.
+    edges scores ``threshold`` x misfit; ``levels`` (N,): each point's dent on the scale
+    the regions differ on (mean log peak depth): a crossing edge is then split where the
+    level interpolated between its ends crosses midway (surface_map.seam_fractions; a
+    false-position step, clipped to the middle 60 % of the edge), the midpoint when both
+    ends are pure. Candidates are taken longest edge first (the widest unresolved gap).
+    When resolved, nothing is proposed; when nothing can be placed (spacing), the reason
+    says so.
     """
     lab = np.asarray(labels)
     pscores = pair_scores(lab if posterior is None else np.arange(np.asarray(posterior).shape[1]),
@@ -344,7 +368,8 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
         ps = np.maximum(ps, np.where(odd, threshold * mf, 0.0))
     resolved, reason = boundaries_resolved(positions_mm, edges, es, resolution_mm, threshold)
     cand, cs, gap_mm = candidate_points(positions_mm, edges, es, ps, surface_points_mm,
-                                        min_length_mm=resolution_mm, return_lengths=True)
+                                        min_length_mm=resolution_mm, return_lengths=True,
+                                        fraction=None if levels is None else _crossing_fraction(edges, lab, levels))
     if resolved and np.any(cs >= threshold):
         resolved = False
         reason += (f"; around {int(np.sum(ps >= threshold))} points that their region explains badly or "

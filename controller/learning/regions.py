@@ -336,34 +336,54 @@ def _merge_by_noise(features: np.ndarray, labels: np.ndarray, noise: np.ndarray,
 
 def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: list[int],
                        min_contrast: float, floor_mm: float = 0.0) -> tuple[np.ndarray, int]:
-    """Merge clusters whose median depths (+ ``floor_mm``, the noise under which a dent is not
-    seen) differ by less than a factor ``min_contrast`` at every survey force
-    (``depth_columns``: the peak-depth features), closest pair first.
+    """Merge clusters that are not two materials, closest pair first: their median depths
+    (+ ``floor_mm``, the noise under which a dent is not seen) differ by less than a factor
+    ``min_contrast`` at every survey force (``depth_columns``: the peak-depth features), or
+    the difference does not hold at every force (one is shallower by the contrast at one
+    force, and not clearly shallower, by 3 noises of a difference, at another).
 
     The mixture splits one material wherever geometry shifts the visible dent (the rim of
     a pillow, a slope, a tilted ball surface: up to ~30 % deeper in the simulator, where
     the probe's shadow ends closer to the contact); that is not a different elasticity.
+    A stiffer material dents less at every force; two clusters of a stiff material whose
+    visible dents are a few hundredths of a millimetre can differ by 4x at one force
+    (ripple of the profile near the tip) and not at all at the other.
     """
     merges = 0
     if not depth_columns or min_contrast <= 1.0:
         return _compact(labels)[0], 0
     cols = features[:, depth_columns]
-    while True:
-        labels, k = _compact(labels)
-        if k < 2:
-            return labels, merges
-        med = _region_medians(cols, labels, k)
-        logs = np.log(np.maximum(med, 0.0) + max(floor_mm, 1e-6))
-        best: tuple[float, int, int] | None = None
-        for i in range(k):
-            for j in range(i + 1, k):
-                gap = float(np.nanmax(np.abs(logs[i] - logs[j])))
-                if gap < np.log(min_contrast) and (best is None or gap < best[0]):
-                    best = (gap, i, j)
-        if best is None:
-            return labels, merges
-        labels = np.where(labels == best[2], best[1], labels)
+    floor = max(floor_mm, 1e-6)
+    log_c = float(np.log(min_contrast))
+    labels, k = _compact(labels)
+    med = np.maximum(_region_medians(cols, labels, k), 0.0) + floor
+    while k > 1:
+        logs = np.log(med)
+        signed = logs[:, None, :] - logs[None, :, :]                       # (k,k,F)
+        finite = np.isfinite(signed)
+        absd = np.where(finite, np.abs(signed), -np.inf)
+        gap = absd.max(axis=2)
+        at = np.take_along_axis(signed, absd.argmax(axis=2)[:, :, None], axis=2)[:, :, 0]
+        # Shallower at every force by more than 3 noises of a difference (in mm: a dent at
+        # the noise floor is shallower than one 5 noises deep, whatever their ratio says).
+        diff_mm = med[:, None, :] - med[None, :, :]
+        resolved = (np.sign(at)[:, :, None] * diff_mm > 3.0 * np.sqrt(2.0) * floor) | ~finite
+        same = (gap < log_c) | ~resolved.all(axis=2)
+        same &= np.triu(np.ones((k, k), dtype=bool), 1) & np.isfinite(gap)
+        if not same.any():
+            break
+        i, j = np.unravel_index(int(np.argmin(np.where(same, gap, np.inf))), same.shape)
+        labels = np.where(labels == j, i, labels)
+        labels = np.where(labels > j, labels - 1, labels)
+        k -= 1
+        members = labels == i
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            merged = np.maximum(np.nanmedian(cols[members], axis=0), 0.0) + floor
+        med = np.delete(med, j, axis=0)
+        med[i] = merged
         merges += 1
+    return labels, merges
 
 
 def _icm(loglik: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray], beta: float,
@@ -550,6 +570,12 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
     stats["bic"] = {int(k): v for k, v in bics.items()}
     labels, k = _compact(labels)
     stats["mixture_k"] = k
+    if log_cols and min_contrast > 1.0:
+        # The mixture may put two lone probes of two different inclusions in one component
+        # (one component per probe costs more than the likelihood it buys): split every
+        # cluster by the materials that the contrast rule alone finds among single points.
+        alone, _ = _merge_by_contrast(x, np.arange(n), depth_cols, min_contrast, floor_mm)
+        labels, k = _compact(labels * (int(alone.max()) + 1) + alone)
     if previous_labels is not None:
         prev = np.asarray(previous_labels, dtype=np.int64).reshape(-1)
         if prev.shape[0] != n:
@@ -621,9 +647,11 @@ def survey_misfit(features: np.ndarray, labels: np.ndarray, feature_names: list[
     Per survey force, the deviation |log(peak + noise) - median over the region| is
     compared with the larger of ``sigmas`` x the region's robust spread (1.4826 MAD of
     the same logarithms: the dent's drift with geometry and support within one material),
-    ``sigmas`` x the point's own relative noise, and half the contrast that makes two
-    materials (log(min_contrast) / 2: a point that far is as near another material as its
-    own). The result is the largest ratio over the forces; NaN features give 0.
+    ``sigmas`` x the point's own relative noise, and the contrast that makes two materials
+    (log(min_contrast): a point that far from its region is another material by the rule
+    that made the regions; within one material geometry alone moves a dent by up to ~2x,
+    e.g. where the scan line runs off a block's shoulder). The result is the largest ratio
+    over the forces; NaN features give 0.
 
     A model fitted to the region's survey profiles predicts about their mean at the survey
     settings, pulled toward the misfit itself; the median is not.
@@ -633,14 +661,14 @@ def survey_misfit(features: np.ndarray, labels: np.ndarray, feature_names: list[
     if lab.shape[0] == 0 or not any(name.startswith("peak") for name in feature_names):
         return out
     y, rel_noise = log_peaks(features, feature_names, noise_mm)
-    half_contrast = 0.5 * float(np.log(min_contrast))
+    contrast = float(np.log(min_contrast))
     for region in np.unique(lab):
         members = np.flatnonzero(lab == region)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             med = np.nanmedian(y[members], axis=0)
             mad = 1.4826 * np.nanmedian(np.abs(y[members] - med), axis=0)
-        allowed = np.maximum(np.maximum(sigmas * np.nan_to_num(mad), sigmas * rel_noise[members]), half_contrast)
+        allowed = np.maximum(np.maximum(sigmas * np.nan_to_num(mad), sigmas * rel_noise[members]), contrast)
         ratio = np.abs(y[members] - med) / allowed
         out[members] = np.nanmax(np.where(np.isfinite(ratio), ratio, 0.0), axis=1)
     return out
