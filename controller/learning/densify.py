@@ -347,8 +347,8 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
     feature posteriors for ambiguous points; ``surface_points_mm``: the surface to snap to
     (where a target may go); ``survey_scores``: pair scores from the survey itself
     (:func:`survey_pair_scores`); ``misfit`` (N,): how far each point lies beyond what its
-    region explains (regions.survey_misfit; > 1: maybe another material), its ring of
-    edges scores ``threshold`` x misfit; ``levels`` (N,): each point's dent on the scale
+    region explains (regions.survey_misfit; > 1: maybe another material): when all its
+    neighbours share its region, its ring of edges scores ``threshold`` x misfit; ``levels`` (N,): each point's dent on the scale
     the regions differ on (mean log peak depth): a crossing edge is then split where the
     level interpolated between its ends crosses midway (surface_map.seam_fractions; a
     false-position step, clipped to the middle 60 % of the edge), the midpoint when both
@@ -363,8 +363,14 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
     ps = point_scores(posterior, pscores) if posterior is not None else np.zeros(lab.shape[0])
     odd = np.zeros(lab.shape[0], dtype=bool)
     if misfit is not None:
+        # A misfit beside another region is the seam's blend, which the crossing edges
+        # already follow; one surrounded by its own region is unexplained.
+        e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+        on_seam = np.zeros(lab.shape[0], dtype=bool)
+        crossing = lab[e[:, 0]] != lab[e[:, 1]]
+        on_seam[e[crossing].ravel()] = True
         mf = np.nan_to_num(np.asarray(misfit, dtype=float).reshape(-1))
-        odd = mf > 1.0
+        odd = (mf > 1.0) & ~on_seam
         ps = np.maximum(ps, np.where(odd, threshold * mf, 0.0))
     resolved, reason = boundaries_resolved(positions_mm, edges, es, resolution_mm, threshold)
     cand, cs, gap_mm = candidate_points(positions_mm, edges, es, ps, surface_points_mm,

@@ -342,10 +342,11 @@ def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.nd
     A probe that straddles a seam presses both materials: its dent lies between theirs,
     and the seam passes within a contact's width of it. Each reached point p has a
     nearest seed a of its own region A and b of the nearest other region B (distances
-    along the surface, d_a <= d_b), placed on the way from A to B by :func:`seam_fractions`
-    (s_a, s_b). p takes B when s_a + (s_b - s_a) d_a / (d_a + d_b) > 1/2: between two pure
-    seeds that is the midway split of the plain map; next to a seed half way between the
-    levels the boundary passes through that seed.
+    along the surface), placed on the way from A to B by :func:`seam_fractions` (s_a, s_b).
+    With t the place of p along the way from a to b, (d_a^2 - d_b^2 + |ab|^2) / (2 |ab|^2)
+    clipped to [0, 1], p takes B when s_a + (s_b - s_a) t > 1/2: between two pure seeds that
+    is the midway split of the plain map; next to a seed part way between the levels the
+    boundary passes near that seed, on its side toward b.
     """
     regions = np.unique(seed_labels)
     nodes = seed_nodes(graph, seeds_mm)
@@ -359,13 +360,24 @@ def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.nd
         d, s = _multi_source(free, nodes[members])
         dist[k], src[k] = d, np.where(s >= 0, members[np.maximum(s, 0)], -1)
     out = labels.copy()
-    order = np.argsort(dist, axis=0)
-    cols = np.arange(len(graph))
-    pts = np.flatnonzero(reached & np.isfinite(dist[order[1], cols]))
-    ka, kb = order[0, pts], order[1, pts]
-    s_a, s_b, usable = seam_fractions(seed_levels, seed_labels, src[ka, pts], src[kb, pts])
+    # A: the region the plain map gave (ties stay as it broke them); B: the nearest other one.
+    k_of = np.full(int(regions.max()) + 1, -1, dtype=np.int64)
+    k_of[regions] = np.arange(regions.size)
+    pts = np.flatnonzero(reached)
+    ka = k_of[labels[pts]]
+    others = dist[:, pts].copy()
+    others[ka, np.arange(pts.size)] = np.inf
+    kb = np.argmin(others, axis=0)
+    near = np.isfinite(others[kb, np.arange(pts.size)])
+    pts, ka, kb = pts[near], ka[near], kb[near]
+    a, b = src[ka, pts], src[kb, pts]
+    s_a, s_b, usable = seam_fractions(seed_levels, seed_labels, a, b)
+    # p's place along the way from a to b (law of cosines on its distances to both): beyond
+    # a on the far side from b (t < 0) the level is a's own, not one interpolated toward b.
     da, db = dist[ka, pts], dist[kb, pts]
-    t = np.where(da + db > 0, da / np.maximum(da + db, 1e-12), 0.5)
+    seeds = np.asarray(seeds_mm, dtype=float).reshape(-1, 3)
+    dab2 = np.maximum(np.sum((seeds[a] - seeds[b]) ** 2, axis=1), 1e-12)
+    t = np.clip((da ** 2 - db ** 2 + dab2) / (2.0 * dab2), 0.0, 1.0)
     flip = usable & (s_a + (s_b - s_a) * t > 0.5)
     out[pts] = np.where(flip, regions[kb], regions[ka])
     return out
