@@ -623,7 +623,7 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
     and around survey points their region explains badly; False when resolved or out of budget."""
     from .learning import cloud as cl
     from .learning import densify as dn
-    from .learning import regions as rg
+    from .learning import surface_map as sm
     from .learning import targets as tg
 
     s = ctx.session
@@ -636,18 +636,15 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
         ids = sorted(ctx.labels)
         pts = np.array([ctx.targets[i].point_mm for i in ids])
         labels = np.array([ctx.labels[i] for i in ids])
-        edges = ctx.surface_neighbours(pts)
+        edges = ctx.surface_neighbours(pts).reshape(-1, 2)
         sv = plan.phases.survey
         grid_forces = np.array(sv.forces_n, dtype=float)
         noise = measured_noise_mm(ctx)
+        border = sm.shared_border(ctx.surface(), sm.cells(ctx.surface(), pts), edges)
         # The survey's own evidence beside the models': every labelled point's dent, how far
         # apart the regions' dents lie, and which points their region explains badly.
-        regions_rec = j.phase("regions", round_ - 1)
-        assert regions_rec is not None
-        row = {int(t): k for k, t in enumerate(regions_rec.arrays["labelled_targets"])}
-        feats = regions_rec.arrays["features"][[row[i] for i in ids]]
-        names = list(regions_rec.outputs["feature_names"])
-        log_depth, rel_noise = rg.log_peaks(feats, names, noise)
+        found = _region_features(ctx, ids)
+        assert found is not None
         curv = cl.curvature(ctx.cloud_mm, k=16)
         surface = ctx.cloud_mm[tg.probeable(ctx.cloud_mm, ctx.cloud_normals, curv, _target_rules(ctx))]
         rnd = dn.plan_round(round_, pts, np.asarray(edges).reshape(-1, 2), labels, ctx.models,
@@ -655,8 +652,7 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
                             noise_mm=noise, budget=dp.points_per_round,
                             min_spacing_mm=dp.min_spacing_mm, resolution_mm=dp.resolution_mm,
                             surface_points_mm=surface if len(surface) else ctx.cloud_mm,
-                            survey_scores=dn.survey_pair_scores(log_depth, labels, rel_noise),
-                            misfit=rg.survey_misfit(feats, labels, names, noise, sv.min_contrast))
+                            border=border, **dn.survey_evidence(found[0], found[1], labels, noise, sv.min_contrast))
         new_pts = canonical(np.asarray(rnd.proposed_mm, dtype=float).reshape(-1, 3), 6)
         new_nrm = canonical(_cloud_normals_at(ctx, new_pts), 9)
         first = max(ctx.targets) + 1 if ctx.targets else 0
@@ -680,6 +676,34 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
     if len(rec.arrays["target_index"]):
         ctx.targets.update(_targets_from_arrays(rec.arrays))
     return int(rec.outputs["n_new"]) > 0
+
+
+def _region_features(ctx: PhaseContext, ids: list[int]) -> tuple[np.ndarray, list[str]] | None:
+    """Survey features (len(ids), D) and their names of labelled targets, from the latest
+    regions round (None when there is none, or it did not label every one of ``ids``)."""
+    j = ctx.session.journal
+    assert j is not None
+    r = 0
+    while j.phase("regions", r + 1) is not None:
+        r += 1
+    rec = j.phase("regions", r)
+    if rec is None:
+        return None
+    row = {int(t): k for k, t in enumerate(rec.arrays["labelled_targets"])}
+    if any(i not in row for i in ids):
+        return None
+    return rec.arrays["features"][[row[i] for i in ids]], list(rec.outputs["feature_names"])
+
+
+def _survey_levels(ctx: PhaseContext, ids: list[int]) -> np.ndarray | None:
+    """Each labelled target's dent on the scale regions differ on (mean over survey forces of
+    log(peak + noise), regions.log_peaks); None without a regions round."""
+    from .learning import regions as rg
+
+    found = _region_features(ctx, ids)
+    if found is None:
+        return None
+    return rg.log_peaks(found[0], found[1], measured_noise_mm(ctx))[0].mean(axis=1)
 
 
 def _cloud_normals_at(ctx: PhaseContext, points_mm: np.ndarray) -> np.ndarray:
@@ -727,8 +751,10 @@ def phase_final(ctx: PhaseContext) -> None:
         ids = sorted(ctx.labels)
         pts = np.array([ctx.targets[i].point_mm for i in ids])
         # Each cloud point: the region of the nearest labelled target along the surface,
-        # parts split at concave folds (learning/surface_map.py).
-        cloud_labels = sm.labels_from_seeds(ctx.surface(), pts, np.array([ctx.labels[i] for i in ids]))
+        # parts split at concave folds, the seam drawn through targets whose dent lies
+        # between two regions (learning/surface_map.py).
+        cloud_labels = sm.labels_from_seeds(ctx.surface(), pts, np.array([ctx.labels[i] for i in ids]),
+                                            seed_levels=_survey_levels(ctx, ids))
         j.commit_phase("final", 0, {"n_regions": ctx.n_regions, "model_round": ctx.model_round,
                                     "robot_hours": j.robot_time_s()["total"] / 3600.0},
                        {"cloud_labels": cloud_labels.astype(np.int64)})

@@ -219,3 +219,18 @@ def test_a_crossing_edge_is_split_where_the_level_crosses_midway():
     toward = plan_round(1, pos, edges, labels, models, SURVEY_F, SURVEY_A, NOISE_MM, budget=1,
                         min_spacing_mm=2.0, resolution_mm=6.0, levels=levels)
     assert 0.0 < toward.proposed_mm[0][0] < 10.0
+
+
+def test_a_longer_border_is_split_before_an_equal_gap_at_a_corner(models):
+    """Two crossing edges of equal length: with ``border`` the one whose cells share more
+    surface (more area hangs on where that boundary is drawn) is split first."""
+    pos = np.array([[0.0, 0, 0], [20.0, 0, 0], [0.0, 40, 0], [20.0, 40, 0]])
+    edges = np.array([[0, 1], [2, 3], [0, 2], [1, 3]])
+    labels = np.array([0, 1, 0, 1])
+    kw = dict(budget=1, min_spacing_mm=2.0, resolution_mm=8.0)
+    first = plan_round(0, pos, edges, labels, {0: models[0], 1: models[1]}, SURVEY_F, SURVEY_A, NOISE_MM,
+                       border=np.array([2.0, 30.0, 0.0, 0.0]), **kw)
+    assert np.allclose(first.proposed_mm, [[10.0, 40, 0]])
+    other = plan_round(0, pos, edges, labels, {0: models[0], 1: models[1]}, SURVEY_F, SURVEY_A, NOISE_MM,
+                       border=np.array([30.0, 2.0, 0.0, 0.0]), **kw)
+    assert np.allclose(other.proposed_mm, [[10.0, 0, 0]])

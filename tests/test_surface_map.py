@@ -108,3 +108,15 @@ def test_a_seed_whose_dent_lies_between_two_regions_draws_the_seam_through_itsel
     assert err_plain > 0.01 and err_refined < 0.4 * err_plain
     # Nothing moves on the far side of the seam seed, nor between other seeds.
     assert np.all(refined[pts[:, 0] < 31.5] == 0) and np.all(refined[pts[:, 0] > 36.0] == 1)
+
+
+def test_shared_border_counts_the_edges_between_two_cells():
+    """Three seeds in a row on a flat strip: neighbours share a border as wide as the strip,
+    the outer two none."""
+    pts, nrm = plane(41, 11, 2.0)
+    g = sm.build_graph(pts, nrm)
+    seeds = np.array([[10.0, 10.0, 0.0], [40.0, 10.0, 0.0], [70.0, 10.0, 0.0]])
+    border = sm.shared_border(g, sm.cells(g, seeds), np.array([[0, 1], [2, 1], [0, 2]]))
+    assert border[2] == 0.0
+    assert border[0] >= 11 and border[1] >= 11               # at least one edge per row of the strip
+    assert abs(border[0] - border[1]) <= 0.25 * border[0]    # the same width on both sides

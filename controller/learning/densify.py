@@ -35,6 +35,7 @@ from typing import Any, Mapping, Protocol
 
 import numpy as np
 
+from . import regions as rg
 from . import surface_map as sm
 
 ROI_FRACTION = 0.05
@@ -151,6 +152,22 @@ def survey_pair_scores(log_depth: np.ndarray, labels: np.ndarray, rel_noise: np.
     return out
 
 
+def survey_evidence(features: np.ndarray, feature_names: list[str], labels: np.ndarray, noise_mm: float,
+                    min_contrast: float = rg.MIN_CONTRAST) -> dict[str, Any]:
+    """What the survey itself says, as :func:`plan_round`'s keyword arguments: the pair scores
+    of the regions' dents (:func:`survey_pair_scores`), each point's misfit to its region
+    (regions.survey_misfit) and its level (mean over survey forces of log(peak + noise)).
+
+    ``features`` (N,D) and ``feature_names``: the survey features of the labelled points
+    (regions.survey_features); ``noise_mm``: the standard error of an averaged profile.
+    """
+    log_depth, rel_noise = rg.log_peaks(features, feature_names, noise_mm)
+    lab = np.asarray(labels, dtype=np.int64).reshape(-1)
+    return {"survey_scores": survey_pair_scores(log_depth, lab, rel_noise),
+            "misfit": rg.survey_misfit(features, lab, feature_names, noise_mm, min_contrast),
+            "levels": log_depth.mean(axis=1)}
+
+
 def pair_scores(labels_present: np.ndarray, models: Mapping[int, ProfileModel], forces_n: np.ndarray,
                 angles_deg: np.ndarray, noise_mm: float, missing_score: float = np.inf,
                 survey: Mapping[tuple[int, int], float] | None = None) -> dict[tuple[int, int], float]:
@@ -211,8 +228,9 @@ def snap_to_surface(points_mm: np.ndarray, surface_points_mm: np.ndarray) -> np.
 def candidate_points(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np.ndarray,
                      point_score: np.ndarray | None = None, surface_points_mm: np.ndarray | None = None,
                      min_length_mm: float = 0.0, return_lengths: bool = False,
-                     fraction: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
-    """Candidate new survey points (C,3) and their scores (C,) [and edge lengths (C,) mm].
+                     fraction: np.ndarray | None = None, return_edges: bool = False) -> tuple[np.ndarray, ...]:
+    """Candidate new survey points (C,3) and their scores (C,) [and edge lengths (C,) mm]
+    [and the index (C,) of each one's edge].
 
     Points on edges longer than ``min_length_mm`` (a shorter edge has already placed its
     piece of the boundary within that length) with a positive score: their own (a crossing
@@ -233,9 +251,8 @@ def candidate_points(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np
     mids = pos[e[keep, 0]] + t[keep, None] * (pos[e[keep, 1]] - pos[e[keep, 0]])
     if surface_points_mm is not None and mids.shape[0]:
         mids = snap_to_surface(mids, surface_points_mm)
-    if return_lengths:
-        return mids, s[keep], lengths[keep]
-    return mids, s[keep]
+    out = (mids, s[keep]) + ((lengths[keep],) if return_lengths else ())
+    return out + ((np.flatnonzero(keep),) if return_edges else ())
 
 
 def propose_points(candidates_mm: np.ndarray, scores: np.ndarray, existing_mm: np.ndarray, budget: int,
@@ -340,7 +357,8 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
                threshold: float = DEFAULT_THRESHOLD, posterior: np.ndarray | None = None,
                surface_points_mm: np.ndarray | None = None,
                survey_scores: Mapping[tuple[int, int], float] | None = None,
-               misfit: np.ndarray | None = None, levels: np.ndarray | None = None) -> DensifyRound:
+               misfit: np.ndarray | None = None, levels: np.ndarray | None = None,
+               border: np.ndarray | None = None) -> DensifyRound:
     """Score the current map, apply the stop rule and propose the next survey points.
 
     ``forces_n``, ``angles_deg``: the survey probe settings; ``posterior`` (N,K) optional
@@ -352,7 +370,9 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
     the regions differ on (mean log peak depth): a crossing edge is then split where the
     level interpolated between its ends crosses midway (surface_map.seam_fractions; a
     false-position step, clipped to the middle 60 % of the edge), the midpoint when both
-    ends are pure. Candidates are taken longest edge first (the widest unresolved gap).
+    ends are pure; ``border`` (E,): the length of the border between each edge's two cells
+    (surface_map.shared_border). Candidates are taken in decreasing edge length x border
+    (the area whose label is unresolved; length alone without ``border``).
     When resolved, nothing is proposed; when nothing can be placed (spacing), the reason
     says so.
     """
@@ -373,9 +393,11 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
         odd = (mf > 1.0) & ~on_seam
         ps = np.maximum(ps, np.where(odd, threshold * mf, 0.0))
     resolved, reason = boundaries_resolved(positions_mm, edges, es, resolution_mm, threshold)
-    cand, cs, gap_mm = candidate_points(positions_mm, edges, es, ps, surface_points_mm,
-                                        min_length_mm=resolution_mm, return_lengths=True,
-                                        fraction=None if levels is None else _crossing_fraction(edges, lab, levels))
+    cand, cs, gap_mm, used = candidate_points(positions_mm, edges, es, ps, surface_points_mm,
+                                              min_length_mm=resolution_mm, return_lengths=True,
+                                              fraction=None if levels is None else _crossing_fraction(edges, lab, levels),
+                                              return_edges=True)
+    area = gap_mm if border is None else gap_mm * np.maximum(np.asarray(border, dtype=float)[used], 1.0)
     if resolved and np.any(cs >= threshold):
         resolved = False
         reason += (f"; around {int(np.sum(ps >= threshold))} points that their region explains badly or "
@@ -383,7 +405,7 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
     proposed = np.zeros((0, 3))
     proposed_scores = np.zeros(0)
     if not resolved:
-        idx = propose_points(cand, cs, positions_mm, budget, min_spacing_mm, threshold, priority=gap_mm)
+        idx = propose_points(cand, cs, positions_mm, budget, min_spacing_mm, threshold, priority=area)
         proposed, proposed_scores = cand[idx], cs[idx]
         if idx.size == 0:
             reason += f"; no candidate keeps {min_spacing_mm:g} mm from existing points"

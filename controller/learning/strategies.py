@@ -329,9 +329,11 @@ def densify_step(round_index: int, points_mm: np.ndarray, normals: np.ndarray, l
     lab = np.asarray(labels)
     models = {int(r): SurveyMeanModel(d[lab == r], forces_n, seed=seed + 7 * int(r)) for r in np.unique(lab)}
     reach_pts = surface.points_mm[surface.reachable]
+    feats, names = dent_features(depth_mm, x_mm, forces_n, half_window_mm)
     rnd = dn.plan_round(round_index, points_mm, edges, lab, models, forces_n=np.asarray(forces_n, float),
                         angles_deg=np.asarray(angles_deg, float), noise_mm=noise_mm, budget=budget,
-                        min_spacing_mm=min_spacing_mm, resolution_mm=resolution_mm, surface_points_mm=reach_pts)
+                        min_spacing_mm=min_spacing_mm, resolution_mm=resolution_mm, surface_points_mm=reach_pts,
+                        **dn.survey_evidence(feats, names, lab, noise_mm))
     new = np.asarray(rnd.proposed_mm, dtype=float).reshape(-1, 3)
     if new.shape[0] == 0:
         return new, np.zeros((0, 3)), rnd

@@ -407,6 +407,20 @@ def seed_neighbours(graph: SurfaceGraph, c: Cells) -> list[tuple[int, int]]:
     return sorted({(int(min(x, y)), int(max(x, y))) for x, y in zip(a[ok], b[ok])})
 
 
+def shared_border(graph: SurfaceGraph, c: Cells, pairs: np.ndarray) -> np.ndarray:
+    """(E,) how long the border between the cells of each pair of seeds (E,2) is, counted in
+    graph edges joining the two cells (0 where they do not touch): with the pair's distance,
+    the area whose label depends on where their boundary is drawn."""
+    p = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    coo = graph.lengths.tocoo()
+    a, b = c.source[coo.row], c.source[coo.col]
+    ok = (a >= 0) & (b >= 0) & (a < b)
+    n = max(int(c.source.max(initial=-1)) + 1, int(p.max(initial=-1)) + 1, 1)
+    counts = np.bincount(a[ok] * n + b[ok], minlength=n * n)
+    lo, hi = np.minimum(p[:, 0], p[:, 1]), np.maximum(p[:, 0], p[:, 1])
+    return counts[lo * n + hi].astype(float)
+
+
 def boundary_points(graph: SurfaceGraph, labels: np.ndarray) -> np.ndarray:
     """Indices of cloud points with a graph neighbour of another label (the map's boundary)."""
     lab = np.asarray(labels).reshape(-1)
