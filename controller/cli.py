@@ -304,7 +304,12 @@ def cmd_sim_object(args: argparse.Namespace) -> int:
         raise InputError(f"generated object {obj.name} does not fit the cell: " + "; ".join(problems),
                          path=str(cell_path))
     out = Path(args.out)
-    object_path = gen.write_object(obj, out)
+    if out.exists() and not out.is_dir():
+        raise InputError("--out must be a folder (it is a file)", path=str(out))
+    try:
+        object_path = gen.write_object(obj, out)
+    except OSError as exc:
+        raise InputError(f"cannot write the object: {exc.strerror or exc}", path=str(out)) from None
     plan = plan_for_object(outline, cell, obj.name, object_path.name,
                            str(cell_path.resolve()) if args.cell else None, seed=1)
     plan_path = out / "plan.yaml"

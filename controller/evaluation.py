@@ -193,7 +193,8 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
     }
 
 
-def _within_reach(inputs: Any, points_mm: np.ndarray, normals: np.ndarray, cell_mm: float = REACH_CELL_MM) -> np.ndarray:
+def _within_reach(inputs: Any, points_mm: np.ndarray, normals: np.ndarray,
+                  cell_mm: float = REACH_CELL_MM) -> np.ndarray:
     """(P,) True where the arm can press the surface point along its normal: the standoff and the
     touching pose of the tip (90 degrees) both have an inverse kinematics solution within the
     joint limits. Decided once per ``cell_mm`` cube (at its first point), so the few
@@ -225,7 +226,7 @@ def _truth_surface_map(inputs: Any, truth: Any, cloud_mm: np.ndarray, cloud_norm
     out_of_reach = float(top.area_mm2[~reach].sum())
     top = top.subset(reach)
     s = ev.truth_surface_scores(top.points_mm, top.normals, top.labels, top.area_mm2, cloud_mm, cloud_normals,
-                                cloud_labels, top.spacing_mm)
+                                cloud_labels, top.spacing_mm, seam_distance_mm=truth.boundary_distance_mm)
     wrong = s["wrong"]
     names = truth.region_names()
     return {

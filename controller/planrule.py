@@ -38,6 +38,11 @@ plans beside it, is in docs/generated_objects.md):
   resolution), 3 rounds (each halves the gaps: 25 -> 12.5 -> 6.25 mm), points per round
   2 x ceil(sqrt(units)) clamped to [8, 24] (a seam across the top crosses about
   sqrt(units) edges of the survey graph; each round finds about twice as many).
+- **Contact search**: at most half the object's height past its nominal surface (at least
+  5 mm; the cell's 30 mm on anything 60 mm or taller). The search must end above the
+  table: on a 20 mm slab the cell's 30 mm would take the tip below the workspace's floor,
+  and planning drops every such target (a 23 mm dome lost 38 of its 46). Half the height
+  still reaches well past where a registered object's surface can be (millimetres off).
 - **Model**: the profile span is 2/3 of the footprint's shorter side, rounded to 10 mm,
   in [40, 80] mm (80 mm on the composite and 60 mm on the user object, as shipped).
 - **Budget**: the steps the phases can take with four materials, plus a quarter
@@ -77,6 +82,7 @@ DENSIFY_ROUNDS = 3
 DENSIFY_POINTS_RANGE = (8, 24)
 MAX_MATERIALS = 4
 STANDOFF_MM = 15.0
+MIN_SEARCH_MM = 5.0
 
 
 @dataclass(frozen=True)
@@ -128,6 +134,12 @@ def forces_for_height(height_mm: float, cell: CellSpec) -> tuple[float, float]:
     return survey_forces_n(largest)[-1], largest
 
 
+def search_distance_mm(height_mm: float, cell_search_mm: float) -> float:
+    """How far past the nominal surface the contact search may go (mm): half the object's height,
+    at least 5 mm, at most the cell's (module docstring)."""
+    return float(min(cell_search_mm, max(MIN_SEARCH_MM, math.floor(height_mm / 2.0))))
+
+
 def units_for(outline: ObjectOutline) -> int:
     return int(np.clip(round(outline.footprint_area_mm2 / AREA_PER_UNIT_MM2), *UNITS_RANGE))
 
@@ -169,7 +181,8 @@ def plan_for_object(outline: ObjectOutline, cell: CellSpec, name: str, object_fi
         "model": {"hidden_units": 45, "ensemble": 4, "max_epochs": 2000,
                   "profile_span_mm": float(np.clip(10 * round(shorter * 2.0 / 3.0 / 10), 40, 80)),
                   "profile_samples": 256},
-        "limits": {"max_force_n": _half(min(LIMIT_OVER_LARGEST * largest, cell.limits.max_force_n))},
+        "limits": {"max_force_n": _half(min(LIMIT_OVER_LARGEST * largest, cell.limits.max_force_n)),
+                   "search_distance_mm": search_distance_mm(outline.height_mm, cell.limits.search_distance_mm)},
         "fault_policy": {"default": {"action": "retry", "retries": 2},
                          "kinds": {"no_contact": {"action": "skip_target"}, "emergency_stop": {"action": "pause"}}},
     })
@@ -210,8 +223,8 @@ def fit_problems(outline: ObjectOutline, cell: CellSpec) -> list[str]:
     model = ur5e(cell.tool.flange_to_tcp.pose(), limits)
     seed = np.radians(np.asarray(cell.robot.home_joints_deg, dtype=float))
     up, t = b2o.apply_vector(np.array([0.0, 0.0, 1.0])), b2o.apply_vector(np.array([0.0, 1.0, 0.0]))
-    top = [np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[2]])] + [np.array([x, y, hi[2]])
-                                                                           for x in (lo[0], hi[0]) for y in (lo[1], hi[1])]
+    top = [np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[2]])]
+    top += [np.array([x, y, hi[2]]) for x in (lo[0], hi[0]) for y in (lo[1], hi[1])]
     for p in top:
         pose: Pose = standoff_pose(b2o.apply(p), up, t, 90.0, cell.tool.tip_radius_mm, STANDOFF_MM)
         if inverse(model, pose, seed) is None:

@@ -18,10 +18,12 @@ Shapes (every top is a height field z(x, y) over a footprint; lengths are semi-a
 - ``block``: a ~ U(55, 85), b ~ U(45, 65), p ~ U(3, 5), H ~ U(40, 70), shoulders rounded by
   r_e ~ U(0.25, 0.45) H (the shipped user object's kind).
 - ``dome``: an elliptic footprint (p = 2), a ~ U(80, 120), b = a U(0.75, 1), a paraboloid
-  z = H (1 - (x/a)^2 - (y/b)^2), H ~ U(25, 50): meets the table at atan(2H/a) = 22-51 deg.
+  z = H (1 - (x/a)^2 - (y/b)^2), H ~ U(15, 35): a low dome, meeting the table at
+  atan(2H/a) = 14-41 deg, so that 45-100 % of its footprint lies within 30 deg of level
+  (the plan rule's tilt limit).
 - ``sheet`` (undulating): a slab's footprint, z = H0 + A sin(2 pi u / L + phi) with u along a
   random direction, H0 ~ U(22, 35), L ~ U(70, 140), A ~ U(0.03, 0.07) L (slopes up to
-  13-24 deg), edge rounded by r_e ~ U(3, 8).
+  11-24 deg), edge rounded by r_e ~ U(3, 8).
 - ``composite``: a base like the shipped pillow, a ~ U(150, 200), b ~ U(110, 150), p ~ U(6, 10),
   H ~ U(50, 80), r_e ~ U(15, 25), carrying a stiff part with a superellipse footprint
   (p = 12), semi-axes U(50, 80) each, off-centre by up to the room left on the flat top
@@ -43,8 +45,10 @@ Patterns (painted on the top; label 0 is the matrix, the others one material eac
   strip; one that finds no room shrinks (at most to 15 mm across) until it does. The
   composite's pattern is its stiff part (``box`` or ``plate``).
 
-Materials (the shipped ones' families; log-uniform moduli; ``h`` is the area-weighted mean
-height of the top the material covers, i.e. the layer under a typical probe point):
+Materials (the shipped ones' families; ``h`` is the area-weighted mean height of the top
+the material covers, i.e. the layer under a typical probe point). Moduli are drawn
+log-uniformly in survey dent over what the family's range (below) and the validity leave,
+minus the dents too close to the materials already drawn (:func:`draw_materials`):
 
 ==============  ==============  ================  =====================================
 family          kind            modulus (MPa)     other
@@ -73,15 +77,16 @@ Meshes: the top is a Delaunay triangulation of a designed point set: a hexagonal
 (7 mm on flat tops, 5 mm on curved ones), rows along the rounded edge (<= 3 mm of arc
 apart), and every seam sampled at 0.8 mm with rows at +-0.5, 1.2, 2.4 and 4.5 mm beside it.
 A face takes the label of the pattern at its centroid, so a seam is rendered by the
-chords between its own samples (within ~0.05 mm for the tightest curve, a 15 mm disc) and
-the faces along it are about 1 mm (:func:`seam_render_error_mm` measures both). The walls
-are strips between the edge ring (1.5 mm apart) and the table. Deterministic for a seed:
+chords between its own samples: on the suite the label boundary lies within 0.3 mm of the
+drawn seam (0.45 mm where a seam meets a dome's rim), with faces of about 1 mm along it
+(:func:`seam_render_error_mm` measures both). The walls are strips between the edge ring
+(1 mm apart) and the table. Deterministic for a seed:
 each part draws from its own stream, ``default_rng([seed, part])``.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -238,7 +243,7 @@ def draw_shape(kind: str, rng: np.random.Generator, pattern: str) -> Shape:
         return Shape(kind, Footprint(u(55.0, 85.0), u(45.0, 65.0), u(3.0, 5.0)), height, u(0.25, 0.45) * height)
     if kind == "dome":
         a = u(80.0, 120.0)
-        return Shape(kind, Footprint(a, a * u(0.75, 1.0), 2.0), u(25.0, 50.0), 0.0, curved=True)
+        return Shape(kind, Footprint(a, a * u(0.75, 1.0), 2.0), u(15.0, 35.0), 0.0, curved=True)
     if kind == "sheet":
         length = u(70.0, 140.0)
         wave = (u(0.03, 0.07) * length, length, u(0.0, np.pi), u(0.0, 2.0 * np.pi))
@@ -494,10 +499,11 @@ def _dedupe(groups: list[np.ndarray], gap_mm: float) -> np.ndarray:
     return pts[keep]
 
 
-def _triangulate(points_xy: np.ndarray) -> np.ndarray:
-    """Delaunay triangles (T,3), counter-clockwise seen from above."""
+def _triangulate(points_xy: np.ndarray, n_needed: int) -> np.ndarray:
+    """Delaunay triangles (T,3), counter-clockwise seen from above; the first ``n_needed`` points
+    must all be vertices (qhull may leave out a nearly coincident one)."""
     tri = Delaunay(points_xy)
-    if len(tri.coplanar):
+    if len(tri.coplanar) and np.any(tri.coplanar[:, 0] < n_needed):
         raise RuntimeError("degenerate point set: qhull dropped points")
     f = tri.simplices.copy()
     a, b, c = points_xy[f[:, 0]], points_xy[f[:, 1]], points_xy[f[:, 2]]
@@ -589,7 +595,7 @@ def _top_faces(footprint: Footprint, ring: np.ndarray, inner: list[np.ndarray]) 
     others = pts[n_ring:]
     pts = np.vstack([pts[:n_ring], others[footprint.inset_mm(others) >= RING_CLEAR_MM]])
     ghost = footprint.inset_points(ring[::2], -GHOST_OUT_MM)
-    faces = _triangulate(np.vstack([pts, ghost]))
+    faces = _triangulate(np.vstack([pts, ghost]), len(pts))
     return pts, faces[np.all(faces < len(pts), axis=1)]
 
 
@@ -780,7 +786,8 @@ FAMILIES: dict[str, Family] = {f.name: f for f in (
     Family("elastomer", "elastic", (6.0, 18.0),
            {"nu": (0.45, 0.49), "friction_mu": 0.9, "body_radius_mm": 0.0, "plough_ratio": 1.0,
             "creep_fraction": 0.02, "creep_tau_s": 0.5},
-           {"scanner_noise_mm": 0.015, "noise_corr_floor_mm": 0.003, "dropout_prob": 0.01, "steep_incidence_deg": 75.0}),
+           {"scanner_noise_mm": 0.015, "noise_corr_floor_mm": 0.003, "dropout_prob": 0.01,
+            "steep_incidence_deg": 75.0}),
     Family("hard_rubber", "elastic", (25.0, 60.0),
            {"nu": 0.49, "friction_mu": 0.8, "body_radius_mm": 0.0, "plough_ratio": 1.0, "creep_fraction": 0.01,
             "creep_tau_s": 0.5},
@@ -859,7 +866,8 @@ class MaterialDraw:
     def contrast(self) -> dict[str, Any]:
         """Survey-dent ratios of every pair (larger over smaller) and the smallest."""
         d = self.survey_dent_mm
-        pairs = [[i, j, round(max(d[i], d[j]) / min(d[i], d[j]), 3)] for i in range(len(d)) for j in range(i + 1, len(d))]
+        pairs = [[i, j, round(max(d[i], d[j]) / min(d[i], d[j]), 3)]
+                 for i in range(len(d)) for j in range(i + 1, len(d))]
         return {"pairs": pairs, "min": min((p[2] for p in pairs), default=None),
                 "near_pair": list(self.near_pair) if self.near_pair else None}
 

@@ -3,7 +3,6 @@ physics, plausible contrasts, fitting the default cell; the fixed suite covers e
 and pattern."""
 from __future__ import annotations
 
-import itertools
 from pathlib import Path
 
 import numpy as np
@@ -55,8 +54,9 @@ def test_every_suite_object_loads_with_its_paint_valid_physics_and_contrast(
         n = len(obj.materials.names)
         assert loaded.region_names == obj.materials.names and len(loaded.region_names) == n
         # The PLY's colours give back every face's material (the table's faces are not in it).
-        assert np.array_equal(np.bincount(loaded.face_labels, minlength=n), np.bincount(obj.painted.labels, minlength=n))
-        assert np.all(np.bincount(loaded.face_labels, minlength=n) > 0)
+        counts = np.bincount(loaded.face_labels, minlength=n)
+        assert np.array_equal(counts, np.bincount(obj.painted.labels, minlength=n))
+        assert np.all(counts > 0)
         assert float(loaded.mesh.vertices[:, 2].min()) == pytest.approx(0.0, abs=1e-4)
         # Inside the simulator's validity at the plan's largest force (what the session checks).
         assert loaded.validity_report(obj.forces_n[1], 5.0) == [], obj.name

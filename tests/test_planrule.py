@@ -54,6 +54,8 @@ def test_forces_follow_the_height_within_the_cells_limits(tmp_path: Path) -> Non
     plan = plan_for_object(outline, CELL, "thin", "thin.yaml")
     assert plan["phases"]["characterize"]["forces_n"] == [1.0, 2.5, 4.5, 7.0, 10.0]
     assert plan["phases"]["survey"]["forces_n"] == [1.5, 4.5] and plan["limits"]["max_force_n"] == 15.0
+    # The contact search ends above the table: half the height past the surface, not the cell's 30 mm.
+    assert plan["limits"]["search_distance_mm"] == 12.0
     assert plan["sampling"]["units"] == 48
     dens = valid(plan, tmp_path).phases.densify
     assert dens.resolution_mm >= 2 * dens.min_spacing_mm and dens.points_per_round == 14
@@ -107,6 +109,13 @@ def test_sim_object_refuses_bad_choices_with_exit_2(tmp_path: Path, capsys: pyte
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
     assert not (tmp_path / "x").exists()
+
+
+def test_sim_object_into_a_file_is_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    target = tmp_path / "taken"
+    target.write_text("not a folder", encoding="utf-8")
+    assert main(["sim", "object", "--seed", "3", "--out", str(target)]) == 2
+    assert "must be a folder" in capsys.readouterr().err and target.read_text(encoding="utf-8") == "not a folder"
 
 
 def test_the_plan_text_reads_back_as_the_same_plan() -> None:

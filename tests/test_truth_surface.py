@@ -125,3 +125,43 @@ def test_a_missed_region_scores_its_area_as_error_and_iou_zero() -> None:
     s = score(top, pts, nrm, np.zeros(len(pts), int))
     assert s["mislabelled_fraction"] == pytest.approx(0.5) and s["worst_region_iou"] == 0.0
     assert s["boundary_mm_mean"] is None
+
+
+def test_a_boundary_drawn_where_the_materials_meet_off_the_top_is_measured_from_the_seam() -> None:
+    composite = load_object(ROOT / "config" / "objects" / "composite.yaml")
+    top = top_surface(composite, 50.0)
+    pillow = top.labels == 1
+    # A scan of the true top, labelled right except for a 3 mm band of pillow along the box's
+    # foot on one side (x just above 80 mm), labelled as the box.
+    cloud_labels = top.labels.copy()
+    band = pillow & (top.points_mm[:, 0] > 80.0) & (top.points_mm[:, 0] < 83.0) & (np.abs(top.points_mm[:, 1]) < 80)
+    cloud_labels[band] = 0
+    s = truth_surface_scores(top.points_mm, top.normals, top.labels, top.area_mm2, top.points_mm, top.normals,
+                             cloud_labels, top.spacing_mm,
+                             seam_distance_mm=lambda p: composite.boundary_distance_mm(p)[0])
+    # The drawn boundary runs 3 mm out from the foot (and along the band's ends): about 3 mm away.
+    assert 2.0 <= s["boundary_mm_mean"] <= 4.0 and s["boundary_mm_p90"] <= 4.5
+    assert s["mislabelled_fraction"] == pytest.approx(float(top.area_mm2[band].sum() / top.total_area_mm2))
+    perfect = truth_surface_scores(top.points_mm, top.normals, top.labels, top.area_mm2, top.points_mm, top.normals,
+                                   top.labels, top.spacing_mm,
+                                   seam_distance_mm=lambda p: composite.boundary_distance_mm(p)[0])
+    assert perfect["boundary_mm_mean"] == 0.0 and perfect["mislabelled_fraction"] == 0.0
+
+
+def test_an_unscanned_band_beside_a_step_takes_its_labels_along_its_own_face() -> None:
+    composite = load_object(ROOT / "config" / "objects" / "composite.yaml")
+    top = top_surface(composite, 50.0)
+    # The scanner's shadow: no cloud on the pillow within 85 mm of the box's wall at x = -80,
+    # where the box's top edge (60 mm up) is nearer in space than the pillow beyond the band.
+    shadow = (top.labels == 1) & (top.points_mm[:, 0] > -165.0) & (top.points_mm[:, 0] < -80.0) \
+        & (np.abs(top.points_mm[:, 1]) < 100.0)
+    seen = ~shadow
+    s = truth_surface_scores(top.points_mm, top.normals, top.labels, top.area_mm2, top.points_mm[seen],
+                             top.normals[seen], top.labels[seen], top.spacing_mm)
+    assert s["mislabelled_fraction"] == 0.0
+    assert 1.0 - s["coverage"] == pytest.approx(float(top.area_mm2[shadow].sum() - 2 * 2 * 150) / top.total_area_mm2,
+                                                abs=0.003)
+    # Nearest in space alone would have given the band's side by the wall to the box.
+    nearest, _ = carry_labels(top.points_mm[shadow], top.normals[shadow], top.points_mm[seen], top.normals[seen],
+                              top.labels[seen])
+    assert np.any(nearest == 0)

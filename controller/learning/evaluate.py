@@ -256,6 +256,9 @@ COVERED_MM = 2.0              # a surface point this close to a cloud point coun
 CARRY_MAX_ANGLE_DEG = 20.0    # labels come from cloud points facing within this of the surface point
 CARRY_K = 16                  # nearest cloud points tried before the per-orientation search
 _NORMAL_BIN = 0.1             # per-orientation search: surface normals binned by (n_x, n_y) in steps of this
+# Uncovered samples take labels along the surface over steps up to this many sample spacings:
+# neighbouring samples of a face tilted up to 60 degrees (sqrt(2) / cos 60 = 2.8), not a wall.
+SPREAD_STEP_SPACINGS = 3.0
 
 
 def carry_labels(surface_points_mm: np.ndarray, surface_normals: np.ndarray, cloud_points_mm: np.ndarray,
@@ -311,27 +314,75 @@ def carry_labels(surface_points_mm: np.ndarray, surface_normals: np.ndarray, clo
     return labels_in[out_idx], out_dist
 
 
+def spread_along_surface(points_mm: np.ndarray, labels: np.ndarray, known: np.ndarray,
+                         step_mm: float) -> np.ndarray:
+    """Labels (P,) where every point not ``known`` takes the label of the nearest known point
+    ALONG the sampled surface: a walk over neighbouring samples (closer than ``step_mm`` in
+    space), which cannot climb a wall higher than that. Points with no known point on their
+    piece of surface keep their own label."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points_mm, dtype=float).reshape(-1, 3)
+    out = np.asarray(labels).reshape(-1).copy()
+    sources = np.flatnonzero(known)
+    if sources.size == 0 or sources.size == pts.shape[0]:
+        return out
+    pairs = cKDTree(pts).query_pairs(step_mm, output_type="ndarray")
+    length = np.linalg.norm(pts[pairs[:, 0]] - pts[pairs[:, 1]], axis=1)
+    n = pts.shape[0]
+    graph = coo_matrix((np.concatenate([length, length]), (np.concatenate([pairs[:, 0], pairs[:, 1]]),
+                                                           np.concatenate([pairs[:, 1], pairs[:, 0]]))),
+                       shape=(n, n)).tocsr()
+    _, _, nearest = dijkstra(graph, indices=sources, min_only=True, return_predecessors=True)
+    reached = (nearest >= 0) & ~np.asarray(known, bool)
+    out[reached] = out[nearest[reached]]
+    return out
+
+
 def truth_surface_scores(surface_points_mm: np.ndarray, surface_normals: np.ndarray, true_labels: np.ndarray,
                          area_mm2: np.ndarray, cloud_points_mm: np.ndarray, cloud_normals: np.ndarray,
-                         cloud_labels: np.ndarray, spacing_mm: float, covered_mm: float = COVERED_MM) -> dict[str, Any]:
+                         cloud_labels: np.ndarray, spacing_mm: float, covered_mm: float = COVERED_MM,
+                         seam_distance_mm: Callable[[np.ndarray], np.ndarray] | None = None) -> dict[str, Any]:
     """Score a session's region map (over its cloud) on samples of the object's true surface.
 
     The surface samples (S,3) carry their true normals and labels and the area (mm^2) each
-    stands for (sim/truth_surface.py). The cloud's labels are carried onto them (:func:`carry_labels`)
-    and scored with :func:`region_map_scores`, area-weighted, boundary points within 1.5
-    sample spacings. ``coverage``: the area fraction within ``covered_mm`` of the cloud
-    point its label came from (the nearest one of the same face). The uncovered part is scored too (the user receives a map
-    there as well); ``error_covered`` / ``error_uncovered``: the mislabelled fraction of
-    each part's own area (None for an empty part).
+    stands for (sim/truth_surface.py). The cloud's labels are carried onto them
+    (:func:`carry_labels`: the nearest cloud point of the same face), those farther than
+    ``covered_mm`` from it then from the covered samples along the surface
+    (:func:`spread_along_surface`), and scored with :func:`region_map_scores`,
+    area-weighted, boundary points within 1.5 sample spacings. ``coverage``: the area
+    fraction within ``covered_mm`` of the cloud point its label came from. The uncovered
+    part is scored too (the user receives a map there as well);
+    ``error_covered`` / ``error_uncovered``: the mislabelled fraction of each part's own
+    area (None for an empty part). ``wrong`` (S,) marks the mislabelled samples.
+
+    Boundary distances: where the materials meet only off the sampled top (the composite's
+    box and pillow meet at the foot of the box's wall), the truth has no boundary samples;
+    a boundary the map draws there is then measured against the seam itself,
+    ``seam_distance_mm(points) -> (N,)`` mm (the ground truth's), one way.
     """
     pts = np.asarray(surface_points_mm, dtype=float).reshape(-1, 3)
     true = np.asarray(true_labels).reshape(-1)
     w = np.asarray(area_mm2, dtype=float).reshape(-1)
     carried, dist = carry_labels(pts, surface_normals, cloud_points_mm, cloud_normals, cloud_labels)
-    scores = region_map_scores(carried, true, w, pts, radius_mm=1.5 * spacing_mm)
-    matched = np.array([scores["matching"].get(v.item(), -1) for v in np.unique(carried)])
-    wrong = matched[np.searchsorted(np.unique(carried), carried)] != true
     covered = dist <= covered_mm
+    # An unscanned band takes its labels from its own edges, along the face it lies on: the
+    # nearest scanned point in space may lie across a step (the pillow beside the box: the
+    # box's top edge is nearer than the pillow beyond the scanner's shadow).
+    carried = spread_along_surface(pts, carried, covered, SPREAD_STEP_SPACINGS * spacing_mm)
+    radius = 1.5 * spacing_mm
+    scores = region_map_scores(carried, true, w, pts, radius_mm=radius)
+    if scores["boundary_mm_mean"] is None and seam_distance_mm is not None \
+            and boundary_points(true, pts, radius).size == 0:
+        drawn = boundary_points(carried, pts, radius)
+        d = np.asarray(seam_distance_mm(pts[drawn]), dtype=float)
+        if drawn.size and np.all(np.isfinite(d)):
+            scores.update(boundary_mm_mean=float(d.mean()), boundary_mm_p90=float(np.percentile(d, 90)))
+    ids, which = np.unique(carried, return_inverse=True)
+    matched = np.array([scores["matching"].get(v.item(), -1) for v in ids], dtype=int)
+    wrong = matched[which.reshape(-1)] != true if ids.size else np.zeros(0, bool)
 
     def error_of(part: np.ndarray) -> float | None:
         area = float(w[part].sum())
