@@ -220,15 +220,22 @@ class SeedRun:
     def score(self, points: np.ndarray, normals: np.ndarray, measured: list
               ) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
         """Map scores, and (seen mask, labels of the seen points, surface graph over them)."""
+        from elastoprobe.controller.learning import regions as rg
         from elastoprobe.controller.learning import strategies as st
         from elastoprobe.controller.phases import FEATURE_HALF_WINDOW_MM
 
         depth = np.array([m.depth_mm for m in measured])
+        noise = self.noise(measured)
         seen, labels, rmap, edges = st.region_labels(points, normals, depth, self.prober.grid.x_mm,
                                                      self.prober.forces_n, seed=self.seed,
-                                                     half_window_mm=FEATURE_HALF_WINDOW_MM, graph=self.graph)
+                                                     half_window_mm=FEATURE_HALF_WINDOW_MM, graph=self.graph,
+                                                     noise_mm=noise)
+        # The session's final map: the seam drawn through targets whose dent lies between regions.
+        feats, names = st.dent_features(depth[seen], self.prober.grid.x_mm, self.prober.forces_n,
+                                        FEATURE_HALF_WINDOW_MM)
         scores = st.map_error(points[seen], labels, self.eval_points, self.true_labels, graph=self.graph,
-                              eval_index=self.eval_index)
+                              eval_index=self.eval_index,
+                              seed_levels=rg.log_peaks(feats, names, noise)[0].mean(axis=1))
         scores["n_regions_found"] = int(rmap.n_regions)
         scores["unseen_targets"] = int(np.sum(~seen))
         return scores, seen, labels, edges
@@ -315,7 +322,7 @@ def run_densify(run: SeedRun, start_units: int, per_round: int, max_budget: int,
                                             run.prober.grid.x_mm,
                                             run.prober.forces_n, run.prober.angles_deg, run.noise(measured),
                                             min(per_round, room), dp.min_spacing_mm, dp.resolution_mm, run.surface,
-                                            seed=run.seed, half_window_mm=FEATURE_HALF_WINDOW_MM)
+                                            seed=run.seed, half_window_mm=FEATURE_HALF_WINDOW_MM, graph=run.graph)
         point.extra["densify_reason"] = rnd.reason
         if len(new) == 0:
             point.extra["stopped"] = "densify proposed nothing"
