@@ -366,11 +366,11 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
     (where a target may go); ``survey_scores``: pair scores from the survey itself
     (:func:`survey_pair_scores`); ``misfit`` (N,): how far each point lies beyond what its
     region explains (regions.survey_misfit; > 1: maybe another material): when all its
-    neighbours share its region, its ring of edges scores ``threshold`` x misfit; ``levels`` (N,): each point's dent on the scale
-    the regions differ on (mean log peak depth): a crossing edge is then split where the
-    level interpolated between its ends crosses midway (surface_map.seam_fractions; a
-    false-position step, clipped to the middle 60 % of the edge), the midpoint when both
-    ends are pure; ``border`` (E,): the length of the border between each edge's two cells
+    neighbours share its region, its ring of edges scores ``threshold`` x misfit;
+    ``levels`` (N,): each point's dent on the scale the regions differ on (mean log peak
+    depth): a crossing edge is then split where the level interpolated between its ends
+    crosses midway (surface_map.seam_fractions; a false-position step, clipped to the
+    middle 60 % of the edge), the midpoint when both ends are pure; ``border`` (E,): the length of the border between each edge's two cells
     (surface_map.shared_border). Candidates are taken in decreasing edge length x border
     (the area whose label is unresolved; length alone without ``border``).
     When resolved, nothing is proposed; when nothing can be placed (spacing), the reason
@@ -393,10 +393,10 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
         odd = (mf > 1.0) & ~on_seam
         ps = np.maximum(ps, np.where(odd, threshold * mf, 0.0))
     resolved, reason = boundaries_resolved(positions_mm, edges, es, resolution_mm, threshold)
+    where = None if levels is None else _crossing_fraction(edges, lab, levels)
     cand, cs, gap_mm, used = candidate_points(positions_mm, edges, es, ps, surface_points_mm,
                                               min_length_mm=resolution_mm, return_lengths=True,
-                                              fraction=None if levels is None else _crossing_fraction(edges, lab, levels),
-                                              return_edges=True)
+                                              fraction=where, return_edges=True)
     area = gap_mm if border is None else gap_mm * np.maximum(np.asarray(border, dtype=float)[used], 1.0)
     if resolved and np.any(cs >= threshold):
         resolved = False
