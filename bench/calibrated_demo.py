@@ -13,7 +13,7 @@ For every seed in ``--seeds`` (default 1; the run's --seed drives noise only) th
   (iii) ``after_calibration``: another copy of it, after ``elastoprobe calibrate ft``, ``tcp``,
                                ``scanner`` and ``object`` wrote its calibration file;
 
-and with ``--oracle`` also
+and (unless ``--no-oracle``) also
 
   (iv)  ``perfect_calibration``: a third copy whose calibration file holds the simulator's
                                truth (believed == true on the same physical cell as (ii)/(iii)):
@@ -41,7 +41,10 @@ difference within the NOISE FLOOR = 2 standard errors of the difference of the m
 errors are a few square millimetres of ~110 000 (a few points of the cloud's ~40 000) and
 swing by more than 10 % between equivalent runs, so a smaller difference cannot be
 resolved by these seeds. The strict
-figure is never hidden.
+figure is never hidden. Issue 16 restates the goal (``goal_restated_met``): after calibration
+within max(10 %, the noise floor) of an exact calibration of the same cell (iii against
+(iv)), and on the truth surface within the same margin of the calibrated cell (iii against
+(i)); both are the ``floored`` verdicts of those comparisons.
 
 Caveat on the boundary distances: the scored top of the composite is the box's top and the
 pillow; the box's walls are too steep to probe and are not scored, so the two materials do
@@ -68,6 +71,8 @@ from typing import Any
 
 import numpy as np
 
+import cli_runs
+
 ROOT = Path(__file__).resolve().parent.parent
 PLAN = ROOT / "config" / "plans" / "demo.yaml"
 CALIBRATED_CELL = ROOT / "config" / "cells" / "sim.yaml"
@@ -78,10 +83,8 @@ RUN_TIMEOUT_S = 3600.0           # a demo run takes minutes; this only bounds a 
 
 
 def cli(*args: str, timeout_s: float = RUN_TIMEOUT_S) -> subprocess.CompletedProcess:
-    """``elastoprobe ARGS`` in a subprocess (the installed entry point's module)."""
-    cmd = [sys.executable, "-m", "elastoprobe.controller.cli", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, cwd=ROOT,
-                          stdin=subprocess.DEVNULL)
+    """``elastoprobe ARGS`` in a subprocess (bench/cli_runs.py)."""
+    return cli_runs.cli(*args, timeout_s=timeout_s)
 
 
 def copy_cell(src: Path, dest_dir: Path) -> Path:
@@ -101,13 +104,7 @@ def copy_cell(src: Path, dest_dir: Path) -> Path:
 
 def session_status(session_dir: Path) -> dict[str, Any] | None:
     """``elastoprobe status DIR --json`` (None when there is no session)."""
-    if not (session_dir / "journal.sqlite").exists():
-        return None
-    proc = cli("status", str(session_dir), "--json", timeout_s=60.0)
-    try:
-        return json.loads(proc.stdout) if proc.returncode == 0 else None
-    except json.JSONDecodeError:
-        return None
+    return cli_runs.session_status(session_dir, timeout_s=60.0)
 
 
 def session_done(session_dir: Path) -> bool:
@@ -268,6 +265,24 @@ def compare(reference: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
             "other_no_worse_by_10pct": bool(mb <= (1.0 + GOAL_REL_DIFF) * ma)}
 
 
+def restated_goal(comparisons: dict[str, Any], vs_calibrated_key: str, oracle_draw: int | None) -> dict[str, Any]:
+    """Issue 16's restated goal on the truth surface's region_map_error: after calibration, within
+    max(10 %, the seed-to-seed noise floor) of an exact calibration of the same cell, and within
+    the same margin of the calibrated cell. "Within max(10 % of the reference, noise floor)" is
+    :func:`compare`'s ``floored_met``. None without the exact-calibration case (``--no-oracle``)."""
+    what = ("|mean(after) - mean(exact)| <= max(10 % of mean(exact), noise floor) on the first draw, and "
+            "|mean(after) - mean(calibrated)| <= max(10 % of mean(calibrated), noise floor) (issue 16)")
+    if oracle_draw is None:
+        return {"goal_restated": what, "goal_restated_met": None,
+                "goal_restated_why": "needs the exact-calibration case (run without --no-oracle)"}
+    vs_exact = comparisons[f"after_calibration_draw{oracle_draw}_vs_perfect_calibration"]
+    vs_calibrated = comparisons[vs_calibrated_key]
+    return {"goal_restated": what,
+            "goal_restated_met": bool(vs_exact["floored_met"] and vs_calibrated["floored_met"]),
+            "goal_restated_parts": {"vs_exact_calibration": bool(vs_exact["floored_met"]),
+                                    "vs_calibrated_cell": bool(vs_calibrated["floored_met"])}}
+
+
 def draw_cell(src: Path, dest_dir: Path, cell_seed: int) -> Path:
     """A copy of the miscalibrated cell whose miscalibration is drawn from ``cell_seed``."""
     from ruamel.yaml import YAML
@@ -294,31 +309,22 @@ def calibration_complete(cell: Path) -> bool:
     return all(k in sections for k in KINDS)
 
 
-def parse_ints(text: str) -> list[int]:
-    try:
-        vals = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-    if not vals:
-        raise argparse.ArgumentTypeError("expected at least one integer")
-    return vals
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--plan", type=Path, default=PLAN)
-    ap.add_argument("--seeds", type=parse_ints, default=[1],
+    ap.add_argument("--seeds", type=cli_runs.parse_ints, default=[1],
                     help="the demo runs' seeds, e.g. 1,2,3,4,5 (noise only; the miscalibration is the cell's)")
     ap.add_argument("--seed", type=int, default=None, help="one seed (same as --seeds N)")
-    ap.add_argument("--cell-seeds", type=parse_ints, default=None,
+    ap.add_argument("--cell-seeds", type=cli_runs.parse_ints, default=None,
                     help="miscalibration draws: copies of the miscalibrated cell with these "
                          "simulation.miscalibration.seed values (default: the shipped cell's own)")
     ap.add_argument("--calibration-seed", type=int, default=0, help="seed of the calibration runs' noise")
     ap.add_argument("--out", type=Path, default=None, help="folder for the cells and sessions (default: temporary)")
     ap.add_argument("--reuse", action="store_true", help="keep sessions and calibrations that already finished in --out")
     ap.add_argument("--parallel", type=int, default=1, choices=(1, 2, 3, 4), help="demo runs at once")
-    ap.add_argument("--oracle", action="store_true",
-                    help="also run the first miscalibration draw with its exact calibration (the simulator's truth)")
+    ap.add_argument("--oracle", action=argparse.BooleanOptionalAction, default=True,
+                    help="also run the first miscalibration draw with its exact calibration (the simulator's truth; "
+                         "the restated goal needs it; default on)")
     args = ap.parse_args(argv)
     seeds = [args.seed] if args.seed is not None else args.seeds
     t0 = time.perf_counter()
@@ -405,6 +411,7 @@ def main(argv: list[str] | None = None) -> int:
         "goal_comparison": goal_key,
         "goal_met_strict": comparisons[goal_key]["strict_met"],
         "goal_met_floored": comparisons[goal_key]["floored_met"],
+        **restated_goal(comparisons, goal_key, draws[0] if args.oracle else None),
         "calibration": {f"draw{d}": c for d, c in calibrations.items()},
         "wall_time_s": {"runs": {f"{case_name(c, d)}/seed{s}": r["wall_time_s"] for (c, d, s), r in runs.items()},
                         "total": round(time.perf_counter() - t0, 1)},

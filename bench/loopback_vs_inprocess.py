@@ -41,6 +41,16 @@ diagnostic of the transports and drivers alone.
 Noise: the two runs do not share noise keys (real devices have none), so their differences
 are of the size the bound expects, not smaller.
 
+The force loop (``force_loop``): both runs run the same supervisor (controller/forceloop.py)
+— ``same_supervisor`` says whether the two journals' arm identities name the same code (a
+hash of the module) and gains. Per backend, from each force level's ``force_regulated`` log
+event (controller/probe.py, ``regulation_record``): ``overshoot_n`` (peak of the loop's own
+10 ms reading minus the setpoint, over the ramp and the settle) and ``held_error_n`` (mean
+|F| over the settle's last 0.5 s minus the setpoint), each as mean / mean |x| / max |x| over
+the levels, and ``settle_s`` (command to DONE); ``scan_force_error_n``: mean |F| over the
+scans minus the setpoint, per step, the same way. With references, each step row also gets
+them under ``force_loop`` for both runs and the in-process spread (``sd`` over the seeds).
+
 The in-process reference (``in_process_between_runs``, with ``--reference-seeds``): the same
 plan in process with other seeds, i.e. the same exact devices with other noise only. Per step:
 ``sd`` of the step mean over the in-process runs that did the step (seed ``--seed`` included,
@@ -162,6 +172,50 @@ def session_steps(session_dir: Path) -> tuple[list[dict[str, Any]], Any]:
         j.close()
 
 
+def regulation_records(session_dir: Path) -> dict[int, dict[str, Any]]:
+    """step id -> the last ``force_regulated`` record of that level (a retried level: its last)."""
+    out: dict[int, dict[str, Any]] = {}
+    log = session_dir / "log.jsonl"
+    if not log.exists():
+        return out
+    for line in log.read_text().splitlines():
+        try:
+            event = json.loads(line)
+        except json.JSONDecodeError:
+            continue                      # a torn last line of a killed run
+        if event.get("event") == "force_regulated":
+            out[int(event["step"])] = event
+    return out
+
+
+def _spread(values: list[float]) -> dict[str, Any]:
+    v = np.asarray([x for x in values if x is not None and math.isfinite(x)], float)
+    if not v.size:
+        return {"n": 0, "mean": None, "mean_abs": None, "max_abs": None}
+    return {"n": int(v.size), "mean": round(float(v.mean()), 4), "mean_abs": round(float(np.abs(v).mean()), 4),
+            "max_abs": round(float(np.abs(v).max()), 4)}
+
+
+def force_loop_summary(session_dir: Path) -> dict[str, Any]:
+    """The supervisor a session ran (its journaled arm identity) and how its force levels went."""
+    from elastoprobe.controller.journal import Journal
+
+    j = Journal.open_readonly(session_dir)
+    try:
+        identity = ((j.provenance().get("devices") or {}).get("arm") or {}).get("force_loop")
+        done = {rec.plan.step_id: rec.plan.force_n for rec in j.steps(statuses=["done"])}
+        scan_errors = [float(np.linalg.norm(np.asarray(j.step_result(sid).scan_force_n, float), axis=1).mean()) - f
+                       for sid, f in done.items()]
+    finally:
+        j.close()
+    records = [r for sid, r in regulation_records(session_dir).items() if sid in done]
+    return {"identity": identity, "levels": len(records),
+            "overshoot_n": _spread([r["overshoot_n"] for r in records]),
+            "held_error_n": _spread([r["held_error_n"] for r in records]),
+            "settle_s": _spread([r["settle_s"] for r in records]),
+            "scan_force_error_n": _spread(scan_errors)}
+
+
 def _stats(values: np.ndarray) -> tuple[float, float, int]:
     v = np.asarray(values, float)
     v = v[np.isfinite(v)]
@@ -193,11 +247,13 @@ def compare_sessions(lb_dir: Path, ip_dir: Path) -> dict[str, Any]:
     for s in ip:
         ip_by.setdefault(key(s), []).append(s)
     rows = []
+    pairs = []
     for s in lb:
         twins = ip_by.get(key(s))
         if not twins:
             continue
         t = twins.pop(0)
+        pairs.append((s, t))
         rows.append({"phase": s["phase"], "round": s["round"], "angle_deg": s["angle_deg"],
                      "force_setpoint_n": s["force_n"],
                      "target_offset_mm": round(float(np.linalg.norm(np.subtract(s["point_mm"], t["point_mm"]))), 3),
@@ -205,7 +261,15 @@ def compare_sessions(lb_dir: Path, ip_dir: Path) -> dict[str, Any]:
                      "depth": compare_quantity(s["scan_depth_mm"], t["scan_depth_mm"]),
                      "peak_mm": {"loopback": s["peak_mm"], "in_process": t["peak_mm"]}})
     within = [r["force"]["within"] and r["depth"]["within"] for r in rows]
-    return {"steps_loopback": len(lb), "steps_in_process": len(ip), "steps_compared": len(rows),
+    loops = {"loopback": force_loop_summary(lb_dir), "in_process": force_loop_summary(ip_dir)}
+    ident = [loops[k]["identity"] for k in loops]
+    loops["same_supervisor"] = bool(ident[0] is not None and ident[0] == ident[1])
+    lb_reg, ip_reg = regulation_records(lb_dir), regulation_records(ip_dir)
+    for row, (s_lb, s_ip) in zip(rows, pairs):
+        row["force_loop"] = {name: {q: (rec or {}).get(q) for q in ("overshoot_n", "held_error_n", "settle_s")}
+                             for name, rec in (("loopback", lb_reg.get(s_lb["step_id"])),
+                                               ("in_process", ip_reg.get(s_ip["step_id"])))}
+    return {"force_loop": loops, "steps_loopback": len(lb), "steps_in_process": len(ip), "steps_compared": len(rows),
             "steps_within": int(sum(within)), "all_within": bool(rows) and all(within),
             "literal_exceedances": {q: exceedances([not r[q]["within"] for r in rows], [LITERAL_CHANCE] * len(rows))
                                     for q in ("force", "depth")},
@@ -240,11 +304,15 @@ def add_reference(result: dict[str, Any], ip_dir: Path, reference_dirs: list[Pat
             steps, _ = session_steps(d)
         except Exception:  # noqa: BLE001 — a reference run that aborted before its journal has no steps
             steps = []
+        regulated = regulation_records(d)
         means: dict[tuple, dict[str, float]] = {}
         for st in steps:
+            rec = regulated.get(st["step_id"], {})
             with np.errstate(all="ignore"):
                 means.setdefault(key(st), {"force": float(np.nanmean(st["scan_force_n"])),
-                                           "depth": float(np.nanmean(st["scan_depth_mm"]))})
+                                           "depth": float(np.nanmean(st["scan_depth_mm"])),
+                                           "overshoot_n": _number(rec.get("overshoot_n")),
+                                           "held_error_n": _number(rec.get("held_error_n"))})
         runs.append(means)
     for row in result["steps"]:
         k = (row["phase"], row["round"], row["angle_deg"], row["force_setpoint_n"])
@@ -257,6 +325,9 @@ def add_reference(result: dict[str, Any], ip_dir: Path, reference_dirs: list[Pat
                       "max_pair_diff": round(float(vals.max() - vals.min()), 4) if vals.size >= 2 else None,
                       "within_3sd": bool(vals.size >= 3 and diff is not None and math.isfinite(diff)
                                          and abs(diff) <= 3.0 * math.sqrt(2.0) * sd)}
+        for q in ("overshoot_n", "held_error_n"):
+            vals = np.array([r[k][q] for r in runs if k in r and math.isfinite(r[k][q])])
+            row["force_loop"][q + "_in_process_sd"] = round(float(vals.std(ddof=1)), 4) if vals.size >= 2 else None
         row["in_process_between_runs"] = out
     # diff / (sqrt(2) sd), sd from `runs` runs, is Student-t with runs - 1 degrees of freedom
     # for two runs of the same system: the chance it passes 3.
@@ -268,6 +339,10 @@ def add_reference(result: dict[str, Any], ip_dir: Path, reference_dirs: list[Pat
     result["steps_within_in_process_spread"] = int(sum(r["in_process_between_runs"]["force"]["within_3sd"]
                                                        and r["in_process_between_runs"]["depth"]["within_3sd"]
                                                        for r in result["steps"]))
+
+
+def _number(value: Any) -> float:
+    return math.nan if value is None else float(value)
 
 
 def _finite(value: Any) -> Any:

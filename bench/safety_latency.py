@@ -41,6 +41,7 @@ import numpy as np
 
 from elastoprobe.controller.devices import Trip, WrenchBlock
 from elastoprobe.controller.drivers.hardware import SafetyLoop, StopFirstGuard
+from elastoprobe.controller.forceloop import BlockVerdict, ForceLoopGains, ForceSupervisor
 from elastoprobe.controller.safety import SafetyLimits
 
 RDT_RECORD = struct.Struct(">III6i")      # rdt_sequence, ft_sequence, status, Fx Fy Fz Tx Ty Tz counts
@@ -190,8 +191,13 @@ def run_in_process(guard: Any, trips: int, ramp_n_s: float, stop_effect_n: float
     overshoots: list[float] = []
     tripped = threading.Event()
 
-    def on_trip(trip: Trip, arrival_s: float) -> None:
+    supervisor = ForceSupervisor(ForceLoopGains(), LIMITS)
+
+    def on_stop(verdict: BlockVerdict, arrival_s: float) -> None:
         now = time.monotonic()
+        trip = verdict.trip
+        if trip is None:
+            return
         with device.lock:
             if device.stop_called_s is not None:
                 return
@@ -201,6 +207,8 @@ def run_in_process(guard: Any, trips: int, ramp_n_s: float, stop_effect_n: float
         latencies.append(now - crossing_arrival)
         if device.cross_t is not None:
             overshoots.append(ramp_n_s * (now - device.cross_t) + stop_effect_n)
+        # Then the record, as the hardware process does after its stop.
+        supervisor.tripped(trip, verdict.peak_force_n, None)
         tripped.set()
 
     trip_seq: dict[float, int] = {}
@@ -215,7 +223,7 @@ def run_in_process(guard: Any, trips: int, ramp_n_s: float, stop_effect_n: float
                 trip_seq[t] = s
         return block
 
-    loop = SafetyLoop(guard, read, device.wait, lambda: device.newest_arrival, on_trip, lambda t, a: None)
+    loop = SafetyLoop(guard, supervisor, read, device.wait, lambda: device.newest_arrival, on_stop)
     stop_loop = threading.Event()
     end = time.monotonic() + trips * 0.2 + 60.0
     th_dev = threading.Thread(target=device.run, args=(end,), daemon=True)
@@ -235,6 +243,7 @@ def run_in_process(guard: Any, trips: int, ramp_n_s: float, stop_effect_n: float
                 guard.note_stream_restart()
                 guard.tripped = None
                 guard.rearm()
+                supervisor.rearmed()
             time.sleep(0.003)
     finally:
         stop_loop.set()

@@ -13,11 +13,18 @@ Prints ONE JSON object: profiles_per_s, ft_samples_per_s, realtime_factor (simul
 robot time / wall time; realtime_factor_cpu uses this process's CPU time, which is
 what to compare on a shared machine), and two references measured in the same process,
 interleaved with it:
+- ``previous_renderer_*``: the same, but the scanner's dented-hit root find as before
+  its secant start (bracketed from 0 and the depth at the undeformed crossing, the cut's
+  offsets prepared for every profile): what the renderer's own speed-up is worth;
 - ``previous_*``: the same simulator and driver, but the holds polled every 10 ms and
   the world's batched holds off (each 10 ms force-loop period its own sub-chunk) —
   the state before hold polling and batched holds;
 - ``baseline_*``: that, and also the scanner's caches off (plane cut, burst shadow
-  mask) and the safety guard fed every sub-chunk instead of in screened batches.
+  mask), the previous renderer's root find, and the safety guard fed every sub-chunk
+  instead of in screened batches.
+What is not a switch (the nearest hit per ray, the dent's scalars kept per profile) moves
+all variants alike: compare a revision against its parent by running this script on both,
+back to back.
 On a shared machine compare within one run; absolute figures move with the load.
 
     python bench/sim_throughput.py [--quick] [--repeats N]
@@ -40,7 +47,7 @@ ANGLES_DEG = (10.0, 25.0, 45.0, 75.0, 90.0, 105.0, 135.0, 155.0, 170.0)
 FORCES_N = (2.0, 5.0, 9.0, 14.0, 20.0)
 
 
-def build_cell(cache: bool, batch: bool, hold_batch: bool = True, seed: int = 1):
+def build_cell(cache: bool, batch: bool, hold_batch: bool = True, seed: int = 1, secant: bool = True):
     from elastoprobe.controller.config import load_cell
     from elastoprobe.controller.geometry import Pose
     from elastoprobe.sim.cell import SimCell, params_from_cell
@@ -51,7 +58,7 @@ def build_cell(cache: bool, batch: bool, hold_batch: bool = True, seed: int = 1)
     params.home_joints_deg = (180.0, -90.0, 90.0, -90.0, -90.0, 0.0)
     # The ball where all nine approach angles at its top are reachable for moveL.
     params.base_to_object = Pose(np.array([450.0, 0.0, 0.0]), np.eye(3))
-    params.scanner = replace(params.scanner, cache_cuts=cache)
+    params.scanner = replace(params.scanner, cache_cuts=cache, secant_root_find=secant)
     cell = SimCell(params)
     if not batch:
         cell.world.guard_batch_us = 0
@@ -162,16 +169,17 @@ def probe_point(driver: Driver, point_obj: np.ndarray, normal_obj: np.ndarray, s
 
 
 VARIANTS = {
-    # name: (scanner caches, screened guard batches, batched holds, hold poll s)
-    "fast": (True, True, True, 0.1),
-    "previous": (True, True, False, 0.01),
-    "baseline": (False, False, False, 0.01),
+    # name: (scanner caches, screened guard batches, batched holds, hold poll s, secant root find)
+    "fast": (True, True, True, 0.1, True),
+    "previous_renderer": (True, True, True, 0.1, False),
+    "previous": (True, True, False, 0.01, True),
+    "baseline": (False, False, False, 0.01, False),
 }
 
 
 def run(variant: str, scans_per_step: int) -> dict:
-    cache, batch, hold_batch, hold_poll_s = VARIANTS[variant]
-    cell = build_cell(cache, batch, hold_batch)
+    cache, batch, hold_batch, hold_poll_s, secant = VARIANTS[variant]
+    cell = build_cell(cache, batch, hold_batch, secant=secant)
     driver = Driver(cell, hold_poll_s=hold_poll_s)
     t0_virtual = cell.clock.now_s()
     t0 = time.perf_counter()
@@ -204,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     def median_run(rs: list[dict]) -> dict:
         return sorted(rs, key=lambda r: r["cpu_s"])[(len(rs) - 1) // 2]
 
-    fast, prev, base = (median_run(runs[v]) for v in VARIANTS)
+    fast, prev_renderer, prev, base = (median_run(runs[v]) for v in VARIANTS)
 
     def num(x: float) -> float | None:
         return round(x, 3) if math.isfinite(x) else None
@@ -228,13 +236,18 @@ def main(argv: list[str] | None = None) -> int:
         "hold_fallbacks": fast["hold_fallbacks"],
         "guard_calls": fast["guard_calls"],
         "plane_cuts": fast["plane_cuts"],
+        "previous_renderer": "as realtime_factor, but the scanner's dented-hit root find bracketed from 0 and the "
+                             "depth at the undeformed crossing, the cut's offsets prepared for every profile",
+        "previous_renderer_realtime_factor": num(prev_renderer["realtime_factor"]),
+        "previous_renderer_realtime_factor_cpu": num(prev_renderer["realtime_factor_cpu"]),
+        "previous_renderer_profiles_per_s": num(prev_renderer["profiles_per_s"]),
         "previous": "holds polled every 10 ms, batched holds off (scanner caches and screened guard batches on)",
         "previous_realtime_factor": num(prev["realtime_factor"]),
         "previous_realtime_factor_cpu": num(prev["realtime_factor_cpu"]),
         "previous_robot_time_s": num(prev["robot_s"]),
         "previous_subchunks": prev["subchunks"],
         "baseline": "holds polled every 10 ms, batched holds off, scanner caches off (plane cut, burst shadow "
-                    "mask), safety guard fed every sub-chunk",
+                    "mask), the previous renderer's root find, safety guard fed every sub-chunk",
         "baseline_realtime_factor": num(base["realtime_factor"]),
         "baseline_realtime_factor_cpu": num(base["realtime_factor_cpu"]),
         "baseline_profiles_per_s": num(base["profiles_per_s"]),

@@ -220,21 +220,30 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_predict(args: argparse.Namespace) -> int:
+    from .learning.support import SUPPORT_NAMES
     from .predict import predict_profile
 
-    x_mm, depth_mm, std_mm = predict_profile(Path(args.dir), args.region, args.force, args.angle)
+    served, source = predict_profile(Path(args.dir), args.region, args.force, args.angle, args.extrapolate)
+    names = [SUPPORT_NAMES[c] if 0 <= c < len(SUPPORT_NAMES) else "unknown" for c in served.support.tolist()]
+    x_mm, depth_mm, spread_mm = served.x_mm, served.depth_mm, served.spread_mm
     if args.json:
-        print(json.dumps({"region": args.region, "force_n": args.force, "angle_deg": args.angle,
+        print(json.dumps({"region": args.region, "force_n": args.force, "angle_deg": args.angle, "models": source,
+                          "extrapolated": served.extrapolated,
                           "x_mm": [round(v, 4) for v in x_mm.tolist()],
                           "depth_mm": [None if v != v else round(v, 5) for v in depth_mm.tolist()],
-                          "ensemble_std_mm": [None if v != v else round(v, 5) for v in std_mm.tolist()]},
+                          "ensemble_std_mm": [None if v != v else round(v, 5) for v in spread_mm.tolist()],
+                          "support": names, "clipped": served.clipped.tolist()},
                          allow_nan=False))
     else:
         i = int(depth_mm.argmax())
-        print(f"region {args.region}, F = {args.force} N, angle = {args.angle} deg: peak depth "
-              f"{depth_mm[i]:.3f} mm (ensemble spread {std_mm[i]:.3f} mm) at x = {x_mm[i]:.1f} mm")
-        for xv, dv in zip(x_mm[::16], depth_mm[::16]):
-            print(f"  x {xv:7.2f} mm  depth {dv:7.3f} mm")
+        counts = {n: names.count(n) for n in dict.fromkeys(names)}
+        print(f"region {args.region}, F = {args.force} N, angle = {args.angle} deg ({source}): peak depth "
+              f"{depth_mm[i]:.3f} mm (ensemble spread {spread_mm[i]:.3f} mm) at x = {x_mm[i]:.1f} mm")
+        print("  support of the samples: " + ", ".join(f"{n} {c}" for n, c in counts.items()))
+        if served.extrapolated:
+            print("  EXTRAPOLATED: outside the trained forces and angles (bounded, not validated)")
+        for xv, dv, nv in zip(x_mm[::16], depth_mm[::16], names[::16]):
+            print(f"  x {xv:7.2f} mm  depth {dv:7.3f} mm  {nv}")
     return EXIT_DONE
 
 
@@ -254,7 +263,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from .predict import retrain_session
+    from .retrain import retrain_session
 
     for line in retrain_session(Path(args.dir)):
         print(line)
@@ -394,6 +403,8 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("--region", type=int, required=True)
     pr.add_argument("--force", type=_finite_float, required=True, help="force magnitude (N)")
     pr.add_argument("--angle", type=_finite_float, required=True, help="approach angle (deg, 0..180)")
+    pr.add_argument("--extrapolate", action="store_true",
+                    help="serve (bounded, flagged) a force or angle outside the trained ranges instead of refusing")
     pr.add_argument("--json", action="store_true")
 
     rp = sub.add_parser("report", help="(re)write DIR/report/index.html")

@@ -18,6 +18,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from .errors import InputError, InputErrors
+from .forceloop import ForceLoopGains
 from .geometry import NINE_ANGLES_DEG, Pose, rotvec_to_matrix
 from .learning.regions import MIN_CONTRAST
 from .safety import SafetyLimits
@@ -160,6 +161,37 @@ class LimitsSpec(Spec):
                             rearm_fraction=self.rearm_fraction)
 
 
+class ForceLoopSpec(Spec):
+    """The contact search's and the force loop's tuning (controller/forceloop.py): one set for
+    every backend, the simulated cell and the real arm alike.
+
+    ``gain`` is the fraction of the force error corrected per period and ``integral_per_s``
+    the integral action, both divided by the loop's estimate of the contact stiffness (which
+    starts at ``initial_stiffness_n_mm``); the loop reads |mean| of the latest
+    ``force_window`` F/T samples. A gain of 1 or more would correct more than the whole error
+    every period (it overshoots on every update).
+    """
+
+    period_ms: float = Field(10.0, ge=1, le=100)
+    gain: float = Field(0.3, gt=0, lt=1)
+    integral_per_s: float = Field(1.5, ge=0, le=50)
+    max_speed_mm_s: float = Field(15.0, gt=0, le=100)
+    accel_mm_s2: float = Field(500.0, gt=0, le=5000)
+    tolerance_n: float = Field(0.1, gt=0, le=10)
+    tolerance_rel: float = Field(0.02, ge=0, le=0.5)
+    settle_updates: int = Field(10, ge=1, le=1000)
+    initial_stiffness_n_mm: float = Field(2.0, gt=0, le=1000)
+    force_window: int = Field(10, ge=1, le=1000)
+    seek_accel_mm_s2: float = Field(500.0, gt=0, le=5000)
+
+    def gains(self) -> ForceLoopGains:
+        return ForceLoopGains(period_s=self.period_ms * 1e-3, gain=self.gain, integral_per_s=self.integral_per_s,
+                              max_speed_mm_s=self.max_speed_mm_s, accel_mm_s2=self.accel_mm_s2,
+                              tolerance_n=self.tolerance_n, tolerance_rel=self.tolerance_rel,
+                              settle_updates=self.settle_updates, initial_stiffness_n_mm=self.initial_stiffness_n_mm,
+                              force_window=self.force_window, seek_accel_mm_s2=self.seek_accel_mm_s2)
+
+
 FaultKind = Literal["force_spike", "ft_stall", "ft_frozen", "scanner_timeout", "scanner_short_burst",
                     "protective_stop", "connection_loss", "emergency_stop", "object_moved", "slip",
                     "disk_error"]
@@ -223,6 +255,7 @@ class CellSpec(Spec):
     scanner: ScannerSpec = ScannerSpec()
     object: ObjectPlacementSpec
     limits: LimitsSpec
+    force_loop: ForceLoopSpec = ForceLoopSpec()
     calibration_file: str | None = None
     calibration_max_age_days: float = Field(30.0, gt=0)
     simulation: SimulationSpec = SimulationSpec()
@@ -447,7 +480,20 @@ class SessionInputs:
 
 
 def load_cell(path: str | Path) -> tuple[CellSpec, YamlDoc]:
-    return load_validated(path, CellSpec)
+    cell, doc = load_validated(path, CellSpec)
+    _check_force_loop(cell, doc)
+    return cell, doc
+
+
+def _check_force_loop(cell: CellSpec, doc: YamlDoc) -> None:
+    """What the force loop's fields mean together with the rest of the cell."""
+    loop = cell.force_loop
+    window_ms = loop.force_window / cell.ft.rate_hz * 1e3
+    if window_ms > loop.period_ms + 1e-9:
+        # The loop would act on samples older than its last update: a delay in every update.
+        raise doc.error(("force_loop", "force_window"),
+                        f"force_window = {loop.force_window} samples spans {window_ms:g} ms at the F/T's "
+                        f"{cell.ft.rate_hz:g} Hz, longer than the loop period ({loop.period_ms:g} ms)")
 
 
 def load_plan(path: str | Path) -> tuple[PlanSpec, YamlDoc]:

@@ -127,7 +127,12 @@ class Motion(Protocol):
 
 @dataclass(frozen=True)
 class ArmStatus:
-    """A snapshot of the arm, as a real controller's status bits report it."""
+    """A snapshot of the arm, as a real controller's status bits report it.
+
+    ``operator_stop``: the robot's program was stopped or paused by someone at the pendant
+    or the dashboard (no safety stop explains it); ``stop_reason`` says so in the robot's
+    words. The arm is the operator's then: nothing moves it until the session is resumed.
+    """
 
     t_s: float
     tcp_pose: Pose
@@ -138,6 +143,8 @@ class ArmStatus:
     emergency_stop: bool
     is_moving: bool
     connected: bool = True
+    operator_stop: bool = False
+    stop_reason: str = ""
 
 
 @dataclass(frozen=True)
@@ -155,7 +162,16 @@ class Trip:
 
 @runtime_checkable
 class Arm(Protocol):
-    """A 6-axis arm carrying the probe, with its safety path armed from the F/T stream."""
+    """A 6-axis arm carrying the probe, with its safety path armed from the F/T stream: the
+    toolhead the controller (and calibration) drives.
+
+    ``move_linear`` and ``stop`` are the device's primitives; ``seek_contact`` and
+    ``regulate_force`` are the force loop's skills
+    (:class:`~elastoprobe.controller.forceloop.ForceSupervisor`), run on the device's
+    primitives (a speed command, a stop) with the cell's ``force_loop`` gains wherever the
+    device's data arrives: in virtual time in the simulated cell, in the hardware process
+    on the real one.
+    """
 
     def identity(self) -> DeviceIdentity: ...
 
@@ -184,7 +200,9 @@ class Arm(Protocol):
         ...
 
     def trip(self) -> Trip | None:
-        """The trip that stopped the arm, if any (cleared by ``rearm``)."""
+        """The trip that stopped the arm, if any (cleared by ``rearm``). While it is latched,
+        a motion commanded after it that unloads the contact (away from it, the force not
+        rising) goes through the guard; anything else is stopped again."""
         ...
 
     def rearm(self) -> bool:

@@ -64,6 +64,11 @@ class DeviceTimeout(DeviceError):
     """A device did not answer within its deadline."""
 
 
+class ProgramNotRunning(DeviceError):
+    """The robot's control program is not running (a safety stop, an operator's stop, the
+    watchdog): a command could not be sent. The arm's status says why."""
+
+
 class MotionRefused(ElastoprobeError):
     """A motion was rejected before being sent (IK, joint limits, workspace, collision)."""
 

@@ -22,7 +22,9 @@ from .geometry import INTERIOR_ANGLES_DEG, scan_direction
 from .journal import Journal
 from .kinematics import inverse
 from .learning import evaluate as ev
-from .learning.models import RegionModel
+from .learning.models import OutOfRange, RegionModel, ServedProfile
+from .learning.support import SUPPORT_NAMES
+from .predict import served_models
 from .probe import standoff_pose
 from .validation import arm_model_for
 
@@ -34,6 +36,10 @@ def _inputs_of(j: Journal) -> Any:
 
     prov = j.provenance()
     return load_session_inputs(prov["plan"]["path"], prov["cell"]["path"])
+
+
+# Random in-range queries per region for the served-bounds check.
+SERVED_BOUND_QUERIES = 10_000
 
 
 def _held_out_angles(trained: list[float]) -> list[float]:
@@ -49,6 +55,84 @@ def _held_out_forces(trained: list[float]) -> list[float]:
     return [(x + y) / 2.0 for x, y in zip(f, f[1:])]
 
 
+class FullSpan:
+    """Full-span scores of served profiles: every sample where the true surface is defined."""
+
+    def __init__(self) -> None:
+        self.errors: list[np.ndarray] = []
+        self.codes: list[np.ndarray] = []
+        self.served = 0
+        self.refused = 0                 # queries predict refuses (outside the trained ranges)
+
+    def add(self, served: ServedProfile, truth_mm: np.ndarray, face: np.ndarray) -> None:
+        scored = face & np.isfinite(truth_mm)
+        self.served += int(truth_mm.size)
+        # A NaN served sample is scored as the worst error, never skipped.
+        err = np.where(np.isfinite(served.depth_mm), served.depth_mm - truth_mm, np.inf)
+        self.errors.append(err[scored])
+        self.codes.append(np.asarray(served.support)[scored])
+
+    def _all(self) -> tuple[np.ndarray, np.ndarray]:
+        if not self.errors:
+            return np.zeros(0), np.zeros(0, dtype=np.int8)
+        return np.concatenate(self.errors), np.concatenate(self.codes)
+
+    def rmse(self) -> float | None:
+        e, _ = self._all()
+        return float(np.sqrt(np.mean(e ** 2))) if e.size else None
+
+    def max_abs(self) -> float | None:
+        e, _ = self._all()
+        return float(np.max(np.abs(e))) if e.size else None
+
+    def scored_fraction(self) -> float | None:
+        e, _ = self._all()
+        return e.size / self.served if self.served else None
+
+    def support_fractions(self) -> dict[str, Any]:
+        _, c = self._all()
+        names = list(SUPPORT_NAMES) + ["unknown"]
+        idx = np.where((c >= 0) & (c < len(SUPPORT_NAMES)), c, len(SUPPORT_NAMES)).astype(int)
+        counts = np.bincount(idx, minlength=len(names)) if c.size else np.zeros(len(names), int)
+        return {n: _num(k / c.size) if c.size else None for n, k in zip(names, counts)}
+
+    def rmse_by_support(self) -> dict[str, Any]:
+        e, c = self._all()
+        return {n: _num(float(np.sqrt(np.mean(e[c == k] ** 2)))) if np.any(c == k) else None
+                for k, n in enumerate(SUPPORT_NAMES)}
+
+
+def served_bounds(model: RegionModel, deepest_true_mm: float | None, force_range_n: tuple[float, float],
+                  angle_range_deg: tuple[float, float], queries: int = SERVED_BOUND_QUERIES,
+                  seed: int = 0) -> dict[str, Any]:
+    """``queries`` random (F, angle) in the trained ranges (the model's own, else the plan's):
+    the deepest and highest sample served, against the deepest true dent the region's
+    characterized points make; a violation is a profile with a sample deeper than 1.5 x
+    that dent or more than 1 mm above the undeformed surface (or not a number)."""
+    lim = model.limits
+    f_lo, f_hi = lim.force_range_n if lim is not None else force_range_n
+    a_lo, a_hi = lim.angle_range_deg if lim is not None else angle_range_deg
+    rng = np.random.default_rng(seed)
+    depth = model.predict_batch_mm(rng.uniform(f_lo, f_hi, queries), rng.uniform(a_lo, a_hi, queries))
+    ok = np.all(np.isfinite(depth) & (depth >= -1.0), axis=1)
+    if deepest_true_mm is not None:
+        ok &= np.all(depth <= 1.5 * deepest_true_mm, axis=1)
+    return {"queries": queries, "deepest_served_mm": _num(np.nanmax(depth)),
+            "highest_served_mm": _num(-np.nanmin(depth)), "deepest_true_mm": _num(deepest_true_mm),
+            "violations": int(np.count_nonzero(~ok))}
+
+
+def serve_or_refuse(model: RegionModel, force_n: float, angle_deg: float, tally: FullSpan) -> ServedProfile | None:
+    """What predict serves for the query, or None (counted) when it refuses it: a held-out
+    (F, angle) outside the region's trained ranges (an angle blocked at its points) is not
+    something a user is served, so it is not scored."""
+    try:
+        return model.serve(force_n, angle_deg)
+    except OutOfRange:
+        tally.refused += 1
+        return None
+
+
 def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int = 12345) -> dict[str, Any]:
     from .cellfactory import ground_truth_for
 
@@ -62,13 +146,6 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
             raise InputError("the session has no final region map yet (run or resume it to the end)",
                              path=str(session_dir))
         truth = ground_truth_for(inputs, int(sess["seed"]))
-        model_round = int(final.outputs["model_round"])
-        models_rec = j.phase("models", model_round)
-        models: dict[int, RegionModel] = {}
-        if models_rec is not None:
-            for region, info in models_rec.outputs["regions"].items():
-                if "path" in info:
-                    models[int(region)] = RegionModel.load(Path(session_dir) / info["path"])
         regions_rec = None
         r = 0
         while j.phase("regions", r) is not None:
@@ -80,6 +157,9 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         measured = [(rec, j.step_result(rec.step_id)) for rec in char]
     finally:
         j.close()
+    # What predict serves: the newest models, or those `elastoprobe train` refitted since.
+    source = served_models(Path(session_dir))
+    models = {region: RegionModel.load(path) for region, path in source.files.items()}
 
     pts = cloud.arrays["points_mm"].astype(float)
     normals = cloud.arrays["normals"].astype(float)
@@ -116,6 +196,14 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         seen = coverage[key] >= 0.5 * counts[key] if key in coverage else np.zeros(len(x), bool)
         return ev.roi_mask(truth_row[None, :])[0] & outside_tip & seen
 
+    def on_face(point: np.ndarray, normal: np.ndarray) -> np.ndarray:
+        """(L,) where the true surface of the profile is defined (ev.profile_face_mask)."""
+        t = scan_direction(normal, ref)
+        return ev.profile_face_mask(truth, point, normal, t, x)
+
+    full = {"held_out_angles": FullSpan(), "held_out_forces": FullSpan(), "held_out_points": FullSpan()}
+    deepest_true: dict[int, float] = {}
+
     # Noise floor and held-out angles/forces at the characterized points.
     noise_pred, noise_true, noise_roi = [], [], []
     ha_pred, ha_true, ha_roi, hf_pred, hf_true, hf_roi = [], [], [], [], [], []
@@ -125,6 +213,8 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         p, n = np.asarray(rec.plan.point_mm), np.asarray(rec.plan.normal)
         noise_pred.append(res.profile_depth_mm)
         noise_true.append(truth.true_profile_mm(p, n, np.asarray(rec.plan.t), f, rec.plan.angle_deg, x))
+        label_of_step = target_labels.get(rec.plan.target_index, -1)
+        deepest_true[label_of_step] = max(deepest_true.get(label_of_step, 0.0), float(np.nanmax(noise_true[-1])))
         noise_roi.append(roi(target_labels.get(rec.plan.target_index), rec.plan.angle_deg, noise_true[-1]))
         points_done[rec.plan.target_index] = (p, n)
     for ti, (p, n) in points_done.items():
@@ -132,16 +222,25 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         if label not in models:
             continue
         m = models[label]
+        face = on_face(p, n)
         for a in _held_out_angles(list(ch.angles_deg)):
             for f in ch.forces_n[1:-1]:
-                ha_pred.append(m.predict_mm(f, a).copy())
+                served = serve_or_refuse(m, f, a, full["held_out_angles"])
+                if served is None:
+                    continue
+                ha_pred.append(served.depth_mm)
                 ha_true.append(true_profile(p, n, f, a))
                 ha_roi.append(roi(label, a, ha_true[-1]))
+                full["held_out_angles"].add(served, ha_true[-1], face)
         for f in _held_out_forces(list(ch.forces_n)):
             for a in ch.angles_deg:
-                hf_pred.append(m.predict_mm(f, a).copy())
+                served = serve_or_refuse(m, f, a, full["held_out_forces"])
+                if served is None:
+                    continue
+                hf_pred.append(served.depth_mm)
                 hf_true.append(true_profile(p, n, f, a))
                 hf_roi.append(roi(label, a, hf_true[-1]))
+                full["held_out_forces"].add(served, hf_true[-1], face)
 
     # Held-out points: unprobed cloud points, interior of their predicted region, facing up.
     rng = np.random.default_rng(seed)
@@ -161,11 +260,16 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
             cand = interior if interior.size else cand
         pick = rng.choice(cand, size=min(n_points_per_region, cand.size), replace=False)
         for k in pick:
+            face = on_face(pts[k], normals[k])
             for f in ch.forces_n:
                 for a in (45.0, 90.0, 135.0):
-                    hp_pred.append(m.predict_mm(f, a).copy())
+                    served = serve_or_refuse(m, f, a, full["held_out_points"])
+                    if served is None:
+                        continue
+                    hp_pred.append(served.depth_mm)
                     hp_true.append(true_profile(pts[k], normals[k], f, a))
                     hp_roi.append(roi(label, a, hp_true[-1]))
+                    full["held_out_points"].add(served, hp_true[-1], face)
 
     def rmse(pred_list: list[np.ndarray], true_list: list[np.ndarray], roi_list: list[np.ndarray]) -> float | None:
         if not pred_list:
@@ -173,6 +277,8 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         return ev.profile_rmse_mm(np.array(pred_list), np.array(true_list), np.array(roi_list))
 
     peak = float(np.nanmax(np.array(noise_true))) if noise_true else None
+    mirror_admitted = {str(r): m.meta.get("support", {}).get("mirror", {}).get("admitted")
+                       for r, m in sorted(models.items())}
     mirror = [ev.mirror_residual(m, np.array(ch.forces_n), np.array([a for a in ch.angles_deg if a < 90.0]))
               for m in models.values()]
     return {
@@ -185,6 +291,22 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
                             "held_out_points": _num(rmse(hp_pred, hp_true, hp_roi))},
         "profile_rmse_roi": "truth > 5% of its peak, |x| > tip radius, and seen by the scanner on that side "
                             "in >= half of the region's measured profiles",
+        "profile_rmse_full_mm": {k: _num(v.rmse()) for k, v in full.items()},
+        "profile_max_abs_error_mm": {k: _num(v.max_abs()) for k, v in full.items()},
+        "profile_full_span": "every sample predict serves (the full-data member, clipped to the model's "
+                             "physical bounds) where the object's true surface continues from the contact, tip "
+                             "and shadow included; queries predict refuses (outside a region's trained "
+                             "ranges) are counted, not scored; served_support_fraction and the RMSE by "
+                             "support: held-out angles",
+        "profile_full_scored_fraction": {k: _num(v.scored_fraction()) for k, v in full.items()},
+        "held_out_queries_refused": {k: v.refused for k, v in full.items()},
+        "served_support_fraction": full["held_out_angles"].support_fractions(),
+        "profile_rmse_full_by_support_mm": full["held_out_angles"].rmse_by_support(),
+        "mirror_admitted": mirror_admitted,
+        "served_bounds": {str(r): served_bounds(m, deepest_true.get(r), (min(ch.forces_n), max(ch.forces_n)),
+                                                (min(ch.angles_deg), max(ch.angles_deg)), seed=seed + r)
+                          for r, m in sorted(models.items())},
+        "models": source.source,
         "noise_floor_mm": _num(rmse(noise_pred, noise_true, noise_roi)),
         "peak_depth_mm": _num(peak),
         "mirror_residual": _num(float(np.nanmean(mirror)) if mirror else None),
@@ -215,16 +337,22 @@ def _within_reach(inputs: Any, points_mm: np.ndarray, normals: np.ndarray,
     return ok[which.reshape(-1)]
 
 
+def scored_top_surface(inputs: Any, truth: Any) -> tuple[Any, float]:
+    """The surface a region map is scored on: the object's true top seen from above within the
+    plan's tilt (``truth.top_surface``, one sample per mm^2 of projected area), the samples
+    inside the arm's reach only. Returns (that TopSurface, the area out of reach in mm^2)."""
+    top = truth.top_surface(inputs.plan.sampling.max_tilt_deg)
+    reach = _within_reach(inputs, top.points_mm, top.normals)
+    return top.subset(reach), float(top.area_mm2[~reach].sum())
+
+
 def _truth_surface_map(inputs: Any, truth: Any, cloud_mm: np.ndarray, cloud_normals: np.ndarray,
                        cloud_labels: np.ndarray) -> dict[str, Any]:
     """The map scored on the object's true top (within the plan's tilt, inside the arm's reach),
     sampled at one point per mm^2 of projected area (sim/truth_surface.py); the cloud's labels
     carried onto it by learning.evaluate.carry_labels (docs/generated_objects.md)."""
     max_tilt = inputs.plan.sampling.max_tilt_deg
-    top = truth.top_surface(max_tilt)
-    reach = _within_reach(inputs, top.points_mm, top.normals)
-    out_of_reach = float(top.area_mm2[~reach].sum())
-    top = top.subset(reach)
+    top, out_of_reach = scored_top_surface(inputs, truth)
     s = ev.truth_surface_scores(top.points_mm, top.normals, top.labels, top.area_mm2, cloud_mm, cloud_normals,
                                 cloud_labels, top.spacing_mm, seam_distance_mm=truth.boundary_distance_mm)
     wrong = s["wrong"]

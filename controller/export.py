@@ -27,6 +27,7 @@ import numpy as np
 
 from .atomic import fsync_dir
 from .journal import STEP_ARRAYS_OPTIONAL, STEP_ARRAYS_REQUIRED, Journal, StepRecord, to_json
+from .predict import read_manifest
 
 FORMAT = "elastoprobe.session.hdf5/1"
 STEP_CHUNK = 64                  # done steps loaded from the journal at a time (bounds memory)
@@ -207,27 +208,52 @@ def _write_regions(f: Any, j: Journal, phase_groups: dict[tuple[str, int], Any])
         g["cloud_labels"] = final["arrays"]["cloud_labels"]
 
 
+MODEL_ARRAY_UNITS = {"w1": "normalised inputs -> hidden", "b1": "hidden", "w2": "hidden -> normalised depth",
+                     "b2": "normalised depth", "x_mm": "mm",
+                     "limits": "force range N (2), angle range deg (2), served depth bounds mm (2)",
+                     "support_forces_n": "N", "support_angles_deg": "deg",
+                     "support_codes": "0 measured, 1 mirrored, 2 tip, 3 inferred, 4 unsupported (angle, force, x)"}
+
+
 def _write_models(f: Any, j: Journal) -> None:
     g = f.create_group("models")
-    g.attrs["layout"] = "models/region_<r>/member_<m>: attrs path, sha256, metrics, meta (JSON); w1, b1, w2, b2, x_mm"
+    g.attrs["layout"] = ("models/region_<r>/member_<m>: attrs path, sha256, metrics, meta (JSON); w1, b1, w2, b2, "
+                         "x_mm; with serving limits also limits, support_forces_n, support_angles_deg, support_codes")
     for m in j.models():
         mg = g.require_group(f"region_{int(m['region'])}").create_group(f"member_{int(m['member'])}")
         mg.attrs.update({"region": int(m["region"]), "member": int(m["member"]), "path": m["path"],
                          "sha256": m["sha256"], "metrics": to_json(m["metrics"])})
         path = Path(m["path"]) if Path(m["path"]).is_absolute() else j.session_dir / m["path"]
-        base = path.with_suffix("")
-        try:
-            meta_text = base.with_suffix(".json").read_text(encoding="utf-8")
-            with np.load(base.with_suffix(".npz"), allow_pickle=False) as z:
-                weights = {k: z[k] for k in z.files}
-        except Exception as exc:   # a missing or damaged model file is recorded, the export goes on
-            mg.attrs["problem"] = f"{type(exc).__name__}: {exc}"
+        _put_model_file(mg, path)
+    manifest = read_manifest(j.session_dir)
+    if manifest is None:
+        return
+    # What `elastoprobe train` refitted since (and predict now serves): not in the journal.
+    rg = f.create_group("retrained_models")
+    rg.attrs.update({"layout": "retrained_models/region_<r>: attrs path, model_hash, meta; the model's arrays",
+                     "trained_utc": str(manifest.get("trained_utc", "")),
+                     "session_models_round": int(manifest.get("session_models_round", -1))})
+    for region, info in sorted(manifest["regions"].items()):
+        if not isinstance(info, dict) or "path" not in info:
             continue
-        mg.attrs["meta"] = meta_text
-        units = {"w1": "normalised inputs -> hidden", "b1": "hidden", "w2": "hidden -> normalised depth",
-                 "b2": "normalised depth", "x_mm": "mm"}
-        for name, arr in sorted(weights.items()):
-            _put_array(mg, name, arr, {"units": units.get(name, "")})
+        mg = rg.create_group(f"region_{int(region)}")
+        mg.attrs.update({"region": int(region), "path": str(info["path"]), "model_hash": str(info.get("model_hash", ""))})
+        _put_model_file(mg, j.session_dir / info["path"])
+
+
+def _put_model_file(mg: Any, path: Path) -> None:
+    """A model's metadata text and arrays into the group ``mg`` (a problem attr if unreadable)."""
+    base = path.with_suffix("")
+    try:
+        meta_text = base.with_suffix(".json").read_text(encoding="utf-8")
+        with np.load(base.with_suffix(".npz"), allow_pickle=False) as z:
+            weights = {k: z[k] for k in z.files}
+    except Exception as exc:   # a missing or damaged model file is recorded, the export goes on
+        mg.attrs["problem"] = f"{type(exc).__name__}: {exc}"
+        return
+    mg.attrs["meta"] = meta_text
+    for name, arr in sorted(weights.items()):
+        _put_array(mg, name, arr, {"units": MODEL_ARRAY_UNITS.get(name, "")})
 
 
 def _write_faults(f: Any, j: Journal) -> None:
@@ -332,6 +358,7 @@ class ExportedSession:
     transitions: list[dict[str, Any]]
     events: list[dict[str, Any]]
     artifacts: list[dict[str, Any]] = field(default_factory=list)
+    retrained_models: dict[int, dict[str, Any]] = field(default_factory=dict)
 
 
 def _col(g: Any, name: str) -> list[Any]:
@@ -409,6 +436,13 @@ def read_back(path: str | os.PathLike[str]) -> ExportedSession:
                     "path": attrs["path"], "sha256": attrs["sha256"], "metrics": json.loads(attrs["metrics"]),
                     "meta": json.loads(attrs["meta"]) if "meta" in attrs else None, "problem": attrs.get("problem"),
                     "weights": {k: ds[()] for k, ds in mg.items()}}
+        retrained: dict[int, dict[str, Any]] = {}
+        for mg in (f["retrained_models"].values() if "retrained_models" in f else []):
+            attrs = {k: _attr_str(v) for k, v in mg.attrs.items()}
+            retrained[int(attrs["region"])] = {
+                "path": attrs["path"], "model_hash": attrs.get("model_hash"), "problem": attrs.get("problem"),
+                "meta": json.loads(attrs["meta"]) if "meta" in attrs else None,
+                "weights": {k: ds[()] for k, ds in mg.items()}}
         fg = f["faults"]
         faults = _table(fg, {"fault_id": int, "kind": str, "t_robot_s": _none_float, "t_wall_utc": str,
                              "step_id": _none_int, "message": str, "policy_action": _none_str})
@@ -424,4 +458,5 @@ def read_back(path: str | os.PathLike[str]) -> ExportedSession:
         return ExportedSession(format=_attr_str(f.attrs["format"]), session=session, provenance=prov, runs=runs,
                                robot_time_s=robot, phases=phases, steps=steps, step_arrays=step_arrays,
                                step_attrs=step_attrs, regions=regions, models=models, faults=faults,
-                               transitions=transitions, events=events, artifacts=artifacts)
+                               transitions=transitions, events=events, artifacts=artifacts,
+                               retrained_models=retrained)

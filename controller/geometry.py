@@ -1,4 +1,4 @@
-"""Rigid transforms, rotation vectors and the probe geometry of DESIGN §3.
+"""Rigid transforms, rotation vectors and the probe geometry (docs/frames.md).
 
 Units: positions in mm, angles in degrees at the edges (YAML, CLI) and radians
 inside; UR poses (ur_rtde) are ``[x, y, z, rx, ry, rz]`` in metres and a rotation
@@ -6,6 +6,7 @@ vector in radians. See docs/frames.md for the frames and sign conventions.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,24 +31,41 @@ def rotvec_to_matrix(rotvec_rad: np.ndarray) -> np.ndarray:
 
 
 def matrix_to_rotvec(rotation: np.ndarray) -> np.ndarray:
-    """3x3 rotation matrix -> rotation vector (rad), robust near 0 and pi."""
-    m = np.asarray(rotation, dtype=float)
-    cos_theta = np.clip((np.trace(m) - 1.0) / 2.0, -1.0, 1.0)
-    theta = float(np.arccos(cos_theta))
-    if theta < 1e-9:
-        return np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]]) / 2.0
-    if np.pi - theta < 1e-6:
-        # Near pi the antisymmetric part vanishes: take the axis from the diagonal.
-        b = (m + np.eye(3)) / 2.0
-        axis = np.sqrt(np.clip(np.diag(b), 0.0, None))
-        i = int(np.argmax(axis))
-        axis[i] = np.sqrt(b[i, i])
-        for j in range(3):
-            if j != i:
-                axis[j] = b[i, j] / axis[i]
-        return axis / np.linalg.norm(axis) * theta
-    axis = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]]) / (2.0 * np.sin(theta))
-    return axis * theta
+    """3x3 rotation matrix -> rotation vector (rad), angle in [0, pi], accurate at every angle.
+
+    Through the unit quaternion (Shepperd's choice of the largest of its four components,
+    so no step divides by a small number), then angle = 2 atan2(|v|, w). A matrix that is
+    orthogonal only to ~1e-9 (built from a stored normal and scan direction rounded to 9
+    digits) converts to within that error: the angle taken from the trace alone does not,
+    within ~1e-4 rad of pi, where 1 + cos(angle) is smaller than the matrix's error; there
+    the old axis-from-the-antisymmetric-part gave a rotation 0.85 rad off instead of pi, so
+    a 90-degree probe on a flat top was recorded (and would be sent to the arm) tilted 54
+    degrees, and its scans landed 30 mm off the object (a false ``object_moved``).
+    """
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = np.asarray(rotation, dtype=float).tolist()
+    trace = m00 + m11 + m22
+    if trace >= max(m00, m11, m22):
+        w = 0.5 * math.sqrt(max(1.0 + trace, 0.0))
+        s = 0.25 / w
+        q = (w, (m21 - m12) * s, (m02 - m20) * s, (m10 - m01) * s)
+    elif m00 >= max(m11, m22):
+        x = 0.5 * math.sqrt(max(1.0 + m00 - m11 - m22, 0.0))
+        s = 0.25 / x
+        q = ((m21 - m12) * s, x, (m01 + m10) * s, (m02 + m20) * s)
+    elif m11 >= m22:
+        y = 0.5 * math.sqrt(max(1.0 - m00 + m11 - m22, 0.0))
+        s = 0.25 / y
+        q = ((m02 - m20) * s, (m01 + m10) * s, y, (m12 + m21) * s)
+    else:
+        z = 0.5 * math.sqrt(max(1.0 - m00 - m11 + m22, 0.0))
+        s = 0.25 / z
+        q = ((m10 - m01) * s, (m02 + m20) * s, (m12 + m21) * s, z)
+    w, x, y, z = q if q[0] >= 0.0 else (-q[0], -q[1], -q[2], -q[3])   # the same rotation, angle <= pi
+    sin_half = math.sqrt(x * x + y * y + z * z)
+    if sin_half < 1e-12:
+        return np.array([2.0 * x, 2.0 * y, 2.0 * z]) / max(w, 1e-300)   # angle ~ 2|v|/w
+    scale = 2.0 * math.atan2(sin_half, w) / sin_half      # |q| cancels: unnormalised is fine
+    return np.array([x * scale, y * scale, z * scale])
 
 
 @dataclass(frozen=True)
@@ -138,7 +156,7 @@ def unit(v: np.ndarray) -> np.ndarray:
 def scan_direction(normal: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """The scan direction t: ``reference`` projected on the tangent plane of ``normal``.
 
-    The fixed rule of DESIGN §3, so that an angle means the same thing at every
+    One fixed rule (docs/frames.md), so that an angle means the same thing at every
     point of a region. Falls back to a stable perpendicular when ``reference`` is
     parallel to the normal.
     """

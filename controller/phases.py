@@ -20,11 +20,12 @@ import numpy as np
 from .geometry import INTERIOR_ANGLES_DEG, scan_direction
 from .journal import StepPlan
 from .learning import profiles as prof
+from .learning.models import RegionModel, ServingLimits, TrainConfig, fit_region_model
+from .learning.support import UNSUPPORTED, CompletedTargets, RegionSteps, complete_targets, support_table
 from .probe import ProbeTarget, StepData
 from .session import SessionAborted
 
 if TYPE_CHECKING:
-    from .learning.models import RegionModel
     from .session import Session
 
 # Steps belong to the phase that planned them: the survey of the neural-gas targets is
@@ -36,6 +37,10 @@ FEATURE_HALF_WINDOW_MM = 15.0
 # from 0), below the simulator's own "outside any step" key (2**32 - 1).
 SWEEP_STEP_KEY = 2**32 - 2
 CHARACTERIZE = "regions"
+# Training weight of a target sample by its support (support.SUPPORT_NAMES order): what was
+# measured, mirrored or under the tip counts fully, an inferred sample half, an
+# interpolated one a quarter (they shape the curve between supported samples only).
+SUPPORT_WEIGHTS = np.array([1.0, 1.0, 1.0, 0.5, 0.25])
 
 
 _crash_counts: dict[str, int] = {}
@@ -93,7 +98,7 @@ class PhaseContext:
     edge_flag: dict[int, bool] = field(default_factory=dict)
     labels: dict[int, int] = field(default_factory=dict)         # target index -> region
     n_regions: int = 0
-    models: dict[int, "RegionModel"] = field(default_factory=dict)
+    models: dict[int, RegionModel] = field(default_factory=dict)
     model_round: int = -1
     _surface: Any = None                                           # surface_map.SurfaceGraph, built once
 
@@ -122,39 +127,36 @@ class PhaseContext:
 # --------------------------------------------------------------------------- helpers
 def step_profile(session: "Session", target: ProbeTarget, data: StepData) -> tuple[np.ndarray, np.ndarray]:
     """Averaged depth profile (L,) of one force step on the plan's grid, and the grid x (mm)."""
+    return measure_step_data(session, target, data).depth_mm, session_grid(session).x_mm
+
+
+def session_grid(session: "Session") -> prof.ProfileGrid:
     m = session.inputs.plan.model
-    grid = prof.ProfileGrid(span_mm=m.profile_span_mm, samples=m.profile_samples)
+    return prof.ProfileGrid(span_mm=m.profile_span_mm, samples=m.profile_samples)
+
+
+def measure_step_data(session: "Session", target: ProbeTarget, data: StepData) -> prof.StepMeasurement:
+    """The step's profile and its facts (tip, rejected samples) from the scans and the arm's poses."""
     cell = session.cell
     assert cell is not None
-    scans = prof.step_scan_points(data.scans_xz_mm, data.scan_pose, cell.tcp_to_scanner, cell.base_to_object)
-    refs = prof.step_scan_points(data.reference_xz_mm, data.reference_pose, cell.tcp_to_scanner,
-                                 cell.base_to_object)
-    depth = robust_average(prof.scan_depths(scans, target.point_mm, target.normal, target.t, grid, refs))
-    return plausible_depths(depth, data, target, cell, session.inputs.plan.probing.standoff_mm), grid.x_mm
+    return measure_step_arrays(data.scans_xz_mm, data.scan_pose, data.reference_xz_mm, data.reference_pose,
+                               target, session_grid(session), cell.tcp_to_scanner, cell.base_to_object,
+                               session.inputs.cell.tool.tip_radius_mm)
+
+
+def measure_step_arrays(scans_xz_mm: np.ndarray, scan_pose: np.ndarray, reference_xz_mm: np.ndarray,
+                        reference_pose: np.ndarray, target: ProbeTarget, grid: prof.ProfileGrid,
+                        tcp_to_scanner: Any, base_to_object: Any, tip_radius_mm: float) -> prof.StepMeasurement:
+    """:func:`profiles.measure_step` on a step's stored arrays (scans and TCP poses, base frame)."""
+    scans = prof.step_scan_points(scans_xz_mm, scan_pose, tcp_to_scanner, base_to_object)
+    refs = prof.step_scan_points(reference_xz_mm, reference_pose, tcp_to_scanner, base_to_object)
+    tips = base_to_object.inverse().apply(np.asarray(scan_pose, dtype=float).reshape(-1, 6)[:, :3])
+    return prof.measure_step(scans, refs, tips, target.point_mm, target.normal, target.t, grid, tip_radius_mm)
 
 
 def robust_average(depths_mm: np.ndarray, k_mad: float = 4.0) -> np.ndarray:
-    """Per-sample mean of the scans after dropping outliers beyond ``k_mad`` MADs of the median.
-
-    A laser on dark, rough fabric returns false reflections: single scans with
-    depths millimetres off. A plain mean of 30 scans keeps them as spikes; the
-    median/MAD screen removes them and the mean of the rest keeps the 1/sqrt(N)
-    noise reduction. Samples seen by fewer than 3 scans use the plain mean.
-    """
-    d = np.asarray(depths_mm, dtype=float)
-    if d.ndim != 2 or d.shape[0] == 0:
-        return np.full(d.shape[-1] if d.ndim else 0, np.nan)
-    with np.errstate(all="ignore"):
-        import warnings
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", category=RuntimeWarning)
-            med = np.nanmedian(d, axis=0)
-            mad = np.nanmedian(np.abs(d - med), axis=0)
-            count = np.sum(np.isfinite(d), axis=0)
-            scale = np.maximum(1.4826 * mad, 1e-3)
-            keep = np.abs(d - med) <= k_mad * scale
-            screened = np.where(keep | (count < 3)[None, :], d, np.nan)
-            return np.nanmean(screened, axis=0)
+    """Per-sample mean of the scans without scattered returns (:func:`profiles.robust_mean`)."""
+    return prof.robust_mean(depths_mm, k_mad).mean_mm
 
 
 def plausible_depths(depth_mm: np.ndarray, data: StepData, target: ProbeTarget, cell: Any,
@@ -245,21 +247,31 @@ def phase_cloud(ctx: PhaseContext) -> None:
     else:
         # Keyed at the sweep, not before: a resumed session reaches it after other
         # motions (the resume retract) than an uninterrupted one.
-        pts, robot_s, skipped = s.sweep_object(SWEEP_STEP_KEY)
-        for why in skipped:
+        swept = s.sweep_object(SWEEP_STEP_KEY)
+        pts, robot_s = swept.points_mm, swept.robot_s
+        for why in swept.replanned:
+            s._log("sweep_line_replanned", reason=why)
+        for why in swept.refused:
             s._log("sweep_line_skipped", reason=why)
+        sweep = swept.outputs()
+        s._log("sweep_unseen", unseen_mm2=sweep["unseen_mm2"], top_surface_mm2=sweep["top_surface_mm2"],
+               coverage=sweep["coverage"], patches=sweep["unseen_patches"])
         normals = None
         j.add_robot_time("sweep", robot_s)
     obj_pts, plane = remove_table_below(pts, seed=s.seed)
     if normals is None or len(normals) != len(obj_pts):
         normals = orient_outward_from_above(obj_pts, cl.estimate_normals(obj_pts, k=16))
     normals = canonical(normals, 6)
-    j.commit_phase("cloud", 0, {"n_points": int(len(obj_pts)), "cloud_sha256": cl.cloud_hash(obj_pts),
-                                "table_plane": {"normal": canonical(plane[0], 9).tolist(),
-                                                "offset_mm": float(canonical(np.array([plane[1]]), 6)[0])},
-                                "robot_s": round(float(robot_s), 3)},
+    outputs = {"n_points": int(len(obj_pts)), "cloud_sha256": cl.cloud_hash(obj_pts),
+               "table_plane": {"normal": canonical(plane[0], 9).tolist(),
+                               "offset_mm": float(canonical(np.array([plane[1]]), 6)[0])},
+               "robot_s": round(float(robot_s), 3)}
+    if plan.cloud.source != "file":
+        outputs["sweep"] = sweep
+    j.commit_phase("cloud", 0, outputs,
                    {"points_mm": obj_pts.astype(np.float32), "normals": normals.astype(np.float32)})
-    s._log("phase", name="cloud", n_points=int(len(obj_pts)))
+    s._log("phase", name="cloud", n_points=int(len(obj_pts)),
+           **({"unseen_mm2": sweep["unseen_mm2"], "coverage": sweep["coverage"]} if plan.cloud.source != "file" else {}))
     # Continue from the committed (float32) cloud, exactly as a resumed session will.
     rec = j.phase("cloud", 0)
     assert rec is not None
@@ -553,28 +565,124 @@ def _characterize_choice(ctx: PhaseContext, labels: dict[int, int], n_regions: i
     return chosen, clear_at
 
 
-def region_dataset(ctx: PhaseContext, region: int) -> dict[str, np.ndarray]:
-    """Every done step at targets of ``region``: measured |F|, commanded angle, profile, point id."""
+@dataclass(frozen=True)
+class ScanGeometry:
+    """How the controller maps a step's stored scans to its profile (to re-measure old steps)."""
+
+    grid: prof.ProfileGrid
+    tcp_to_scanner: Any
+    base_to_object: Any
+    tip_radius_mm: float
+
+
+def session_geometry(session: "Session") -> ScanGeometry:
+    cell = session.cell
+    assert cell is not None
+    return ScanGeometry(session_grid(session), cell.tcp_to_scanner, cell.base_to_object,
+                        session.inputs.cell.tool.tip_radius_mm)
+
+
+def region_dataset(ctx: PhaseContext, region: int) -> RegionSteps:
+    """Every done step at targets of ``region`` (see :func:`collect_region_steps`)."""
     s = ctx.session
-    j = s.journal
-    assert j is not None
-    forces, angles, depths, pids = [], [], [], []
-    recs = [r for r in j.steps(statuses=["done"]) if ctx.labels.get(r.plan.target_index) == region]
-    for r in recs:
+    assert s.journal is not None
+    return collect_region_steps(s.journal, ctx.labels, region, session_geometry(s))
+
+
+def collect_region_steps(j: Any, labels: dict[int, int], region: int, geometry: ScanGeometry) -> RegionSteps:
+    """The done steps at targets labelled ``region``: measured |F|, planned level, angle,
+    averaged profile, point, the tip's position and depth, and the reference surface.
+
+    The tip facts are the ones recorded when the step was measured; a step recorded
+    before they were (an older journal) is measured again from its stored scans and
+    poses, profile included. The reference surface is always taken from the stored
+    reference scans (with ``geometry``'s placement of the object). A journal without
+    reference poses keeps its stored profiles and has no tip facts.
+    """
+    rows: list[tuple[float, float, float, np.ndarray, int, float, float, np.ndarray]] = []
+    for r in j.steps(statuses=["done"]):
+        if labels.get(r.plan.target_index) != region:
+            continue
         res = j.step_result(r.step_id)
-        forces.append(float(np.linalg.norm(np.nanmean(res.scan_force_n, axis=0))))
-        angles.append(r.plan.angle_deg)
-        depths.append(res.profile_depth_mm)
-        pids.append(r.plan.target_index)
-    return {"force_n": np.array(forces), "angle_deg": np.array(angles),
-            "depth_mm": np.array(depths) if depths else np.zeros((0, ctx.grid.samples)),
-            "point_ids": np.array(pids, dtype=np.int64)}
+        target = ProbeTarget(r.plan.target_index, np.asarray(r.plan.point_mm), np.asarray(r.plan.normal),
+                             np.asarray(r.plan.t))
+        facts = res.summary or {}
+        depth = np.asarray(res.profile_depth_mm, dtype=float)
+        tip_x, tip_depth = facts.get("tip_x_mm"), facts.get("tip_depth_mm")
+        ref_h = np.full(geometry.grid.samples, np.nan)
+        if res.reference_pose is not None and "tip_depth_mm" in facts:
+            refs = prof.step_scan_points(res.reference_xz_mm, res.reference_pose, geometry.tcp_to_scanner,
+                                         geometry.base_to_object)
+            ref_h = prof.reference_height(refs, target.point_mm, target.normal, target.t, geometry.grid)
+        elif res.reference_pose is not None:
+            m = measure_step_arrays(res.scans_xz_mm, res.scan_pose, res.reference_xz_mm, res.reference_pose, target,
+                                    geometry.grid, geometry.tcp_to_scanner, geometry.base_to_object,
+                                    geometry.tip_radius_mm)
+            depth, tip_x, tip_depth, ref_h = m.depth_mm, m.tip_x_mm, m.tip_depth_mm, m.reference_h_mm
+        rows.append((float(np.linalg.norm(np.nanmean(res.scan_force_n, axis=0))), float(r.plan.force_n),
+                     float(r.plan.angle_deg), depth, int(r.plan.target_index),
+                     np.nan if tip_x is None else float(tip_x), np.nan if tip_depth is None else float(tip_depth),
+                     ref_h))
+    length = geometry.grid.samples
+    if not rows:
+        empty = np.zeros(0)
+        return RegionSteps(geometry.grid.x_mm, empty, empty, empty, np.zeros((0, length)), np.zeros(0, np.int64),
+                           empty, empty, np.zeros((0, length)))
+    f, lvl, a, d, pid, tx, td, rh = zip(*rows)
+    return RegionSteps(geometry.grid.x_mm, np.array(f), np.array(lvl), np.array(a), np.array(d),
+                       np.array(pid, dtype=np.int64), np.array(tx), np.array(td), np.array(rh))
+
+
+def region_noise_mm(completed: CompletedTargets, measured_mm: float) -> float:
+    """The error of one of the region's averaged profiles (mm): the larger of the scans'
+    own standard error and what two measurements that must agree differ by (the mirror
+    test's yardstick, per measurement)."""
+    yard = completed.mirror.yardstick_mm
+    return float(max(measured_mm, (yard / np.sqrt(2.0)) if yard is not None else 0.0))
+
+
+def fit_region(steps: RegionSteps, config: TrainConfig, tip_radius_mm: float, measured_noise: float
+               ) -> tuple[RegionModel, dict[str, Any]]:
+    """Complete the region's targets, fit its model and set what it may serve.
+
+    The served depth is bounded by the deepest supported training value (the tip's own
+    indentation under a normal push, or the deepest measured sample) and by the highest
+    one (or the undeformed surface), each widened by three times the region's noise;
+    queries are accepted over the trained force levels and angles.
+    """
+    completed = complete_targets(steps, tip_radius_mm)
+    noise = region_noise_mm(completed, measured_noise)
+    weights = SUPPORT_WEIGHTS[completed.support]
+    model = fit_region_model(steps.force_n, steps.angle_deg, completed.depth_mm, steps.x_mm,
+                             point_ids=steps.point_ids, config=config, noise_mm=noise, sample_weight=weights)
+    supported = completed.support != UNSUPPORTED
+    values = completed.depth_mm[supported] if supported.any() else completed.depth_mm.ravel()
+    forces, angles, codes = support_table(steps.force_level_n, steps.angle_deg, completed.support)
+    all_forces = np.concatenate([steps.force_n, steps.force_level_n])
+    limits = ServingLimits((float(all_forces.min()), float(all_forces.max())),
+                           (float(steps.angle_deg.min()), float(steps.angle_deg.max())),
+                           float(min(0.0, values.min()) - 3.0 * noise), float(values.max() + 3.0 * noise),
+                           forces, angles, codes)
+    info = {"support": completed.counts, "mirror": completed.mirror.to_dict(), "noise_mm": round(noise, 6),
+            "depth_bounds_mm": [round(limits.depth_min_mm, 6), round(limits.depth_max_mm, 6)],
+            "force_range_n": list(limits.force_range_n), "angle_range_deg": list(limits.angle_range_deg)}
+    model.meta.update({"support": info})
+    return model.with_limits(limits), info
+
+
+def region_train_config(model_spec: Any, seed: int, region: int, tip_radius_mm: float) -> TrainConfig:
+    """How the session trains a region's model: the plan's network and ensemble, its epoch
+    cap, a seed per session and region, and spline outputs with knots a fifth of the tip
+    radius apart (a spherical tip's dent has no feature finer than its contact, and a cubic
+    spline at that spacing follows the simulator's dents of the shipped objects to 0.002 mm
+    RMS)."""
+    return TrainConfig(hidden_units=model_spec.hidden_units, ensemble=model_spec.ensemble - 1,
+                       epochs_per_stage=max(10, model_spec.max_epochs // 5), seed=seed * 1000 + region,
+                       basis_spacing_mm=tip_radius_mm / 5.0)
 
 
 def phase_models(ctx: PhaseContext, round_: int) -> None:
     """Fit (or load) one model ensemble per region; files written atomically, hashes committed."""
-    from .learning.models import RegionModel, TrainConfig, fit_region_model
-
     s = ctx.session
     j = s.journal
     assert j is not None
@@ -590,20 +698,18 @@ def phase_models(ctx: PhaseContext, round_: int) -> None:
         outputs["noise_mm"] = noise
         for region in range(ctx.n_regions):
             data = region_dataset(ctx, region)
-            if len(data["force_n"]) < 3:
-                outputs["regions"][str(region)] = {"skipped": f"only {len(data['force_n'])} profiles"}
+            if len(data) < 3:
+                outputs["regions"][str(region)] = {"skipped": f"only {len(data)} profiles"}
                 continue
-            cfg = TrainConfig(hidden_units=m.hidden_units, ensemble=m.ensemble - 1,
-                              epochs_per_stage=max(10, m.max_epochs // 5), seed=s.seed * 1000 + region)
-            model = fit_region_model(data["force_n"], data["angle_deg"], data["depth_mm"], ctx.grid.x_mm,
-                                     point_ids=data["point_ids"], config=cfg, noise_mm=noise)
+            radius = s.inputs.cell.tool.tip_radius_mm
+            model, info = fit_region(data, region_train_config(m, s.seed, region, radius), radius, noise)
             crash_point("models:before_save")
             path = model.save(model_dir / f"region{region}.npz")
             crash_point("models:after_save")
-            digest = j.record_model(region, 0, path, {"round": round_, "n_profiles": int(len(data["force_n"]))})
+            digest = j.record_model(region, 0, path, {"round": round_, "n_profiles": int(len(data))})
             outputs["regions"][str(region)] = {"path": str(Path(path).relative_to(s.dir)), "sha256": digest,
                                                "model_hash": model.model_hash(),
-                                               "n_profiles": int(len(data["force_n"]))}
+                                               "n_profiles": int(len(data)), **info}
         crash_point("models:before_commit")
         j.commit_phase("models", round_, outputs)
         s._log("phase", name="models", round=round_, regions=list(outputs["regions"]))

@@ -1,4 +1,4 @@
-"""Is the object where the controller believes it is? (DESIGN §7: re-register when it moved.)
+"""Is the object where the controller believes it is? (Re-register it when it moved.)
 
 A probed object rests on the table, so it can only slide (and turn about the vertical):
 what matters is a horizontal shift of its surface. Scanner points (base frame) are

@@ -1,84 +1,93 @@
-"""Serving trained region models: ``predict`` and ``train`` (refit from the journal)."""
+"""Serving trained region models: which models a session serves, and ``predict``.
+
+A session serves the models of its newest committed models phase, unless
+``elastoprobe train DIR`` refitted them since (DIR/models/retrained/, with a manifest
+naming the models round it saw): those serve until the session commits a newer models
+phase. A session killed before its first models phase serves what ``train`` made.
+"""
 from __future__ import annotations
 
+import json
+from dataclasses import dataclass
 from pathlib import Path
-
-import numpy as np
 
 from .errors import InputError
 from .journal import Journal
-from .learning.models import RegionModel
+from .learning.models import OutOfRange, RegionModel, ServedProfile
+
+RETRAINED_DIR = Path("models") / "retrained"
+MANIFEST = "manifest.json"
 
 
-def latest_models(session_dir: Path) -> tuple[int, dict[int, Path]]:
-    """(model round, region -> model file) of the newest committed model phase."""
+@dataclass(frozen=True)
+class ServedModels:
+    """The region model files a session serves and where they come from."""
+
+    files: dict[int, Path]
+    source: str                  # "models round N" or "retrained by `elastoprobe train` (...)"
+
+
+def newest_models_round(j: Journal) -> tuple[int, dict | None]:
+    """(round, outputs) of the newest committed models phase; (-1, None) if there is none."""
+    r, rec = 0, None
+    while (nxt := j.phase("models", r)) is not None:
+        rec, r = nxt, r + 1
+    return r - 1, (rec.outputs if rec is not None else None)
+
+
+def served_models(session_dir: Path) -> ServedModels:
+    """The models ``predict`` serves for a session (see the module docstring)."""
     j = Journal.open_readonly(session_dir)
     try:
-        r, rec = 0, None
-        while (nxt := j.phase("models", r)) is not None:
-            rec, r = nxt, r + 1
+        round_, outputs = newest_models_round(j)
     finally:
         j.close()
-    if rec is None:
-        raise InputError("the session has no trained models yet", path=str(session_dir))
-    files = {int(k): Path(session_dir) / v["path"] for k, v in rec.outputs["regions"].items() if "path" in v}
-    return r - 1, files
+    manifest = read_manifest(Path(session_dir))
+    if manifest is not None and int(manifest.get("session_models_round", -1)) >= round_:
+        files = {int(k): Path(session_dir) / v["path"] for k, v in manifest["regions"].items()}
+        return ServedModels(files, f"retrained by `elastoprobe train` at {manifest.get('trained_utc', '?')}")
+    if outputs is None:
+        raise InputError("the session has no trained models yet (run `elastoprobe train` on it, or resume it)",
+                         path=str(session_dir))
+    files = {int(k): Path(session_dir) / v["path"] for k, v in outputs["regions"].items() if "path" in v}
+    return ServedModels(files, f"models round {round_}")
 
 
-def predict_profile(session_dir: Path, region: int, force_n: float, angle_deg: float
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(x_mm, depth_mm, ensemble std mm) predicted by region ``region``'s model."""
+def read_manifest(session_dir: Path) -> dict | None:
+    """The retrained models' manifest, or None when there is none (or it cannot be read)."""
+    path = Path(session_dir) / RETRAINED_DIR / MANIFEST
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) and isinstance(data.get("regions"), dict) else None
+
+
+def load_region_model(session_dir: Path, region: int) -> tuple[RegionModel, str]:
+    """Region ``region``'s served model and where it comes from."""
+    served = served_models(session_dir)
+    if region not in served.files:
+        raise InputError(f"--region {region}: the session has models for regions {sorted(served.files)}")
+    try:
+        return RegionModel.load(served.files[region]), served.source
+    except (OSError, ValueError, KeyError) as exc:
+        raise InputError(f"cannot load the model of region {region}: {exc}", path=str(served.files[region])) from exc
+
+
+def predict_profile(session_dir: Path, region: int, force_n: float, angle_deg: float,
+                    extrapolate: bool = False) -> tuple[ServedProfile, str]:
+    """The profile region ``region``'s model serves at (F, alpha), and the models' source.
+
+    A query outside the forces and angles the model was trained on is refused (exit 2)
+    unless ``extrapolate``; then it is served, clipped to the physical bounds, flagged.
+    """
     if not 0.0 < angle_deg < 180.0:
         raise InputError(f"--angle {angle_deg}: the approach angle must be in (0, 180) degrees")
     if force_n < 0.0:
         raise InputError(f"--force {force_n}: the force must be >= 0 N")
-    _, files = latest_models(session_dir)
-    if region not in files:
-        raise InputError(f"--region {region}: the session has models for regions {sorted(files)}")
-    model = RegionModel.load(files[region])
-    mean, std = model.predict_ensemble(force_n, angle_deg)
-    return np.asarray(model.x_mm), np.asarray(mean).reshape(-1), np.asarray(std).reshape(-1)
-
-
-def retrain_session(session_dir: Path) -> list[str]:
-    """Refit every region's model from the journal into DIR/models/retrained/ (the session's
-    committed models stay as they were); returns a line per region."""
-    from .evaluation import _inputs_of
-    from .learning.models import TrainConfig, fit_region_model
-
-    j = Journal.open_readonly(session_dir)
+    model, source = load_region_model(session_dir, region)
     try:
-        inputs = _inputs_of(j)
-        seed = int(j.session()["seed"])
-        r, rec = 0, None
-        while (nxt := j.phase("regions", r)) is not None:
-            rec, r = nxt, r + 1
-        if rec is None:
-            raise InputError("the session has no regions yet", path=str(session_dir))
-        labels = dict(zip(rec.arrays["labelled_targets"].tolist(), rec.arrays["labels"].tolist()))
-        # The averaged scans' noise the session measured: the fit stops at it, as in the run.
-        noise_mm, q = None, 0
-        while (models_rec := j.phase("models", q)) is not None:
-            noise_mm, q = models_rec.outputs.get("noise_mm", noise_mm), q + 1
-        rows: dict[int, list] = {}
-        for step in j.steps(statuses=["done"]):
-            label = labels.get(step.plan.target_index)
-            if label is None:
-                continue
-            res = j.step_result(step.step_id)
-            rows.setdefault(label, []).append((float(np.linalg.norm(np.nanmean(res.scan_force_n, axis=0))),
-                                               step.plan.angle_deg, res.profile_depth_mm, step.plan.target_index))
-    finally:
-        j.close()
-    m = inputs.plan.model
-    x = np.linspace(-m.profile_span_mm / 2, m.profile_span_mm / 2, m.profile_samples)
-    out = []
-    (Path(session_dir) / "models" / "retrained").mkdir(parents=True, exist_ok=True)
-    for label, data in sorted(rows.items()):
-        f, a, d, p = (np.array(v) for v in zip(*data))
-        cfg = TrainConfig(hidden_units=m.hidden_units, ensemble=m.ensemble - 1,
-                          epochs_per_stage=max(10, m.max_epochs // 5), seed=seed * 1000 + label)
-        model = fit_region_model(f, a, d, x, point_ids=p, config=cfg, noise_mm=noise_mm)
-        path = model.save(Path(session_dir) / "models" / "retrained" / f"region{label}.npz")
-        out.append(f"region {label}: {len(f)} profiles -> {path} ({model.model_hash()[:12]})")
-    return out
+        return model.serve(force_n, angle_deg, extrapolate=extrapolate), source
+    except OutOfRange as exc:
+        raise InputError(f"region {region}: {exc}; pass --extrapolate to be served a flagged, bounded "
+                         f"profile anyway") from exc

@@ -13,7 +13,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from .devices import Cell, Motion, MotionState, Scan, Trip, WrenchBlock
+from .devices import ArmStatus, Cell, Motion, MotionState, Scan, Trip, WrenchBlock
 from .errors import DeviceError, DeviceTimeout, MotionRefused
 from .geometry import Pose, probe_tcp_pose, rotvec_to_matrix
 from .machine import SessionMachine
@@ -107,7 +107,7 @@ class ProbeSettings:
     # While the arm holds still or holds a regulated force and the controller only records
     # F/T and poses (the settle wait, tare waits, scan bursts), it polls this often. The
     # safety check-and-stop runs where the data arrives on every sample whatever the poll
-    # (DESIGN §5): a crossing stops the arm at the same sample; the controller sees the
+    # (controller/forceloop.py): a crossing stops the arm at the same sample; the controller sees the
     # same F/T blocks in bigger pieces. Motion and contact search keep poll_period_s.
     hold_poll_period_s: float = 0.1
     reference_scans: int = 10
@@ -159,6 +159,8 @@ class ProbeExecutor:
         # Checks every reference and loaded scan burst against the registered object.
         self.placement = placement
         self.on_placement: Callable[[str, dict], None] = lambda what, est: None
+        # How each force level was reached (regulation_record): for the session's log.
+        self.on_regulated: Callable[[dict], None] = lambda record: None
 
     # ------------------------------------------------------------------ public
     def probe(self, target: ProbeTarget, angle_deg: float, levels: list[ForceLevel],
@@ -201,12 +203,17 @@ class ProbeExecutor:
             if k > 0:
                 self.machine.fire("next_level")
             before_level(level)
+            self._rec.clear()
+            t_command = self.cell.clock.now_s()
             motion = self.cell.arm.regulate_force(d, level.force_n, s.force_rate_n_s)
             ramp_s = level.force_n / s.force_rate_n_s
             state = self._wait(motion, timeout_s=ramp_s * 3.0 + 10.0)
             self._expect(state, MotionState.DONE, "regulate_force")
+            t_done = self.cell.clock.now_s()
             self.machine.fire("at_force")
             self._hold(s.settle_s)
+            self.on_regulated({"step": level.step_id, **regulation_record(
+                WrenchBlock.concat(self._rec.blocks), level.force_n, t_command, t_done, self.cell.ft.rate_hz)})
             self.machine.fire("settled")
             step_start_s = self.cell.clock.now_s()
             scans, poses = self._scan_burst(s.scans_per_step)
@@ -235,9 +242,11 @@ class ProbeExecutor:
     def scan_while_moving(self, start: Pose, end: Pose, speed_mm_s: float) -> tuple[list[Scan], np.ndarray]:
         """Travel to ``start``, then scan continuously while moving in a straight line to ``end``.
 
-        Returns the scans and the TCP pose (mm + rotation vector) at each exposure.
+        The scan's path is validated with the route to its start, before the arm moves: a
+        refused scan raises MotionRefused with the arm where it was. Returns the scans and
+        the TCP pose (mm + rotation vector) at each exposure.
         """
-        self._travel_to(start)
+        self._travel_to(start, then=(start, end))
         self.validator.validate_path(start, end)
         scanner = self.cell.scanner
         length_mm = float(np.linalg.norm(end.position_mm - start.position_mm))
@@ -263,7 +272,8 @@ class ProbeExecutor:
         """After a fault: unload along the normal if in contact, then move up to travel height."""
         arm = self.cell.arm
         status = arm.status()
-        if status.emergency_stop or not status.connected:
+        # An operator who stopped the robot's program has the arm: it is not moved until resumed.
+        if status.emergency_stop or not status.connected or status.operator_stop:
             return
         arm.stop()
         pose = status.tcp_pose
@@ -276,8 +286,10 @@ class ProbeExecutor:
         self._move(Pose(pose.position_mm + up * lift_mm, pose.rotation), self.s.free_speed_mm_s, check=False)
 
     # ------------------------------------------------------------------ motions
-    def _travel_to(self, standoff: Pose) -> None:
+    def _travel_to(self, standoff: Pose, then: tuple[Pose, Pose] | None = None) -> None:
         """Up to travel height, across, then down to the standoff; every leg validated.
+        ``then``, a move to make from there, is validated with each route (and not made): a
+        route it cannot follow from is not taken.
 
         If the direct route is refused (e.g. the wrist would swing the scanner into a
         keep-out), go by the park pose, where the arm started the session. If that is
@@ -298,7 +310,7 @@ class ProbeExecutor:
         refused: MotionRefused | None = None
         for route in routes:
             try:
-                self._travel_legs(route())
+                self._travel_legs(route(), then)
                 return
             except MotionRefused as exc:
                 refused = refused or exc       # the direct route's reason is the telling one
@@ -380,11 +392,16 @@ class ProbeExecutor:
             start = leg
         return route
 
-    def _travel_legs(self, route: list[tuple[Pose, Pose]]) -> None:
+    def _travel_legs(self, route: list[tuple[Pose, Pose]], then: tuple[Pose, Pose] | None = None) -> None:
         saved = getattr(self.validator, "seed_joints", None)
         try:
             for start, leg in route:
                 self.validator.validate_path(start, leg)
+            arrived = getattr(self.validator, "seed_joints", None)
+            if then is not None:
+                self.validator.validate_path(*then)
+                if arrived is not None:
+                    self.validator.seed_joints = arrived   # type: ignore[attr-defined]
         except MotionRefused:
             if saved is not None:
                 self.validator.seed_joints = saved   # type: ignore[attr-defined]
@@ -509,8 +526,10 @@ class ProbeExecutor:
             raise ProbeFault("protective_stop", "the robot is in a protective stop")
         if not status.connected:
             raise ProbeFault("connection", "lost the connection to the robot")
+        if not status.program_running:
+            raise self._program_stopped(status, "the probe")
         if self.should_stop():
-            raise ProbeFault("operator_stop", "stop requested by the operator")
+            raise ProbeFault("operator_stop", "stop requested with elastoprobe stop")
 
     def _wait(self, motion: Motion, timeout_s: float) -> MotionState:
         deadline = self.cell.clock.now_s() + timeout_s
@@ -536,7 +555,33 @@ class ProbeExecutor:
             raise ProbeFault("protective_stop", f"protective stop during {what}")
         if not status.connected:
             raise ProbeFault("connection", f"lost the connection to the robot during {what}")
+        if not status.program_running:
+            raise self._program_stopped(status, what)
         raise ProbeFault("device", f"{what} ended {state.value}, expected {wanted.value}")
+
+    def _program_stopped(self, status: ArmStatus, what: str, wait_s: float = 1.0) -> ProbeFault:
+        """The robot's program stopped with no safety stop: whose stop was it?
+
+        The arm says so a moment later (a link tells an operator's stop from its own watchdog
+        once the safety bits have had time to explain it), so wait for that (bounded) before
+        naming the fault: an operator's stop pauses the session, nothing else may take the arm
+        back from them."""
+        clock = self.cell.clock
+        deadline = clock.now_s() + wait_s
+        while (not status.program_running and not status.operator_stop and not status.protective_stop
+               and not status.emergency_stop and status.connected and clock.now_s() < deadline):
+            clock.sleep_s(0.05)
+            try:
+                status = self.cell.arm.status()
+            except DeviceError as exc:
+                return ProbeFault("device", f"the robot program stopped during {what}: {exc}")
+        if status.operator_stop:
+            return ProbeFault("operator_stop", status.stop_reason or f"the robot program was stopped during {what}")
+        if status.emergency_stop:
+            return ProbeFault("emergency_stop", "emergency stop is pressed")
+        if status.protective_stop:
+            return ProbeFault("protective_stop", f"protective stop during {what}")
+        return ProbeFault("device", f"the robot program stopped during {what} (no safety stop, no operator's)")
 
     def _poses_at(self, times_s: list[float]) -> np.ndarray:
         """TCP poses (mm + rotation vector) at the given times, from the poses logged while waiting."""
@@ -581,6 +626,26 @@ class ProbeExecutor:
         # The force must stay at the level while the scans are taken (the paper keeps it constant).
         if not np.isfinite(err) or err > max(self.s.force_tolerance_n * 3.0, 0.15 * target_n):
             raise ProbeFault("force_not_held", f"force strayed {err:.2f} N from {target_n:.1f} N during the scans")
+
+
+def regulation_record(block: WrenchBlock, target_n: float, t_command_s: float, t_done_s: float,
+                      rate_hz: float, window_s: float = 0.01, tail_s: float = 0.5) -> dict:
+    """How a force level was reached, from the F/T samples of its ramp and settle: ``peak_n``
+    and ``overshoot_n`` (peak minus target; negative: never reached) of |F| averaged over
+    ``window_s`` (the force loop's own reading, not single noisy samples), ``settle_s`` from
+    the command to DONE, and ``held_error_n``: mean |F| over the last ``tail_s`` minus target."""
+    fmag = block.force_magnitude_n() if len(block) else np.zeros(0)
+    n = max(1, int(round(window_s * rate_hz)))
+    if fmag.size >= n:
+        smooth = np.convolve(fmag, np.ones(n) / n, mode="valid")
+        peak = float(smooth.max())
+        tail = fmag[block.t_s >= block.t_s[-1] - tail_s]
+        held = float(tail.mean()) - target_n
+    else:
+        return {"target_n": round(float(target_n), 6), "peak_n": None, "overshoot_n": None, "held_error_n": None,
+                "settle_s": round(t_done_s - t_command_s, 4)}
+    return {"target_n": round(float(target_n), 6), "peak_n": round(peak, 4), "overshoot_n": round(peak - target_n, 4),
+            "held_error_n": round(held, 4), "settle_s": round(t_done_s - t_command_s, 4)}
 
 
 def _stack_scans(scans: list[Scan]) -> np.ndarray:

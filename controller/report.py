@@ -1,6 +1,6 @@
 """DIR/report/index.html: the session report, one self-contained file readable offline.
 
-The report answers "what happened overnight" from the journal alone (DESIGN §6, §7):
+The report answers "what happened overnight" from the journal alone:
 the point cloud with the sampling points coloured by region (paper Fig. 7), averaged
 profiles per region under increasing force and across angles (Figs. 8-12), measured
 versus modelled profiles (Figs. 13-17), predictions for unseen forces and angles
@@ -34,13 +34,20 @@ from typing import Any, Callable, Iterable
 import numpy as np
 
 from .atomic import atomic_write_text
+from .coverage import cloud_summary, describe_cloud
 from .journal import FaultRecord, Journal, StepRecord
+from .learning.support import INFERRED, MEASURED, SUPPORT_NAMES, UNSUPPORTED
+from .predict import read_manifest
 
 MAX_CLOUD_POINTS = 6000          # points drawn of the cloud (subsampled, seeded)
 MAX_FAULT_TRACES = 24            # fault F/T figures embedded; the rest are listed
 MAX_REGIONS_DRAWN = 8            # regions with their own profile figures
 STEP_CHUNK = 64                  # done steps loaded from the journal at a time (bounds memory)
 DPI = 80
+# Why the averaging dropped samples (the step summary's counts, profiles.StepMeasurement).
+REJECTION_KEYS = ("rejected_scan_samples", "rejected_line_samples", "implausible_samples", "off_face_samples")
+# Support of a model's samples (learning.support codes): colour of its band in the model plots.
+SUPPORT_COLOURS = ("none", "#9ecae1", "#fdae6b", "#a1d99b", "#d9d9d9")
 SECTION_IDS = ("numbers", "region-map", "profiles", "measured-vs-model", "predictions", "disagreement",
                "training", "timeline", "faults", "provenance")
 
@@ -58,6 +65,7 @@ class StepProfile:
     force_measured_n: float    # |mean contact force| over the exposures
     x_mm: np.ndarray           # (L,) grid along t
     depth_mm: np.ndarray       # (L,) depth along -n, NaN = missing
+    rejected: dict[str, int] = field(default_factory=dict)   # samples the averaging dropped, by reason
 
 
 @dataclass
@@ -83,6 +91,7 @@ class ReportData:
     phases: list[dict[str, Any]]
     steps: list[StepRecord]
     cloud_mm: np.ndarray | None = None
+    cloud_outputs: dict[str, Any] = field(default_factory=dict)
     cloud_labels: np.ndarray | None = None
     targets_mm: dict[int, np.ndarray] = field(default_factory=dict)
     target_labels: dict[int, int] = field(default_factory=dict)
@@ -92,6 +101,7 @@ class ReportData:
     models: dict[int, Any] = field(default_factory=dict)          # region -> RegionModel
     model_problems: dict[int, str] = field(default_factory=dict)
     model_round: int | None = None
+    models_source: str = ""
     model_rows: list[dict[str, Any]] = field(default_factory=list)
     densify: list[DensifyView] = field(default_factory=list)
     transitions: list[dict[str, Any]] = field(default_factory=list)
@@ -131,20 +141,28 @@ def _load_profiles(j: Journal, steps: list[StepRecord], labels: dict[int, int]) 
         depth = np.asarray(res.profile_depth_mm, dtype=float)
         x = np.asarray(res.profile_x_mm, dtype=float) if res.profile_x_mm is not None else np.arange(depth.size, dtype=float)
         f_meas = float(np.linalg.norm(np.nanmean(np.asarray(res.scan_force_n, dtype=float), axis=0)))
+        facts = res.summary or {}
+        rejected = {k: int(facts[k]) for k in REJECTION_KEYS if isinstance(facts.get(k), (int, float))}
         out.append(StepProfile(s.step_id, s.plan.target_index, labels.get(s.plan.target_index), float(s.plan.angle_deg),
-                               float(s.plan.force_n), f_meas, x, depth))
+                               float(s.plan.force_n), f_meas, x, depth, rejected))
     return out
 
 
 def _load_models(data: ReportData, j: Journal) -> None:
-    """The latest models phase's region models (or, before one is committed, the model table)."""
+    """The region models ``predict`` serves: the latest models phase's, or those
+    ``elastoprobe train`` refitted since (or, before any, the model table)."""
     from .learning.models import RegionModel
 
     rounds = _rounds(data.phases, "models")
     entries: dict[int, str] = {}
-    if rounds:
+    manifest = read_manifest(data.session_dir)
+    if manifest is not None and int(manifest.get("session_models_round", -1)) >= (rounds[-1] if rounds else -1):
+        entries = {int(k): v["path"] for k, v in manifest["regions"].items() if isinstance(v, dict) and "path" in v}
+        data.models_source = f"retrained by `elastoprobe train` at {manifest.get('trained_utc', '?')}"
+    elif rounds:
         rec = j.phase("models", rounds[-1])
         data.model_round = rounds[-1]
+        data.models_source = f"models round {rounds[-1]}"
         for region, info in (rec.outputs.get("regions", {}) if rec else {}).items():
             if isinstance(info, dict) and "path" in info:
                 entries[int(region)] = info["path"]
@@ -193,6 +211,7 @@ def collect(j: Journal) -> ReportData:
     cloud = j.phase("cloud", 0)
     if cloud is not None:
         data.cloud_mm = np.asarray(cloud.arrays["points_mm"], dtype=float)
+        data.cloud_outputs = cloud.outputs
     final = j.phase("final", 0)
     if final is not None and "cloud_labels" in final.arrays:
         data.cloud_labels = np.asarray(final.arrays["cloud_labels"])
@@ -229,10 +248,17 @@ def _model_table(data: ReportData) -> list[dict[str, Any]]:
         mse = model.meta.get("train_mse_norm")
         train_rmse = math.sqrt(mse) * model.depth_scale_mm if isinstance(mse, (int, float)) and mse >= 0 else None
         fit = _fit_rmse_mm(data, region, model)
+        support = model.meta.get("support", {}) if isinstance(model.meta.get("support"), dict) else {}
+        mirror = support.get("mirror", {}) if isinstance(support.get("mirror"), dict) else {}
+        counts = support.get("support", {}) if isinstance(support.get("support"), dict) else {}
+        total = sum(v for v in counts.values() if isinstance(v, (int, float)))
         rows.append({"region": region, "members": model.n_members, "hidden_units": model.hidden_units,
                      "n_profiles": model.meta.get("training", {}).get("n_profiles"),
                      "train_rmse_mm": _round(train_rmse, 4), "fit_rmse_mm": _round(fit, 4),
-                     "depth_scale_mm": _round(model.depth_scale_mm, 4), "model_hash": model.model_hash()[:12]})
+                     "depth_scale_mm": _round(model.depth_scale_mm, 4), "model_hash": model.model_hash()[:12],
+                     "mirror": mirror.get("reason", "not recorded"),
+                     "support": {k: round(v / total, 3) for k, v in counts.items()} if total else "not recorded",
+                     "depth_bounds_mm": support.get("depth_bounds_mm")})
     for region, problem in sorted(data.model_problems.items()):
         rows.append({"region": region, "problem": problem})
     return rows
@@ -267,6 +293,7 @@ def _numbers(data: ReportData) -> dict[str, Any]:
             "faults": len(data.faults), "faults_by_kind": dict(sorted(kinds.items())),
             "regions": data.n_regions, "regions_round": data.regions_round, "model_round": data.model_round,
             "runs": len(data.runs), "densify_rounds": len(data.densify),
+            "cloud": cloud_summary(data.cloud_outputs) if data.cloud_outputs else None,
             "model_errors": _model_table(data), "models": data.model_rows}
 
 
@@ -418,8 +445,36 @@ def _pick_groups(keys: list[tuple[float, float]], k: int = 4) -> list[tuple[floa
     return picks[:k]
 
 
+def _support_runs(codes: np.ndarray) -> list[tuple[int, int, int]]:
+    """(first, last, code) of each run of equal support codes along the grid."""
+    c = np.asarray(codes)
+    if c.size == 0:
+        return []
+    cuts = np.flatnonzero(np.diff(c)) + 1
+    starts = np.concatenate([[0], cuts])
+    ends = np.concatenate([cuts, [c.size]]) - 1
+    return [(int(a), int(b), int(c[a])) for a, b in zip(starts, ends)]
+
+
+def _shade_support(ax: Any, x: np.ndarray, codes: np.ndarray) -> None:
+    """Background bands: where the model's samples came from (no band where measured)."""
+    half = 0.5 * float(x[1] - x[0]) if x.size > 1 else 0.5
+    drawn: set[int] = set()
+    for a, b, code in _support_runs(codes):
+        if code == MEASURED and code not in drawn:
+            # The legend names the unshaded background too, so every support is named.
+            ax.fill_between([], [], color="white", ec="0.6", lw=0.5, label=f"{SUPPORT_NAMES[code]} (no band)")
+            drawn.add(code)
+        if not 0 < code < len(SUPPORT_NAMES):
+            continue
+        ax.axvspan(x[a] - half, x[b] + half, color=SUPPORT_COLOURS[code], alpha=0.6, lw=0,
+                   label=None if code in drawn else SUPPORT_NAMES[code])
+        drawn.add(code)
+
+
 def fig_measured_vs_model(data: ReportData, region: int) -> Any:
-    """Figs. 13-17: measured averaged profiles against the region model at the same (|F|, angle)."""
+    """Figs. 13-17: measured averaged profiles against the region model at the same (|F|, angle),
+    over the bands that say where the model's samples come from."""
     model = data.models.get(region)
     groups = _grouped([p for p in data.profiles if p.region == region])
     if model is None or not groups:
@@ -429,13 +484,16 @@ def fig_measured_vs_model(data: ReportData, region: int) -> Any:
     for k, key in enumerate(picks):
         x, mean, fm, n = groups[key]
         ax = fig.add_subplot(math.ceil(len(picks) / 2), 2, k + 1)
-        ax.plot(x, -mean, "k.", ms=3, label=f"measured (n={n})")
         if model.outputs == x.size:
-            ax.plot(model.x_mm, -model.predict_mm(fm, key[0]), "r-", label="model")
+            served = model.serve(fm, key[0], extrapolate=True)
+            if (served.support >= 0).any():
+                _shade_support(ax, model.x_mm, served.support)
+            ax.plot(model.x_mm, -served.depth_mm, "r-", lw=1.2, label="model")
+        ax.plot(x, -mean, "k.", ms=2.5, label=f"measured (n={n})")
         ax.set_title(f"region {region}: {key[0]:g}°, {key[1]:g} N (|F| {fm:.2f} N)", fontsize=8)
         ax.set_xlabel("x along t (mm)", fontsize=8)
         ax.set_ylabel("height change (mm)", fontsize=8)
-        ax.legend(fontsize=6)
+        ax.legend(fontsize=6, loc="lower right")
         ax.grid(alpha=0.3)
     return fig
 
@@ -458,8 +516,21 @@ def unseen_queries(measured_forces_n: Iterable[float], measured_angles_deg: Iter
     return forces, angles
 
 
+def _plot_served(ax: Any, served: Any, colour: Any, label: str) -> None:
+    """A served profile as height change: solid where measured, mirrored or under the tip,
+    dashed where inferred, dotted where unsupported; the ensemble spread as a band."""
+    x, d, sd = served.x_mm, served.depth_mm, served.spread_mm
+    ax.fill_between(x, -d - sd, -d + sd, color=colour, alpha=0.15, lw=0)
+    styles = {INFERRED: "--", UNSUPPORTED: ":"}
+    for a, b, code in _support_runs(served.support):
+        lo, hi = max(a - 1, 0), b + 1     # overlap one sample so the pieces join
+        ax.plot(x[lo:hi + 1], -d[lo:hi + 1], styles.get(code, "-"), color=colour, lw=1.1)
+    ax.plot([], [], "-", color=colour, lw=1.1, label=label)       # the legend's entry: the colour
+
+
 def fig_predictions(data: ReportData, region: int) -> Any:
-    """Figs. 18-19: predicted profiles (ensemble mean +- std) for unseen forces and angles."""
+    """Figs. 18-19: predicted profiles for unseen forces and angles, as ``predict`` serves them
+    (band: the bootstrap members' spread; line style: the samples' support)."""
     model = data.models.get(region)
     if model is None:
         return None
@@ -467,27 +538,26 @@ def fig_predictions(data: ReportData, region: int) -> Any:
     if not profs:
         return None
     from matplotlib import colormaps
+    from matplotlib.lines import Line2D
     forces, angles = unseen_queries([p.force_n for p in profs], [p.angle_deg for p in profs], model.force_range_n)
     angle_n = _nearest((p.angle_deg for p in profs), 90.0)
     force_top = float(max(p.force_measured_n for p in profs))
-    fig = _figure(10, 3.4)
+    fig = _figure(10, 3.6)
     ax_f, ax_a = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
-    mean, std = model.predict_ensemble(forces, np.full(forces.shape, angle_n))
-    for k, f in enumerate(forces):
-        c = colormaps["viridis"](k / max(1, len(forces) - 1))
-        ax_f.plot(model.x_mm, -mean[k], color=c, label=f"{f:.2f} N")
-        ax_f.fill_between(model.x_mm, -mean[k] - std[k], -mean[k] + std[k], color=c, alpha=0.2)
-    mean, std = model.predict_ensemble(np.full(angles.shape, force_top), angles)
-    for k, a in enumerate(angles):
-        c = colormaps["plasma"](k / max(1, len(angles)))
-        ax_a.plot(model.x_mm, -mean[k], color=c, label=f"{a:g}°")
-        ax_a.fill_between(model.x_mm, -mean[k] - std[k], -mean[k] + std[k], color=c, alpha=0.2)
-    ax_f.set_title(f"region {region}: unseen forces at {angle_n:g}° (band: ensemble ±1 sd)", fontsize=9)
+    for k, served in enumerate(model.serve_batch(forces, np.full(forces.shape, angle_n), extrapolate=True)):
+        _plot_served(ax_f, served, colormaps["viridis"](k / max(1, len(forces) - 1)), f"{forces[k]:.2f} N")
+    for k, served in enumerate(model.serve_batch(np.full(angles.shape, force_top), angles, extrapolate=True)):
+        _plot_served(ax_a, served, colormaps["plasma"](k / max(1, len(angles))), f"{angles[k]:g}°")
+    ax_f.set_title(f"region {region}: unseen forces at {angle_n:g}°", fontsize=9)
     ax_a.set_title(f"region {region}: unseen angles at {force_top:.2f} N", fontsize=9)
+    styles = [Line2D([], [], color="0.3", ls=ls, label=name) for ls, name in
+              (("-", "measured, mirrored or tip"), ("--", "inferred"), (":", "unsupported"))]
     for ax in (ax_f, ax_a):
         ax.set_xlabel("x along t (mm)")
         ax.set_ylabel("predicted height change (mm)")
-        ax.legend(fontsize=6)
+        first = ax.legend(fontsize=6, loc="lower right")
+        ax.add_artist(first)
+        ax.legend(handles=styles, fontsize=6, loc="lower left")
         ax.grid(alpha=0.3)
     return fig
 
@@ -570,7 +640,7 @@ def fig_training(data: ReportData) -> tuple[Any, bool]:
             if h.shape[1] > 1:
                 ax.semilogy(np.arange(1, len(h) + 1), h[:, 1:], color=_region_colour(r), alpha=0.3, lw=0.7)
         ax.set_xlabel("check (every few epochs)")
-        ax.set_ylabel("masked MSE (normalised depth)")
+        ax.set_ylabel("weighted MSE (normalised depth)")
         ax.legend(fontsize=7)
         return fig, True
     regions = sorted(data.models)
@@ -733,16 +803,24 @@ def _section_numbers(data: ReportData, numbers: dict[str, Any]) -> str:
     rows.insert(7, ("steps by status", numbers["steps"]))
     rows.insert(12, ("robot time by category (s)", numbers["robot_time_s"]))
     rows.insert(14, ("faults by kind", numbers["faults_by_kind"]))
+    if numbers["cloud"] is not None:
+        rows.insert(7, ("cloud", describe_cloud(numbers["cloud"])))
     out = _table(rows)
     errs = numbers["model_errors"]
     if errs:
-        out += "<h3>Model errors</h3><p>train RMSE: the fit at the end of training (model metadata); fit RMSE: " \
-               "model minus every measured averaged profile of the region (in-sample, mm).</p>"
+        out += f"<h3>Model errors</h3><p>Models: {_esc(data.models_source or 'not recorded')}. train RMSE: the " \
+               "fit at the end of training over the completed targets (model metadata); fit RMSE: model minus " \
+               "every measured averaged profile of the region (in-sample, mm). Support: where the training " \
+               "targets' samples came from (measured; mirrored from the same point at 180 - angle; the tip's " \
+               "sphere under a normal push; inferred from the 90-degree profile at the same normal load; " \
+               "unsupported, interpolated). Served depths are clipped to the depth bounds.</p>"
         out += _grid(["region", "members", "hidden", "profiles", "train RMSE (mm)", "fit RMSE (mm)",
-                      "depth scale (mm)", "model hash", "problem"],
+                      "depth scale (mm)", "model hash", "mirror", "support of the targets", "depth bounds (mm)",
+                      "problem"],
                      [[e.get("region"), e.get("members"), e.get("hidden_units"), e.get("n_profiles"),
                        e.get("train_rmse_mm"), e.get("fit_rmse_mm"), e.get("depth_scale_mm"), e.get("model_hash"),
-                       e.get("problem")] for e in errs])
+                       e.get("mirror"), json.dumps(e["support"]) if isinstance(e.get("support"), dict)
+                       else e.get("support"), e.get("depth_bounds_mm"), e.get("problem")] for e in errs])
     else:
         out += _not_yet("no region model has been trained")
     return out
@@ -755,6 +833,30 @@ def _per_region(figs: _Figures, data: ReportData, name: str, build: Callable[[Re
         return _not_yet(missing)
     return "".join(f"<h3>Region {r}</h3>" + figs.img(f"{name} region {r}", lambda r=r: build(data, r),
                                                      f"{missing} (region {r})") for r in regions)
+
+
+def _section_profiles(figs: _Figures, data: ReportData) -> str:
+    """The averaged profiles per region, with what the averaging dropped and why."""
+    regions = _regions_with_profiles(data)
+    if not regions:
+        return _not_yet("no labelled region has measured profiles")
+    out = []
+    for r in regions:
+        profs = [p for p in data.profiles if p.region == r]
+        counted = [p for p in profs if p.rejected]
+        note = ("The averaging recorded no rejection counts for these steps (measured before they were kept)."
+                if not counted else
+                f"The averaging of {len(counted)} steps dropped "
+                f"{sum(p.rejected.get('rejected_scan_samples', 0) for p in counted)} single-scan values far from "
+                f"the other scans, {sum(p.rejected.get('rejected_line_samples', 0) for p in counted)} averaged "
+                f"samples standing out of their neighbours along the line, "
+                f"{sum(p.rejected.get('implausible_samples', 0) for p in counted)} deeper than the tip went or "
+                f"above the surface, and {sum(p.rejected.get('off_face_samples', 0) for p in counted)} off the "
+                f"probed face (past a rim or onto another part).")
+        out.append(f"<h3>Region {r}</h3><p>{_esc(note)}</p>"
+                   + figs.img(f"profiles region {r}", lambda r=r: fig_region_profiles(data, r),
+                              f"no labelled region has measured profiles (region {r})"))
+    return "".join(out)
 
 
 def _section_disagreement(figs: _Figures, data: ReportData) -> str:
@@ -836,7 +938,7 @@ def render_html(data: ReportData) -> tuple[str, list[str]]:
         ("region-map", "Point cloud and sampling points by region (Fig. 7)",
          figs.img("region map", lambda: fig_region_map(data), "no point cloud has been acquired")),
         ("profiles", "Averaged profiles per region: increasing force, across angles (Figs. 8–12)",
-         _per_region(figs, data, "profiles", fig_region_profiles, "no labelled region has measured profiles")),
+         _section_profiles(figs, data)),
         ("measured-vs-model", "Measured versus modelled profiles (Figs. 13–17)",
          _per_region(figs, data, "measured vs model", fig_measured_vs_model, "no region model yet")
          if data.models else _not_yet("no region model has been trained")),

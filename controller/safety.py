@@ -1,4 +1,4 @@
-"""The check-and-stop path (DESIGN §5): safety limits over blocks of F/T samples.
+"""The check-and-stop path: safety limits over blocks of F/T samples.
 
 UR's own force limit has a 25 N tolerance, so probing limits are enforced here,
 from the ATI reading. :meth:`SafetyGuard.check_block` is vectorised over a block

@@ -19,7 +19,9 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .acquire import SweepResult, SweepSettings, acquire_cloud, line_footprint_mm
 from .atomic import json_default
+from .collision import shapes_from_cell
 from .config import SessionInputs, effective_motion_limits
 from .devices import Cell
 from .errors import DeviceError, ElastoprobeError, MotionRefused
@@ -215,7 +217,8 @@ class Session:
         n_before = len(j.events(kind="object_registered"))
         # Keyed below the cloud sweep's key (every planned step id lies far below both),
         # so a resumed session re-draws the same simulator noise.
-        pts_obj, robot_s, _ = self.sweep_object(SWEEP_STEP_KEY - 1 - n_before)
+        swept = self.sweep_object(SWEEP_STEP_KEY - 1 - n_before)
+        pts_obj, robot_s = swept.points_mm, swept.robot_s
         j.add_robot_time("sweep", robot_s)
         self.machine.fire("plan")           # from here the session may also pause
         cloud_base, _ = remove_table_below(before.apply(pts_obj), seed=self.seed)
@@ -242,19 +245,23 @@ class Session:
         _release_freed_memory()
         self._log("object_registered", **record)     # journal event too: resume starts from it
 
-    def sweep_object(self, key_step: int) -> tuple[np.ndarray, float, list[str]]:
+    def sweep_object(self, key_step: int) -> SweepResult:
         """Sweep the scanner over the object where it is believed to be.
 
-        Returns object-frame points (N, 3) mm, the robot seconds it took and the sweep
-        lines refused by motion validation. The simulator's noise is keyed by
-        ``key_step``; a trip during the sweep follows the fault policy and the sweep
-        starts over (a partial sweep is never used).
+        Returns the object-frame points, the robot seconds it took, the sweep lines
+        refused or planned another way, and the top surface left unseen. The simulator's
+        noise is keyed by ``key_step``; a trip during the sweep follows the fault policy and
+        the sweep starts over (a partial sweep is never used).
         """
-        from .acquire import acquire_cloud
-
         assert self.cell is not None
         cell, plan = self.cell, self.inputs.plan
-        verts = cell.base_to_object.apply(np.asarray(self.world.object_mesh.vertices))
+        spec = self.inputs.cell
+        footprint = line_footprint_mm(cell.tcp_to_scanner, spec.scanner.field_of_view_deg, spec.scanner.max_range_mm,
+                                      plan.cloud.sweep_height_mm, shapes_from_cell(spec.tool),
+                                      spec.tool.tip_radius_mm, spec.scanner.samples_per_profile)
+        settings = SweepSettings(plan.cloud.sweep_spacing_mm, plan.cloud.sweep_height_mm, footprint,
+                                 max_tilt_deg=plan.sampling.max_tilt_deg, max_points=plan.cloud.max_points,
+                                 seed=self.seed)
         # Counted from the journal, not from zero in each process: a fault that paused a
         # sweep must not be met again by the resumed one.
         attempt = self._sweep_faults()
@@ -262,9 +269,7 @@ class Session:
         while True:
             cell.begin_step((self.seed, key_step, attempt))
             try:
-                return acquire_cloud(self.executor, verts.min(axis=0), verts.max(axis=0),
-                                     plan.cloud.sweep_spacing_mm, plan.cloud.sweep_height_mm,
-                                     max_points=plan.cloud.max_points, seed=self.seed)
+                return acquire_cloud(self.executor, self.world.object_mesh, settings)
             except (ProbeFault, DeviceError) as exc:
                 # A device call outside a guarded motion (the arm's status while planning a
                 # leg) is a fault of the sweep too: on the real cell the UR link's child
@@ -371,6 +376,7 @@ class Session:
         executor = ProbeExecutor(self.cell, machine, settings, validator, top_z,
                                  should_stop=lambda: self.flags.stop_now, placement=placement)
         executor.on_placement = self._on_placement
+        executor.on_regulated = lambda record: self._log("force_regulated", **record)
         return executor
 
     def _on_placement(self, what: str, estimate: dict[str, Any]) -> None:
@@ -466,8 +472,9 @@ class Session:
                 return
             self._current_step = data.step_id
             attempt = j.begin_step(data.step_id)
-            profile, x = phases.step_profile(self, target, data)
-            result = StepResult.from_step_data(data, profile, x)
+            measured = phases.measure_step_data(self, target, data)
+            result = StepResult.from_step_data(data, measured.depth_mm, phases.session_grid(self).x_mm,
+                                               summary=measured.facts())
             self._inject_disk_error(data.step_id, retry)
             j.commit_step(data.step_id, attempt, result)
             step_time += data.robot_time_s
@@ -544,8 +551,8 @@ class Session:
         open_steps = [r for r in group if j.step(r.step_id).status not in ("done", "skipped")]
         step_id = open_steps[0].step_id if open_steps else None
         if fault.kind == "operator_stop":
-            self._log("operator_stop", step=step_id)
-            raise SessionPaused("stopped by the operator")
+            self._log("operator_stop", step=step_id, message=fault.message)
+            raise SessionPaused(f"stopped by the operator: {fault.message}")
         policy = self.inputs.plan.fault_policy.for_kind(fault.kind)
         retries_so_far = self._retry_index(step_id) if step_id is not None else 0
         action = policy.action

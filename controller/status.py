@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from .coverage import cloud_summary, describe_cloud
 from .journal import Journal
 from .locking import session_lock_holder
 
@@ -25,6 +26,7 @@ def snapshot(session_dir: Path) -> dict[str, Any]:
         transitions = j.transitions()
         faults = j.faults()
         phases = j.phases()
+        cloud = j.phase("cloud", 0)
     finally:
         j.close()
     done = counts.get("done", 0)
@@ -42,6 +44,7 @@ def snapshot(session_dir: Path) -> dict[str, Any]:
         "phase": f"{phases[-1]['name']}[{phases[-1]['round']}]" if phases else None,
         "steps": counts,
         "steps_total": total,
+        "cloud": cloud_summary(cloud.outputs) if cloud is not None else None,
         "robot_hours": round(robot["total"] / 3600.0, 4),
         "eta_robot_hours": round(per_step * open_steps / 3600.0, 3) if per_step is not None else None,
         "faults": [{"id": f.fault_id, "kind": f.kind, "step": f.step_id, "action": f.policy_action,
@@ -57,6 +60,8 @@ def _print(snap: dict[str, Any]) -> None:
     print(f"  state {snap['state']}, phase {snap['phase']}")
     print(f"  steps: {s.get('done', 0)} done, {s.get('planned', 0)} planned, {s.get('in_progress', 0)} in progress, "
           f"{s.get('failed', 0)} failed (to retry), {s.get('skipped', 0)} skipped, of {snap['steps_total']}")
+    if snap["cloud"] is not None:
+        print(f"  cloud: {describe_cloud(snap['cloud'])}")
     eta = snap["eta_robot_hours"]
     print(f"  robot time {snap['robot_hours']:.2f} h" + (f", ETA {eta:.2f} h of robot time" if eta is not None else ""))
     if snap["faults"]:

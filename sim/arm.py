@@ -1,23 +1,28 @@
-"""Simulated UR5e-like arm (implements :class:`~elastoprobe.controller.devices.Arm`).
+"""Simulated UR5e-like arm: device primitives in virtual time, supervised by the controller's force loop.
 
 Kinematics come from :mod:`elastoprobe.controller.kinematics`. Every command is a
 straight TCP path ``p(u) = p0 + u v``, ``R(u) = R0 exp(u w)`` and a motion law u(t)
-evaluated in closed form over a sub-chunk of sample instants (no per-sample Python):
+evaluated in closed form over a sub-chunk of sample instants (no per-sample Python).
+
+The primitives (what a UR controller offers):
 
 - ``move_linear``: refused (MotionRefused) above the TCP speed/acceleration limits or when
   IK along the straight line fails (reach, joint limits, singularity margins, branch
   flips); timed like a UR moveL (one trapezoid in the path parameter, slowed by the
   rotation and the joint-speed limits, the rules of ``kinematics.move_duration_s``).
-- ``seek_contact``: a trapezoid over the search distance at the given speed; the first
-  F/T sample whose |F| (the tared reading, what the driver sees) reaches the threshold
-  stops it (CONTACT); reaching the end is NO_CONTACT.
-- ``regulate_force``: a PI outer loop on the simulated F/T reading commanding the TCP
-  speed along the direction, every ``force_loop_period_us`` (10 ms, as a speedL-based
-  outer loop); the reference ramps at the rate, DONE once within tolerance for
-  ``settle_updates`` loop periods, then it keeps holding (foam creeps: the integrator
-  keeps pushing). The loop's gain follows an online estimate of the contact stiffness
-  (N/mm from successive (dF, du) pairs), because rubber is ~50x stiffer than foam.
+- ``speed_linear``: speedL along an IK-validated straight line: the TCP speed ramps to the
+  commanded one at the given acceleration and keeps it.
 - ``stop``: decelerates along the current path at ``stop_decel_mm_s2``.
+
+Contact search and force regulation are not this arm's: they are
+:class:`~elastoprobe.controller.forceloop.ForceSupervisor`'s, the same code and gains (the
+cell file's ``force_loop:``) that run in the real cell's hardware process. ``seek_contact``
+and ``regulate_force`` hand the supervisor its skill and run its speed commands on the
+primitives; the world calls the supervisor where the data arrives, in virtual time: every
+sub-chunk's F/T samples go to its contact check (a contact stops the arm at its sample),
+sub-chunks are cut at each regulation update (every ``ForceLoopGains.period_s``), and the
+world's guard asks it whether a crossing while a trip is latched belongs to a motion that
+unloads (:meth:`SimArm._sim_lets_through`).
 
 A new command starts from rest at the current pose (a real UR blends; the controller
 never supersedes a fast motion). Status joints are interpolated between IK waypoints
@@ -39,8 +44,11 @@ import numpy as np
 
 from elastoprobe.controller.devices import ArmStatus, DeviceIdentity, MotionState, Trip
 from elastoprobe.controller.errors import MotionRefused
+from elastoprobe.controller.forceloop import (ForceLoopGains, ForceSupervisor, Regulation, SupervisedMotion, Verdict,
+                                              measured_force_n)
 from elastoprobe.controller.geometry import Pose, matrix_to_rotvec, rotvec_to_matrix
 from elastoprobe.controller.kinematics import ArmModel, forward, inverse, linear_path_joints
+from elastoprobe.controller.safety import SafetyLimits
 
 from .world import US_PER_S, ArmPlan
 
@@ -160,32 +168,10 @@ def ramp_to_u(t_s: np.ndarray, u0: float, v0: float, v1: float, accel: float) ->
 
 # --------------------------------------------------------------------------- motions
 
-class SimMotion:
-    """Handle of one asynchronous command (implements the Motion protocol)."""
-
-    def __init__(self, kind: str, state: MotionState = MotionState.RUNNING) -> None:
-        self._kind = kind
-        self._state = state
-        self._progress = 0.0 if state == MotionState.RUNNING else 1.0
-
-    @property
-    def kind(self) -> str:
-        return self._kind
-
-    def state(self) -> MotionState:
-        return self._state
-
-    def progress(self) -> float:
-        return float(min(max(self._progress, 0.0), 1.0))
-
-    def _finish(self, state: MotionState) -> None:
-        if self._state == MotionState.RUNNING or (self._kind == "regulate_force" and self._state == MotionState.DONE):
-            self._state = state
-
-
 @dataclass
 class _Law:
-    """A motion law u(t) from t0 on (µs); kind: trapezoid | ramp | stop | hold."""
+    """A motion law u(t) from t0 on (µs); kind: trapezoid | ramp | stop | hold. ``end_us``: when
+    the law's motion ends (a move arrives; a contact search has travelled its distance)."""
 
     kind: str
     t0_us: int
@@ -208,45 +194,22 @@ class _Law:
         return np.full(t.shape, self.u0), np.zeros(t.shape)
 
 
-@dataclass
-class _Regulator:
-    """PI force loop state (reset at every new command and every new contact)."""
-
-    direction: np.ndarray
-    target_n: float
-    rate_n_s: float
-    start_n: float
-    t0_us: int
-    next_update_us: int
-    stiffness_n_mm: float = 2.0
-    integral: float = 0.0
-    last_force_n: float | None = None
-    last_u: float = 0.0
-    in_band: int = 0
-    done: bool = False
-
-    def reference_n(self, t_us: int) -> float:
-        elapsed = (t_us - self.t0_us) / US_PER_S
-        if self.target_n >= self.start_n:
-            return min(self.target_n, self.start_n + self.rate_n_s * elapsed)
-        return max(self.target_n, self.start_n - self.rate_n_s * elapsed)
+def ramp_reach_s(distance: float, rate: float, accel: float) -> float:
+    """Time (s) for a ramp from rest to ``rate`` at ``accel`` to cover ``distance`` (> 0)."""
+    t_ramp = rate / accel
+    d_ramp = 0.5 * accel * t_ramp * t_ramp
+    if distance <= d_ramp:
+        return math.sqrt(2.0 * distance / accel)
+    return t_ramp + (distance - d_ramp) / rate
 
 
 @dataclass(frozen=True)
 class ArmSettings:
-    """Behaviour of the simulated arm (defaults: UR5e-like)."""
+    """Behaviour of the simulated arm as a device (defaults: UR5e-like). The force loop's
+    tuning is the cell's (``ForceLoopGains``), not the arm's."""
 
     stop_decel_mm_s2: float = 2500.0        # stopL / safety stop deceleration
     halt_decel_mm_s2: float = 8000.0        # protective / emergency stop (category 1)
-    seek_accel_mm_s2: float = 500.0
-    force_loop_period_us: int = 10_000
-    regulate_max_speed_mm_s: float = 15.0
-    regulate_accel_mm_s2: float = 500.0
-    regulate_loop_gain: float = 0.3         # fraction of the force error corrected per loop period
-    regulate_integral_per_s: float = 1.5
-    regulate_tolerance_n: float = 0.1
-    regulate_tolerance_rel: float = 0.02
-    settle_updates: int = 10
     regulate_range_mm: tuple[float, float] = (-30.0, 60.0)   # validated line around the start
     ik_step_mm: float = 20.0
     ik_step_deg: float = 10.0
@@ -254,37 +217,58 @@ class ArmSettings:
     rotation_equiv_mm_per_rad: float = 100.0
 
 
+# speedL lines are validated (IK) over this range around the start, tried from long to short.
+SPEED_LINE_RANGES_MM = ((-150.0, 200.0), (-60.0, 100.0), (-20.0, 40.0))
+
+
 class SimArm:
-    """The simulated arm: commands, status bits, the protective stop and recovery."""
+    """The simulated arm: primitives, status bits, the protective stop and recovery; the
+    contact search and force regulation of :class:`ForceSupervisor` run on it.
+
+    ``gains``: the cell's force loop; ``limits``: the cell's safety limits (the supervisor's
+    trip policy); ``tcp_to_sensor_rotation``: the believed tcp <- sensor rotation.
+    """
 
     def __init__(self, world: "SimWorld", model: ArmModel, home_joints_rad: np.ndarray,
-                 settings: ArmSettings = ArmSettings(), serial: str = "SIM-UR5E-0001") -> None:
+                 settings: ArmSettings = ArmSettings(), serial: str = "SIM-UR5E-0001", *,
+                 gains: ForceLoopGains = ForceLoopGains(), limits: SafetyLimits | None = None,
+                 tcp_to_sensor_rotation: np.ndarray | None = None) -> None:
         self._world = world
         self._model = model
         self._settings = settings
         self._serial = serial
+        self.gains = gains
+        self.supervisor = ForceSupervisor(gains, limits if limits is not None else world.limits, tcp_to_sensor_rotation)
+        self._r_tcp_sensor = np.eye(3) if tcp_to_sensor_rotation is None else np.asarray(tcp_to_sensor_rotation, float)
+        self.loop_period_us = int(round(gains.period_s * US_PER_S))
         q = np.asarray(home_joints_rad, float)
         pose = forward(model, q)
         self._path = _Path(pose.position_mm, np.zeros(3), pose.rotation, np.zeros(3), np.zeros(1), q[None, :])
         self._law = _Law("hold", world.now_us, 0.0)
         self._u = 0.0
         self._du = 0.0
-        self._motion: SimMotion | None = None
-        self._regulator: _Regulator | None = None
-        self._seek_threshold_n: float | None = None
+        self._motion: SupervisedMotion | None = None
+        self._speed_line: np.ndarray | None = None      # direction of the speedL line in use (primitive)
+        self._reg_t0_us = 0
+        self._next_update_us = 0
         self._last_plan_u: np.ndarray | None = None
         self._last_plan_du: np.ndarray | None = None
         self._move_target: Pose | None = None
-        self._motion_started_us = world.now_us
         self._protective_since_us: int | None = None
         self._estop = False
         self._connected = True
         self._program_running = True
 
+    @property
+    def _regulator(self) -> Regulation | None:
+        """The regulation in flight (the supervisor's)."""
+        return self.supervisor.regulation
+
     # ------------------------------------------------------------------ Arm protocol
     def identity(self) -> DeviceIdentity:
         return DeviceIdentity("arm", "UR5e (simulated)", self._serial, "5.15.0-sim",
-                              {"control_period_ms": self._world.control_period_us / 1000.0})
+                              {"control_period_ms": self._world.control_period_us / 1000.0,
+                               "force_loop": self.supervisor.identity()})
 
     def status(self) -> ArmStatus:
         """The arm's state bits; without a connection, the last known pose and connected=False."""
@@ -302,7 +286,7 @@ class SimArm:
         seed = self._path.joints(self._u) if seed_joints_rad is None else seed_joints_rad
         return inverse(self._model, tcp_pose, seed)
 
-    def move_linear(self, target: Pose, speed_mm_s: float, accel_mm_s2: float) -> SimMotion:
+    def move_linear(self, target: Pose, speed_mm_s: float, accel_mm_s2: float) -> SupervisedMotion:
         refused = self._refuse_if_not_ready("move_linear")
         if refused is not None:
             return refused
@@ -324,13 +308,51 @@ class SimArm:
         rate, accel = self._move_rates(path, table, speed_mm_s, accel_mm_s2)
         now = self._world.now_us
         total_us = int(math.ceil(trapezoid_total_s(1.0, rate, accel) * US_PER_S))
-        motion = self._start(SimMotion("move_linear"), path,
-                             _Law("trapezoid", now, 0.0, 1.0, rate=rate, accel=accel, end_us=now + total_us))
+        motion = self.supervisor.begin_move(start.position_mm, target.position_mm)
+        self._start(motion, path, _Law("trapezoid", now, 0.0, 1.0, rate=rate, accel=accel, end_us=now + total_us))
         self._move_target = target
         return motion
 
+    def speed_linear(self, velocity_mm_s: np.ndarray, accel_mm_s2: float) -> None:
+        """speedL (primitive): the TCP speed ramps to ``velocity_mm_s`` (base frame) at
+        ``accel_mm_s2`` and keeps it.
+
+        Along the line in use (the same or the opposite direction) only the rate changes; a
+        new direction starts a new line from the current pose, IK-validated over the longest
+        of ``SPEED_LINE_RANGES_MM`` that is reachable (a protective stop if none is). Zero
+        decelerates to rest on the line in use."""
+        self._connected_or_raise("speed_linear")
+        if self._estop or self._protective_since_us is not None or not self._program_running:
+            return
+        now = self._world.now_us
+        accel = max(float(accel_mm_s2), 1.0)
+        v = np.asarray(velocity_mm_s, float).reshape(3)
+        speed = float(np.linalg.norm(v))
+        on_line = self._speed_line is not None and self._motion is not None and self._motion.active
+        if speed < 1e-9:
+            if on_line:
+                self._set_rate(0.0, accel)
+            else:
+                self._halt(now, accel)
+            return
+        e = v / speed
+        if on_line and abs(float(e @ self._speed_line)) > 1.0 - 1e-9:
+            self._set_rate(speed * math.copysign(1.0, float(e @ self._speed_line)), accel)
+            return
+        for lo, hi in SPEED_LINE_RANGES_MM:
+            try:
+                path = self._line_path(e, lo, hi)
+                break
+            except MotionRefused:
+                continue
+        else:
+            self._sim_protective_stop(now, "speedL: no reachable straight line along the commanded direction")
+            return
+        self._start(SupervisedMotion("speed_linear", e), path, _Law("ramp", now, 0.0, v0=0.0, v1=speed, accel=accel))
+        self._speed_line = e
+
     def seek_contact(self, direction: np.ndarray, speed_mm_s: float, contact_force_n: float,
-                     max_distance_mm: float) -> SimMotion:
+                     max_distance_mm: float) -> SupervisedMotion:
         refused = self._refuse_if_not_ready("seek_contact")
         if refused is not None:
             return refused
@@ -339,17 +361,21 @@ class SimArm:
         if contact_force_n <= 0.0 or max_distance_mm <= 0.0:
             raise MotionRefused("seek_contact needs a positive force threshold and distance")
         e = _unit(direction)
-        path = self._line_path(e, 0.0, float(max_distance_mm))
-        accel = self._settings.seek_accel_mm_s2
+        accel = self.gains.seek_accel_mm_s2
+        # Validated beyond the search distance by the stop that follows it (and the sample
+        # the distance is reached at).
+        over_mm = speed_mm_s * speed_mm_s / (2.0 * self._settings.stop_decel_mm_s2) \
+            + speed_mm_s * self._world.sample_period_us / US_PER_S
+        path = self._line_path(e, 0.0, float(max_distance_mm) + over_mm)
+        start = self._path.pose(self._u)
+        motion = self.supervisor.begin_seek(e, speed_mm_s, contact_force_n, max_distance_mm, start.position_mm)
         now = self._world.now_us
-        total_us = int(math.ceil(trapezoid_total_s(max_distance_mm, speed_mm_s, accel) * US_PER_S))
-        motion = self._start(SimMotion("seek_contact"), path,
-                             _Law("trapezoid", now, 0.0, float(max_distance_mm), rate=speed_mm_s, accel=accel,
-                                  end_us=now + total_us))
-        self._seek_threshold_n = float(contact_force_n)
+        reach_us = int(math.ceil(ramp_reach_s(float(max_distance_mm), float(speed_mm_s), accel) * US_PER_S))
+        self._start(motion, path, _Law("ramp", now, 0.0, v0=0.0, v1=float(speed_mm_s), accel=accel,
+                                       end_us=now + reach_us))
         return motion
 
-    def regulate_force(self, direction: np.ndarray, target_force_n: float, rate_n_s: float) -> SimMotion:
+    def regulate_force(self, direction: np.ndarray, target_force_n: float, rate_n_s: float) -> SupervisedMotion:
         refused = self._refuse_if_not_ready("regulate_force")
         if refused is not None:
             return refused
@@ -359,17 +385,22 @@ class SimArm:
         lo, hi = self._settings.regulate_range_mm
         path = self._line_path(e, lo, hi)
         now = self._world.now_us
-        motion = self._start(SimMotion("regulate_force"), path, _Law("hold", now, 0.0))
-        self._regulator = _Regulator(e, float(target_force_n), float(rate_n_s), self._measured_force_n(), now,
-                                     next_update_us=now, last_u=0.0)
+        motion = self.supervisor.begin_regulation(e, target_force_n, rate_n_s, now / US_PER_S,
+                                                  self._measured_force_n())
+        self._start(motion, path, _Law("hold", now, 0.0))
+        self._speed_line = e
+        self._reg_t0_us = self._next_update_us = now
         return motion
 
-    def stop(self) -> None:
+    def stop(self, decel_mm_s2: float | None = None) -> None:
+        """Stop any motion now at ``decel_mm_s2`` (default: the arm's stop deceleration)."""
         if not self._connected_or_raise("stop"):
             return
-        self._halt(self._world.now_us, self._settings.stop_decel_mm_s2)
+        self._halt(self._world.now_us, self._settings.stop_decel_mm_s2 if decel_mm_s2 is None
+                   else max(float(decel_mm_s2), 1.0))
+        self.supervisor.stopped()
         if self._motion is not None:
-            self._motion._finish(MotionState.STOPPED)
+            self._motion.finish(MotionState.STOPPED, "stop requested")
 
     def trip(self) -> Trip | None:
         return self._world.trip
@@ -378,10 +409,12 @@ class SimArm:
         self._world.guard_flush()
         if self._world.trip is None:
             self._world.guard.rearm()
+            self.supervisor.rearmed()
             return True
         if not self._world.guard.rearm():
             return False
         self._world.clear_trip()
+        self.supervisor.rearmed()
         return True
 
     def recover_protective_stop(self) -> bool:
@@ -404,10 +437,10 @@ class SimArm:
         return True
 
     # ------------------------------------------------------------------ command helpers
-    def _refuse_if_not_ready(self, what: str) -> SimMotion | None:
+    def _refuse_if_not_ready(self, what: str) -> SupervisedMotion | None:
         self._connected_or_raise(what)
         if self._estop or self._protective_since_us is not None or not self._program_running:
-            return SimMotion(what, MotionState.FAULT)
+            return SupervisedMotion(what, state=MotionState.FAULT)
         return None
 
     def _connected_or_raise(self, what: str) -> bool:
@@ -458,16 +491,18 @@ class SimArm:
             return 1e6, 1e9       # no motion at all
         return min(rates), min(accels)
 
-    def _start(self, motion: SimMotion, path: _Path, law: _Law) -> SimMotion:
-        if self._motion is not None:
-            self._motion._finish(MotionState.STOPPED)
+    def _start(self, motion: SupervisedMotion, path: _Path, law: _Law) -> SupervisedMotion:
+        if self._motion is not None and self._motion is not motion:
+            self._motion.finish(MotionState.STOPPED, "superseded")
         self._path, self._law, self._u, self._du = path, law, float(law.u0), 0.0
         self._motion = motion
-        self._motion_started_us = self._world.now_us
-        self._regulator = None
-        self._seek_threshold_n = None
         self._move_target = None
+        self._speed_line = None
         return motion
+
+    def _set_rate(self, rate: float, accel_mm_s2: float) -> None:
+        """A new speed along the line in use (mm/s of the path parameter), from the current state."""
+        self._law = _Law("ramp", self._world.now_us, self._u, v0=self._du, v1=rate, accel=accel_mm_s2)
 
     def _halt(self, t_us: int, decel_mm_s2: float) -> None:
         """Decelerate along the current path from the current rate (motion law 'stop')."""
@@ -475,23 +510,15 @@ class SimArm:
         if self._path.speed_scale < 1e-9 and np.linalg.norm(self._path.w) > 0:
             scale = self._settings.rotation_equiv_mm_per_rad * float(np.linalg.norm(self._path.w))
         self._law = _Law("stop", t_us, self._u, v0=self._du, accel=decel_mm_s2 / scale)
-        self._regulator = None
-        self._seek_threshold_n = None
 
-    def _measured_force_n(self, samples: int = 10) -> float:
-        """|mean| of the latest tared F/T samples (what a driver's force loop reads)."""
-        recent = self._world.ft._sim_recent(samples)
-        if recent is None or recent.shape[0] == 0:
+    def _measured_force_n(self, samples: int | None = None) -> float:
+        """|mean| of the latest tared F/T samples (what the force loop reads)."""
+        recent = self._world.ft._sim_recent(self.gains.force_window if samples is None else samples)
+        if recent is None:
             return 0.0
-        # The mean and norm spelled out (numpy's mean is a sum then a division; norm is
-        # sqrt(x . x)): the same numbers without their Python-level overhead.
-        mean = np.add.reduce(recent, axis=0) / recent.shape[0]
-        return math.sqrt(float(mean.dot(mean)))
+        return measured_force_n(recent)
 
     # ------------------------------------------------------------------ world hooks (simulator internals)
-    def _sim_motion_started_after(self, t_us: int) -> bool:
-        return self._motion is not None and self._motion_started_us > t_us
-
     def _sim_tcp_pose(self) -> Pose:
         return self._path.pose(self._u)
 
@@ -500,9 +527,8 @@ class SimArm:
         return pose.position_mm + pose.rotation @ tip_offset_tcp_mm
 
     def _sim_bound_end(self, now_us: int, end_us: int) -> int:
-        reg = self._regulator
-        if reg is not None:
-            nxt = reg.next_update_us if reg.next_update_us > now_us else reg.next_update_us + self._settings.force_loop_period_us
+        if self.supervisor.regulation is not None:
+            nxt = self._next_update_us if self._next_update_us > now_us else self._next_update_us + self.loop_period_us
             return min(end_us, nxt)
         law = self._law
         if law.end_us is not None and now_us < law.end_us < end_us:
@@ -515,44 +541,53 @@ class SimArm:
         """True when the arm only holds a regulated force: a finished regulate_force whose
         loop update is due at ``now_us``, on a straight line path without rotation (the
         world may then run whole force-loop periods in one batch, :meth:`SimWorld._hold_span`)."""
-        reg, motion = self._regulator, self._motion
-        return (reg is not None and motion is not None and reg.next_update_us == now_us
+        reg, motion = self.supervisor.regulation, self._motion
+        return (reg is not None and motion is not None and self._next_update_us == now_us
                 and motion.kind == "regulate_force" and motion.state() == MotionState.DONE
                 and not self._path._rotating and self._path.u_table.size > 1
                 and self._protective_since_us is None and not self._estop and self._program_running)
 
-    def _sim_hold_commit(self, reg: "_Regulator", t0_us: int, u0: float, v0: float, v1: float,
+    def _sim_hold_commit(self, reg: Regulation, t0_us: int, u0: float, v0: float, v1: float,
                          u: float, du: float) -> None:
-        """Take the state a batched hold ended in: the regulator, the last loop period's law
-        (from ``t0_us``: u0, rate v0 -> v1), and u, du/dt at its last sample."""
-        self._regulator = reg
-        self._law = _Law("ramp", t0_us, u0, v0=v0, v1=v1, accel=self._settings.regulate_accel_mm_s2)
+        """Take the state a batched hold ended in: the regulation (run on a copy by the world),
+        the last loop period's law (from ``t0_us``: u0, rate v0 -> v1), and u, du/dt at its
+        last sample."""
+        sup = self.supervisor
+        before = sup.regulation.updates if sup.regulation is not None else 0
+        sup.regulation = reg
+        sup.counts.updates += reg.updates - before
+        self._next_update_us = t0_us + self.loop_period_us
+        self._law = _Law("ramp", t0_us, u0, v0=v0, v1=v1, accel=self.gains.accel_mm_s2)
         self._u, self._du = float(u), float(du)
 
+    def _force_loop_speed(self, reg: Regulation, t_us: int, force: float, u: float) -> float:
+        """One update of ``reg`` (the supervisor's law) at ``t_us`` from the measured |F| (N)
+        and the path position u (mm): the commanded speed (mm/s). Changes only ``reg``, so the
+        world's batched hold (:meth:`SimWorld._hold_span`) runs it on a copy."""
+        return reg.update((t_us - self._reg_t0_us) / US_PER_S, force, u)
+
     def _sim_plan(self, ts_us: np.ndarray) -> ArmPlan:
-        reg = self._regulator
-        if reg is not None and self._world.now_us >= reg.next_update_us:
-            self._regulate_update(self._world.now_us)
+        now = self._world.now_us
+        if self.supervisor.regulation is not None and now >= self._next_update_us:
+            self._regulate_update(now)
         u, du = self._law.evaluate(ts_us)
         self._last_plan_u, self._last_plan_du = u, du
         return ArmPlan(self._path.positions(u), self._path.rotations(u), du, self._path.speed_scale)
 
     def _sim_event(self, ts_us: np.ndarray, samples) -> int | None:
-        """Index of the first sample that ends the current motion (seek threshold), or None."""
-        if self._seek_threshold_n is None or self._motion is None or self._motion.state() != MotionState.RUNNING:
+        """Index of the first sample that ends a contact search (the supervisor's threshold), or None."""
+        if self.supervisor.search is None:
             return None
         mags = samples.magnitudes_n()
         if mags is None:
             return None
-        hit = np.flatnonzero(mags >= self._seek_threshold_n)
-        return int(hit[0]) if hit.size else None
+        return self.supervisor.first_contact(mags)
 
     def _sim_on_event(self, t_us: int) -> None:
-        """The seek threshold was reached at the last committed sample: stop, CONTACT."""
-        if self._motion is not None and self._motion.kind == "seek_contact":
+        """The contact search met its threshold at the last committed sample: stop, CONTACT."""
+        if self.supervisor.search is not None:
             self._halt(t_us, self._settings.stop_decel_mm_s2)
-            self._motion._finish(MotionState.CONTACT)
-            self._motion._progress = 1.0
+            self.supervisor.contact(f"contact at t={t_us / US_PER_S:.4f} s")
 
     def _sim_commit(self, ts_us: np.ndarray, last: int) -> None:
         self._u = float(self._last_plan_u[last])
@@ -563,23 +598,27 @@ class SimArm:
             return
         if law.kind == "trapezoid":
             span = law.u1 - law.u0
-            motion._progress = (self._u - law.u0) / span if span else 1.0
+            motion.set_progress((self._u - law.u0) / span if span else 1.0)
             if law.end_us is not None and t >= law.end_us:
                 self._u, self._du = law.u1, 0.0
                 self._law = _Law("hold", t, law.u1)
-                if motion.kind == "seek_contact":
-                    motion._finish(MotionState.NO_CONTACT)
-                    self._seek_threshold_n = None
-                else:
-                    motion._finish(MotionState.DONE)
-                    target = self._move_target
-                    if motion.kind == "move_linear" and target is not None:
-                        # Hold exactly the commanded pose (bit for bit, whatever the path's rounding).
-                        q = self._path.joints_table[-1:]
-                        self._path = _Path(target.position_mm, np.zeros(3), target.rotation, np.zeros(3),
-                                           np.zeros(1), q)
-                        self._u, self._du = 0.0, 0.0
-                        self._law = _Law("hold", t, 0.0)
+                motion.finish(MotionState.DONE)
+                target = self._move_target
+                if motion.kind == "move_linear" and target is not None:
+                    # Hold exactly the commanded pose (bit for bit, whatever the path's rounding).
+                    q = self._path.joints_table[-1:]
+                    self._path = _Path(target.position_mm, np.zeros(3), target.rotation, np.zeros(3),
+                                       np.zeros(1), q)
+                    self._u, self._du = 0.0, 0.0
+                    self._law = _Law("hold", t, 0.0)
+        elif law.kind == "ramp" and self.supervisor.search is not None:
+            search = self.supervisor.search
+            # At the law's end instant the search distance is reached by construction (rounded
+            # up onto the sample grid): float rounding must not leave it a hair short.
+            reached = law.end_us is not None and t >= law.end_us
+            travelled = max(self._u, search.max_distance_mm) if reached else self._u
+            if self.supervisor.search_exhausted(search.start_mm + travelled * search.direction):
+                self._halt(t, self._settings.stop_decel_mm_s2)
         elif law.kind == "stop" and self._du == 0.0:
             self._law = _Law("hold", t, self._u)
         lo, hi = self._path.u_table[0], self._path.u_table[-1]
@@ -588,32 +627,39 @@ class SimArm:
 
     def _sim_contact_began(self) -> None:
         """A new contact: the force loop's internal state starts afresh."""
-        reg = self._regulator
-        if reg is not None:
-            reg.integral = 0.0
-            reg.last_force_n = None
-            reg.in_band = 0
+        self.supervisor.contact_began()
+
+    def _sim_lets_through(self, trip: Trip, peak_force_n: float) -> bool:
+        """While a trip is latched: does the supervisor let this crossing through (a motion
+        that unloads the contact)?"""
+        return self.supervisor.verdict(trip, peak_force_n) == Verdict.LET_THROUGH
 
     def _sim_halt(self, t_us: int, reason: str) -> None:
         """Stopped by the safety path (a trip) at ``t_us``."""
         self._halt(t_us, self._settings.stop_decel_mm_s2)
+        trip = self._world.trip
+        if trip is None:
+            self.supervisor.stopped(reason)
+            return
+        force_base = None
+        if trip.raw is not None and len(trip.raw):
+            force_base = self._path.pose(self._u).rotation @ (self._r_tcp_sensor @ trip.raw.force_n[-1])
+        self.supervisor.tripped(trip, self._world._latched_force_n, force_base)
         if self._motion is not None:
-            self._motion._finish(MotionState.TRIPPED)
+            self._motion.finish(MotionState.TRIPPED, trip.message)
 
     def _sim_protective_stop(self, t_us: int, reason: str) -> None:
         self._halt(t_us, self._settings.halt_decel_mm_s2)
         if self._protective_since_us is None:
             self._protective_since_us = t_us
         self._program_running = False
-        if self._motion is not None:
-            self._motion._finish(MotionState.FAULT)
+        self._fault(reason)
 
     def _sim_emergency_stop(self, t_us: int) -> None:
         self._halt(t_us, self._settings.halt_decel_mm_s2)
         self._estop = True
         self._program_running = False
-        if self._motion is not None:
-            self._motion._finish(MotionState.FAULT)
+        self._fault("emergency stop")
 
     def _sim_clear_estop(self) -> None:
         """The operator released the e-stop: the program stays stopped until recovered."""
@@ -625,56 +671,24 @@ class SimArm:
         """RTDE lost: the robot-side watchdog stops the program."""
         self._halt(t_us, self._settings.stop_decel_mm_s2)
         self._program_running = False
-        if self._motion is not None:
-            self._motion._finish(MotionState.FAULT)
+        self._fault("connection lost")
 
     def _sim_connection_restored(self) -> None:
         self._program_running = self._protective_since_us is None and not self._estop
 
-    # ------------------------------------------------------------------ the force loop
+    def _fault(self, note: str) -> None:
+        self.supervisor.faulted(note)
+        if self._motion is not None:
+            self._motion.finish(MotionState.FAULT, note)
+
+    # ------------------------------------------------------------------ the force loop's updates
     def _regulate_update(self, t_us: int) -> None:
-        reg = self._regulator
-        s = self._settings
-        speed = self._force_loop_speed(reg, t_us, self._measured_force_n(), self._u)
-        self._law = _Law("ramp", t_us, self._u, v0=self._du, v1=speed, accel=s.regulate_accel_mm_s2)
-        motion = self._motion
-        if motion is not None and motion.state() == MotionState.RUNNING:
-            motion._progress = reg.last_force_n / reg.target_n if reg.target_n > 0 else 1.0
-            if reg.in_band >= s.settle_updates:
-                motion._finish(MotionState.DONE)
-                motion._progress = 1.0
-
-    def _force_loop_speed(self, reg: _Regulator, t_us: int, force: float, u: float) -> float:
-        """One update of the PI force loop at ``t_us`` from the measured |F| (N) and the
-        path position u (mm); returns the commanded speed (mm/s) and advances ``reg``.
-
-        Pure in the arm's state (only ``reg`` changes), so the world's batched hold
-        (:meth:`SimWorld._hold_span`) runs it on a copy of the regulator."""
-        s = self._settings
-        period_s = s.force_loop_period_us / US_PER_S
-        if reg.last_force_n is not None:
-            du = u - reg.last_u
-            df = force - reg.last_force_n
-            # Online stiffness (N/mm) from successive loop periods while moving into the load.
-            if abs(du) > 2e-3 and force > 0.3 and df * du > 0:
-                k_obs = min(max(df / du, 0.05), 1000.0)
-                reg.stiffness_n_mm = math.exp(0.8 * math.log(reg.stiffness_n_mm) + 0.2 * math.log(k_obs))
-        reg.last_force_n, reg.last_u = force, u
-        ref = reg.reference_n(t_us)
-        ref_next = reg.reference_n(t_us + s.force_loop_period_us)
-        err = ref - force
-        k = reg.stiffness_n_mm
-        reg.integral += err * period_s
-        limit = s.regulate_max_speed_mm_s * k / max(s.regulate_integral_per_s, 1e-9)
-        reg.integral = min(max(reg.integral, -limit), limit)
-        speed = ((ref_next - ref) / period_s) / k + s.regulate_loop_gain * err / (k * period_s) \
-            + s.regulate_integral_per_s * reg.integral / k
-        speed = min(max(speed, -s.regulate_max_speed_mm_s), s.regulate_max_speed_mm_s)
-        reg.next_update_us = t_us + s.force_loop_period_us
-        tol = max(s.regulate_tolerance_n, s.regulate_tolerance_rel * reg.target_n)
-        at_target = ref == reg.target_n
-        reg.in_band = reg.in_band + 1 if (at_target and abs(err) <= tol) else 0
-        return speed
+        """The supervisor's regulation update due at ``t_us``; its speed along the line."""
+        newest = self._world.ft._sim_newest_us()
+        age_s = 0.0 if newest is None else (t_us - newest) / US_PER_S
+        speed = self.supervisor.regulate((t_us - self._reg_t0_us) / US_PER_S, self._measured_force_n(), self._u, age_s)
+        self._next_update_us = t_us + self.loop_period_us
+        self._law = _Law("ramp", t_us, self._u, v0=self._du, v1=speed, accel=self.gains.accel_mm_s2)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from elastoprobe.controller.clock import VirtualClock
+from elastoprobe.controller.forceloop import ForceLoopGains
 from elastoprobe.controller.geometry import Pose, rotvec_to_matrix
 from elastoprobe.controller.kinematics import forward, ur5e
 from elastoprobe.controller.safety import SafetyLimits
@@ -132,6 +133,7 @@ class SimCellParams:
     ft: FTSettings = FTSettings()
     scanner: ScannerSettings = ScannerSettings()
     arm: ArmSettings = ArmSettings()
+    force_loop: ForceLoopGains = ForceLoopGains()     # the cell's (the same on the real arm)
     miscalibration: Miscalibration = Miscalibration()
     faults: list[FaultPlan] = field(default_factory=list)
     start_time_s: float = 0.0
@@ -160,6 +162,10 @@ class SimGroundTruth:
 
     def region_names(self) -> list[str]:
         return list(self._obj.region_names)
+
+    def closest_surface(self, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(closest undeformed surface points (N,3) mm, outward unit normals (N,3), region labels (N,))."""
+        return self._obj.closest_surface(np.atleast_2d(np.asarray(points_mm, dtype=float)))
 
     def boundary_distance_mm(self, points_mm: np.ndarray) -> np.ndarray:
         """(N,) distance (mm) of each point to the nearest boundary between materials (inf: none)."""
@@ -204,7 +210,10 @@ class SimCell:
                               tip_offset_tcp_mm=true["tip_offset"])
         limits_rad = None if params.joint_limits_deg is None else np.radians(np.asarray(params.joint_limits_deg, float))
         self._model = ur5e(believed.flange_to_tcp, limits_rad)
-        self.arm = SimArm(self.world, self._model, np.radians(params.home_joints_deg), params.arm)
+        # The force loop maps readings with what the controller believes (the sensor mount).
+        self.arm = SimArm(self.world, self._model, np.radians(params.home_joints_deg), params.arm,
+                          gains=params.force_loop, limits=params.limits,
+                          tcp_to_sensor_rotation=believed.tcp_to_sensor.rotation)
         self.ft = SimForceTorque(self.world, true["tcp_to_sensor"], true["mass"], true["com"], params.ft)
         # The probe body is fixed to the flange: its nominal TCP-frame axis, moved into the arm's TCP frame.
         z0, z1 = params.probe_z_range_mm
@@ -331,6 +340,7 @@ def params_from_cell(cell, object_path: str | Path | None = None, seed: int = 0,
         probe_radius_mm=probe_radius,
         probe_z_range_mm=probe_range,
         control_period_ms=sim.control_period_ms,
+        force_loop=cell.force_loop.gains(),
         ft=FTSettings(noise_n=sim.ft_noise_n, noise_nm=sim.ft_noise_nm, drift_n_per_h=sim.ft_drift_n_per_h,
                       range_n=cell.ft.range_n, range_nm=cell.ft.range_nm, rate_hz=cell.ft.rate_hz),
         scanner=ScannerSettings(samples=cell.scanner.samples_per_profile, rate_hz=cell.scanner.rate_hz,

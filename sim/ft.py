@@ -113,6 +113,7 @@ class SimForceTorque:
         self._buffered = 0
         self._recent = _Recent(64)
         self._last_out: np.ndarray | None = None
+        self._newest_us: int | None = None
         # Torque of a force applied at the tip / at the payload's centre of mass: r x F = F @ K(r)^T.
         self._k_tip_t = _skew(self._tip_in_sensor_mm * 1e-3).T
         self._k_com_t = _skew(self._com_sensor_mm * 1e-3).T
@@ -271,6 +272,7 @@ class SimForceTorque:
             self._buffered -= self._buffer.popleft()[0].shape[0]
         self._recent.push(raw, out)
         self._last_out = out[-1]
+        self._newest_us = int(t[-1])
 
     def _sim_noiseless(self) -> bool:
         return not bool(np.all(self._sigma > 0.0))
@@ -278,6 +280,10 @@ class SimForceTorque:
     def _sim_recent(self, count: int) -> np.ndarray:
         """The latest delivered (tared) forces (count, 3), for the arm's force loop."""
         return self._recent.latest_out(count)[:, :3]
+
+    def _sim_newest_us(self) -> int | None:
+        """The time (µs) of the newest delivered sample, None before any (the force loop's freshness)."""
+        return self._newest_us
 
 
 _ALL_TRUE = np.ones(4096, dtype=bool)

@@ -495,6 +495,8 @@ class ContactModel:
         self._cos = 0.0 if abs(cos_a) < 1e-12 else cos_a
         self._sin = math.sin(a)
         self._residual = residual_mm
+        self._loads_key: tuple[float, float] | None = None
+        self._loads: tuple[float, float, float, list[float]] | None = None
         self._creep_fraction = sum(c.weight * c.response.material.creep_fraction for c in components)
         self._creep_tau_s = sum(c.weight * c.response.material.creep_tau_s for c in components)
         force = np.concatenate([[0.0], np.geomspace(1e-4, TABLE_MAX_FORCE_N, 400)])
@@ -588,19 +590,34 @@ class ContactModel:
         """Each component's own (unweighted) dent, sharing the tip shift; without permanent dents.
         The profile is the weighted sum of these (plus the residual of permanent dents)."""
         x = np.asarray(x_mm, dtype=float)
-        f = self.effective_force_n(max(float(force_n), 0.0), hold_s)
-        if f <= 0.0:
+        loads = self._dent_loads(force_n, hold_s)
+        if loads is None:
             return [np.zeros_like(x) for _ in self.components]
-        p, q = self.loads_n(f)
-        p, q = float(p), float(q)
-        xs = x - self.tip_shift_mm(f)
+        p, q, shift, sinks = loads
+        xs = x - shift
         parts = []
-        for c in self.components:
+        for c, sink in zip(self.components, sinks):
             part = c.response.symmetric_depth_mm(xs, p) + c.response.odd_depth_mm(xs, p, q)
             if c.support is not None:
-                part = part + c.support.depth_mm(f)
+                part = part + sink
             parts.append(part)
         return parts
+
+    def _dent_loads(self, force_n: float, hold_s: float) -> tuple[float, float, float, list[float]] | None:
+        """(P, Q, tip shift along t, each component's support sink) of the dent under ``force_n``
+        held ``hold_s`` (None without a load), kept for the last arguments: a scanner profile
+        asks for one dent at a few hundred points several times over (ray by ray, root find
+        step by step), and these scalars are most of a call's cost."""
+        key = (float(force_n), float(hold_s))
+        if key != self._loads_key:
+            f = self.effective_force_n(max(key[0], 0.0), key[1])
+            loads = None
+            if f > 0.0:
+                p, q = self.loads_n(f)
+                loads = (float(p), float(q), self.tip_shift_mm(f),
+                         [c.support.depth_mm(f) if c.support is not None else 0.0 for c in self.components])
+            self._loads_key, self._loads = key, loads
+        return self._loads
 
     def validity_problems(self, force_n: float) -> list[str]:
         """What is out of its model's validity at |F| = ``force_n`` at this angle."""

@@ -137,11 +137,12 @@ def cast_fan(cut: PlaneCut, origin: np.ndarray, x_axis: np.ndarray, z_axis: np.n
     if not ok.any():
         return rng, face
     ray, r, seg = ray[ok], r[ok], seg[ok]
-    order = np.lexsort((r, ray))
-    ray_sorted = ray[order]
-    firsts = np.flatnonzero(np.r_[True, ray_sorted[1:] != ray_sorted[:-1]])
-    pick = order[firsts]
-    rng[ray[pick]] = r[pick]
+    # The nearest hit per ray; of equal nearest hits (a ray through a vertex two segments
+    # share), the first segment's face.
+    np.minimum.at(rng, ray, r)
+    nearest = np.flatnonzero(r == rng[ray])
+    _, first = np.unique(ray[nearest], return_index=True)
+    pick = nearest[first]
     face[ray[pick]] = faces[seg[pick]]
     return rng, face
 

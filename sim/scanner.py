@@ -67,6 +67,10 @@ class ScannerSettings:
     tip_dropout_prob: float = 0.3          # extra loss where the surface is pressed in near the tip
     probe_shadow: bool = True              # tests of the contact physics can switch the probe off
     cache_cuts: bool = True                # plane cuts and burst shadow masks (the benchmark's baseline: off)
+    # The dented-hit root find starts with secant steps, and keeps the cut's offsets through a
+    # burst (with cache_cuts); off: bracketed from 0 and the depth at the crossing, offsets
+    # prepared per profile (the benchmark's previous renderer).
+    secant_root_find: bool = True
 
 
 @dataclass(frozen=True)
@@ -97,8 +101,8 @@ _DENT_ITERATIONS = 30        # bound of the root find (Illinois: a handful suffi
 
 def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.ndarray, dirs: np.ndarray,
                         face_normals: np.ndarray, n: np.ndarray,
-                        advance_at: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
-                        ) -> tuple[np.ndarray, np.ndarray]:
+                        advance_at: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+                        secant_start: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Where rays that met the undeformed surface at ``h0_mm`` (M,3) meet the dented one.
 
     The dented surface is {q - d(q) n : q on the undeformed surface}, d = ``depth_at`` (mm,
@@ -106,17 +110,21 @@ def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.
     ``face_normals``): the ray point h0 + s dir lies at depth d below the plane point
     q = h0 + s dir + d n when s = -d (n . n_f) / (dir . n_f). The ray meets the dented
     surface where f(d) = d - d(q(d)) = 0; the depth there is not the depth at h0 wherever
-    the dent slopes and the ray is oblique (the ray moves along t as it goes in). Where
-    the depth does not change over that step (a uniform sink, far from the tip) one check
-    settles it; elsewhere a root bracketed by 0 and the depth at h0 (or the deepest depth)
-    is found by the Illinois variant of regula falsi, vectorised — a plain fixed-point
-    step would diverge where a steep foam dent is seen at a low angle.
+    the dent slopes and the ray is oblique (the ray moves along t as it goes in). Two
+    secant steps from f(0) = -d(h0) settle nearly every ray (f is close to linear: exactly
+    so where the depth does not change over the step, a uniform sink far from the tip);
+    the rest are bracketed from the points seen (stepping out by the deepest depth where
+    all lie on one side) and solved by the Illinois variant of regula falsi, vectorised —
+    a plain fixed-point step would diverge where a steep foam dent is seen at a low angle.
 
     ``advance_at(d, rows)``, if given, replaces the face's plane by the mesh itself: the
     advance (mm) along rows' rays at which the undeformed surface lies d mm further along
     n, NaN where it cannot tell (the plane is used there). On a curved surface a deep dent
     seen obliquely moves q off the hit face, and the plane misplaces it by ~ step^2 / 2R
     (0.3 mm for a 5 mm sponge dent on the 65 mm ball).
+
+    ``secant_start=False`` skips the secant steps: the bracket comes from f(0) and f(d(h0))
+    (the same roots within the tolerance, more evaluations; kept for the benchmark).
 
     Returns (depth mm at the meeting point along -n, advance mm along each ray).
     """
@@ -139,25 +147,47 @@ def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.
 
     d0 = np.asarray(depth_at(h0), dtype=float)
     depth = d0.copy()
+    advance = depth * along
     rows = np.flatnonzero(np.abs(d0) > _DENT_TOL_MM)
     if rows.size == 0:
-        return depth, depth * along
-    advance = depth * along
-    f0, advance[rows] = f_of(d0[rows], rows)
-    open_ = np.abs(f0) > _DENT_TOL_MM
-    rows, f0, d_start = rows[open_], f0[open_], d0[rows][open_]
-    if rows.size == 0:
         return depth, advance
-    # The bracket [lo, hi] with f(lo) <= 0 <= f(hi), from f(0) = -d0 and f(d0).
-    lo, hi = np.minimum(0.0, d_start), np.maximum(0.0, d_start)
-    f_zero = -d_start
-    f_lo = np.where(d_start > 0, f_zero, f0)
-    f_hi = np.where(d_start > 0, f0, f_zero)
+    d_start = d0[rows]
+    if secant_start:
+        # f is close to linear in d (the dent's depth changes little between where the ray
+        # meets the undeformed surface and where it meets the dent): secant steps from
+        # f(0) = -d0 find the root within the tolerance mostly at once. The first takes its
+        # second point on the hit face's plane (a depth lookup without the mesh), the second
+        # is exact.
+        q_plane = h0[rows] + d_start[:, None] * (along[rows, None] * dirs[rows] + n)
+        d_try = _secant_from_zero(d_start, d_start, d_start - np.asarray(depth_at(q_plane), dtype=float))
+    else:
+        d_try = d_start
+    points = [(np.zeros(rows.size), -d_start)]          # (d, f(d)) seen, per row
+    for step in range(2 if secant_start else 1):
+        if step:
+            d_try = _secant_from_zero(d_start, *points[-1])
+        f_try, adv = f_of(d_try, rows)
+        settled = np.abs(f_try) <= _DENT_TOL_MM
+        depth[rows], advance[rows] = d_try, adv
+        keep = ~settled
+        rows, d_start = rows[keep], d_start[keep]
+        points = [(x[keep], f[keep]) for x, f in points] + [(d_try[keep], f_try[keep])]
+        if rows.size == 0:
+            return depth, advance
+    # The points seen in increasing d; f rises through its root (f(lo) <= 0 <= f(hi)): take
+    # the tightest pair around a sign change, or the pair at the end the root lies beyond.
+    xs = np.column_stack([x for x, _ in points])
+    fs = np.column_stack([f for _, f in points])
+    order = np.argsort(xs, axis=1, kind="stable")
+    xs, fs = np.take_along_axis(xs, order, axis=1), np.take_along_axis(fs, order, axis=1)
+    rising = fs >= 0.0
+    k = np.clip(np.where(rising.any(axis=1), np.argmax(rising, axis=1), xs.shape[1]), 1, xs.shape[1] - 1)
+    idx = np.arange(rows.size)
+    lo, f_lo, hi, f_hi = xs[idx, k - 1], fs[idx, k - 1], xs[idx, k], fs[idx, k]
     deepest = float(np.max(np.abs(d0))) * 1.05 + _DENT_TOL_MM
     for _ in range(8):
-        # The root lies beyond the pair (f(0) and f(d0) of one sign): step out past it by at
-        # least the deepest depth seen, keeping the old end as the other side. With d0 > 0
-        # only hi moves, with d0 < 0 (a raised rim) only lo.
+        # The root lies beyond the pair (f of one sign at both): step out past it by at least
+        # the deepest depth seen, keeping the old end as the other side.
         below, above = f_hi < 0, f_lo > 0
         moved = below | above
         if not np.any(moved):
@@ -170,14 +200,17 @@ def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.
                               np.where(below, f_hi, np.where(above, f_probe, f_lo)),
                               np.where(above, lo, np.where(below, probe, hi)),
                               np.where(above, f_lo, np.where(below, f_probe, f_hi)))
-    side = np.zeros(rows.size, dtype=int)         # Illinois: which end was replaced last
-    d = d_start.copy()
+    # Illinois on the bracket, row by row: a row that meets the tolerance is settled and
+    # leaves the iteration.
+    side = np.zeros(rows.size, dtype=int)         # which end was replaced last
     for _ in range(_DENT_ITERATIONS):
         denom = f_hi - f_lo
         safe = np.abs(denom) > 1e-15
         d = np.where(safe, hi - f_hi * (hi - lo) / np.where(safe, denom, 1.0), 0.5 * (lo + hi))
         f, adv = f_of(d, rows)
-        if np.max(np.abs(f)) <= _DENT_TOL_MM:
+        settled = np.abs(f) <= _DENT_TOL_MM
+        depth[rows], advance[rows] = d, adv
+        if settled.all():
             break
         up = f > 0
         hi, f_hi = np.where(up, d, hi), np.where(up, f, f_hi)
@@ -185,9 +218,17 @@ def dented_hit_depth_mm(depth_at: Callable[[np.ndarray], np.ndarray], h0_mm: np.
         f_lo = np.where(up & (side == 1), 0.5 * f_lo, f_lo)
         f_hi = np.where(~up & (side == -1), 0.5 * f_hi, f_hi)
         side = np.where(up, 1, -1)
-    depth[rows] = d
-    advance[rows] = adv
+        go = ~settled
+        rows, lo, f_lo, hi, f_hi, side = rows[go], lo[go], f_lo[go], hi[go], f_hi[go], side[go]
     return depth, advance
+
+
+def _secant_from_zero(d0: np.ndarray, d: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Where the line through (0, -``d0``) and (``d``, ``f``) crosses zero (mm); 2 ``d`` where
+    it is flat (the bracket search takes over from there)."""
+    slope = (f + d0) / np.where(d != 0.0, d, 1.0)
+    steep = (np.abs(slope) > 1e-6) & (d != 0.0)
+    return np.where(steep, d - f / np.where(steep, slope, 1.0), 2.0 * d)
 
 
 class SimLineScanner:
@@ -222,6 +263,7 @@ class SimLineScanner:
         self._dropout_rng = np.random.default_rng(0)
         self._burst_index = 0
         self._shadow_cache: tuple | None = None
+        self._advance_cache: tuple | None = None
         self._face_cache: tuple | None = None
         self._lateral_cache: tuple | None = None
         self.stats = {"captures": 0, "cuts": 0}
@@ -252,6 +294,7 @@ class SimLineScanner:
         # Each burst of a step gets its own correlated shape, keyed by its index in the step.
         self._burst_index += 1
         self._shadow_cache = None
+        self._advance_cache = None
         seed, step, attempt = w.step_key
         rng = np.random.default_rng([seed & 0xFFFFFFFF, step & 0xFFFFFFFF, attempt & 0xFFFFFFFF,
                                      int(Stream.SCAN_CORRELATED), self._burst_index])
@@ -270,6 +313,7 @@ class SimLineScanner:
         self._dropout_rng = w.rng(Stream.SCAN_DROPOUT)
         self._burst_index = 0
         self._shadow_cache = None
+        self._advance_cache = None
 
     def _sim_due(self, start_us: int, end_us: int) -> list[int]:
         """Exposure instants in (start, end]."""
@@ -336,7 +380,8 @@ class SimLineScanner:
             rows = np.flatnonzero(on_obj)
             h0 = o + r[rows, None] * dirs[rows]
             advance_at = self._advance_on_cut(cut, o, x_ax, y_ax, z_ax, rows, r[rows], normals[rows], n_dent)
-            depth_rows, advance = dented_hit_depth_mm(depth_at, h0, dirs[rows], normals[rows], n_dent, advance_at)
+            depth_rows, advance = dented_hit_depth_mm(depth_at, h0, dirs[rows], normals[rows], n_dent, advance_at,
+                                                      secant_start=s.secant_root_find)
             r[rows] += advance
             depth = np.zeros(n_s)
             depth[rows] = depth_rows
@@ -370,8 +415,19 @@ class SimLineScanner:
         uses the hit face's plane)."""
         if rows.size == 0 or cut.p1.shape[0] == 0:
             return None
-        seg_a = np.column_stack([(cut.p1 - o) @ x_ax, (cut.p1 - o) @ z_ax])
-        seg_b = np.column_stack([(cut.p2 - o) @ x_ax, (cut.p2 - o) @ z_ax])
+        # Within a burst the scanner holds its plane and turns not at all; it moves only along
+        # the probe's push, inside that plane. What prepare() computes from the cut's segments
+        # relative to the scanner is then reused from the burst's first profile, corrected by
+        # the origin's shift (a per-ray offset and range). Reset every burst and every step.
+        key = (x_ax.tobytes(), z_ax.tobytes(), rows.tobytes())
+        reuse = self._s.cache_cuts and self._s.secant_root_find
+        cached = self._advance_cache if reuse else None
+        if cached is not None and cached[0] is cut and cached[1] == key:
+            o_ref, prepared = cached[2], cached[3]
+        else:
+            o_ref, prepared = o.copy(), {}
+            if reuse:
+                self._advance_cache = (cut, key, o_ref, prepared)
         rays = np.column_stack([np.sin(self._angles[rows]), np.cos(self._angles[rows])])
         # The shift in the plane per mm of depth, per ray: n's in-plane part, plus, for its
         # part across the plane, the in-plane step that keeps to the hit face's slope there.
@@ -379,30 +435,53 @@ class SimLineScanner:
         nf2_sq = np.einsum("ij,ij->i", nf2, nf2)
         fold = np.where(nf2_sq > 1e-6, float(n @ y_ax) * (face_normals @ y_ax) / np.maximum(nf2_sq, 1e-6), 0.0)
         n2 = np.array([float(n @ x_ax), float(n @ z_ax)])[None, :] + fold[:, None] * nf2
-        prepared: dict[str, np.ndarray] = {}
+        k_all = n2[:, 0] * rays[:, 1] - n2[:, 1] * rays[:, 0]
+        along_all = np.einsum("ij,ij->i", rays, n2)
+        # The origin's shift from the reference: it lowers each segment's offset across a ray by
+        # (shift x u) and its range along it by (shift . u).
+        shift = o - o_ref
+        shift2 = np.array([float(shift @ x_ax), float(shift @ z_ax)])
+        off_shift = shift2[0] * rays[:, 1] - shift2[1] * rays[:, 0]
+        rng_shift = rays @ shift2
 
         def prepare(sub: np.ndarray) -> None:
-            # Once per profile, for the rays the root find asks about first (those in the dent):
-            # each near segment's offset across the ray (p x u) and range along it (p . u) at its
-            # start, and their changes along it. The ray shifted by d n2, d n2 + r u, is the line
-            # p x u = d (n2 x u): a segment meets it where its offset passes that value, at
-            # r = p . u - d (n2 . u).
+            # For the rays the root find asks about first (those in the dent), relative to the
+            # reference origin: each near segment's offset across the ray (p x u) and range along
+            # it (p . u) at its start, and their changes along it. The ray shifted by d n2,
+            # d n2 + r u, is the line p x u = d (n2 x u): a segment meets it where its offset
+            # passes that value, at r = p . u - d (n2 . u).
+            seg_a = np.column_stack([(cut.p1 - o_ref) @ x_ax, (cut.p1 - o_ref) @ z_ax])
+            seg_b = np.column_stack([(cut.p2 - o_ref) @ x_ax, (cut.p2 - o_ref) @ z_ax])
             ray = rays[sub]
-            hits = r0_mm[sub, None] * ray
-            # Only segments near these hits: q moves a few dent depths along the surface at most.
-            margin_mm = 25.0
-            lo, hi = hits.min(axis=0) - margin_mm, hits.max(axis=0) + margin_mm
-            near = np.all((np.minimum(seg_a, seg_b) <= hi) & (np.maximum(seg_a, seg_b) >= lo), axis=1)
-            a, e = seg_a[near], seg_b[near] - seg_a[near]
+            e = seg_b - seg_a
+            off_a = seg_a[None, :, 0] * ray[:, None, 1] - seg_a[None, :, 1] * ray[:, None, 0]
             d_off = e[None, :, 0] * ray[:, None, 1] - e[None, :, 1] * ray[:, None, 0]
-            parallel = np.abs(d_off) <= 1e-12
+            rng_a, d_rng = ray @ seg_a.T, ray @ e.T
+            # Per ray only the segments in front of the scanner that pass within 25 mm of the
+            # ray's line (the shifted ray lies d (n2 x u) off it: a few dent depths at most),
+            # wherever along it: at an edge the dented ray may pass the near surface and meet
+            # one behind it. Packed per ray, in the cut's order, padded with entries that
+            # never cross.
+            margin_mm = 25.0
+            near = ((np.minimum(off_a, off_a + d_off) <= margin_mm) & (np.maximum(off_a, off_a + d_off) >= -margin_mm)
+                    & (np.maximum(rng_a, rng_a + d_rng) > 0.0))
+            row, col = np.nonzero(near)                 # by row, then in the cut's order
+            count = np.bincount(row, minlength=near.shape[0])
+            slot = np.arange(row.size) - np.repeat(np.cumsum(count) - count, count)
+            width = int(count.max(initial=0))
+
+            def packed(values: np.ndarray, fill: float) -> np.ndarray:
+                out = np.full((near.shape[0], width), fill)
+                out[row, slot] = values[row, col]
+                return out
+
+            d_off = packed(d_off, 0.0)
+            crossed = np.abs(d_off) > 1e-12
+            prepared.clear()
             prepared.update(
-                rows=sub.copy(),
-                off_a=a[None, :, 0] * ray[:, None, 1] - a[None, :, 1] * ray[:, None, 0],
-                inv_off=np.where(parallel, np.nan, 1.0 / np.where(parallel, 1.0, d_off)),   # NaN: never crossed
-                rng_a=ray @ a.T, d_rng=ray @ e.T,
-                k=n2[sub, 0] * ray[:, 1] - n2[sub, 1] * ray[:, 0],
-                along_n=np.einsum("ij,ij->i", ray, n2[sub]))
+                rows=sub.copy(), off_a=packed(off_a, 0.0),
+                inv_off=np.where(crossed, 1.0 / np.where(crossed, d_off, 1.0), np.nan),   # NaN: never crossed
+                rng_a=packed(rng_a, 0.0), d_rng=packed(d_rng, 0.0))
 
         def advance_at(d: np.ndarray, sub: np.ndarray) -> np.ndarray:
             if not prepared:
@@ -418,8 +497,8 @@ class SimLineScanner:
             P = prepared
             if P["off_a"].shape[1] == 0:
                 return np.full(sub.size, np.nan)
-            frac = ((d * P["k"][pick])[:, None] - P["off_a"][pick]) * P["inv_off"][pick]
-            r = P["rng_a"][pick] + frac * P["d_rng"][pick] - (d * P["along_n"][pick])[:, None]
+            frac = ((d * k_all[sub] + off_shift[sub])[:, None] - P["off_a"][pick]) * P["inv_off"][pick]
+            r = P["rng_a"][pick] + frac * P["d_rng"][pick] - (d * along_all[sub] + rng_shift[sub])[:, None]
             ok = (frac >= -1e-9) & (frac <= 1.0 + 1e-9) & (r > 0.0)
             # Of several crossings, the one nearest the original hit (the dent is local).
             gap = np.where(ok, np.abs(r - r0_mm[sub, None]), np.inf)

@@ -570,7 +570,7 @@ class SimWorld:
         """
         arm, c, faults = self.arm, self.contact, self.faults
         sp = self.sample_period_us
-        period = arm._settings.force_loop_period_us
+        period = arm.loop_period_us
         m = period // sp
         if c is None or c.model is None or period % sp or m < self._rate_window or self.trip is not None:
             return False
@@ -596,7 +596,7 @@ class SimWorld:
         t_s = [(j + 1) * sp / US_PER_S for j in range(m)]       # sample instants after each update (s)
         frac = [(j + 1) * sp / period for j in range(m)]        # creep interpolation, as in _dry
         t_first, t_last, t_mid = t_s[0], t_s[-1], sum(t_s) / m
-        accel = arm._settings.regulate_accel_mm_s2
+        accel = arm.gains.accel_mm_s2
         beta = c.creep_beta
         dt_s = period / US_PER_S
 
@@ -820,18 +820,14 @@ class SimWorld:
         return True
 
     def _halts_recovery(self, trip: Trip, samples, cut: int) -> bool:
-        """While a trip is latched, the controller unloads and retracts: a motion commanded
-        after the trip is stopped again only by a new kind of crossing or a force rising 10 %
-        beyond the level that tripped (the UR's own force limit still applies)."""
+        """While a trip is latched, the controller unloads and retracts: the arm's force-loop
+        supervisor (controller/forceloop.py) lets a crossing through for a motion that unloads
+        the contact (away from it, the force not rising); anything else is stopped again
+        (the UR's own force limit still applies)."""
         if self.trip is None:
             return True
-        if not self.arm._sim_motion_started_after(self._latched_us):
-            return True
-        force_kinds = ("force", "force_rate", "lateral_force", "torque")
-        if trip.kind in force_kinds and self.trip.kind in force_kinds:
-            fmax = float(np.max(samples.fmag[:cut])) if samples.fmag is not None and cut else 0.0
-            return fmax > 1.1 * max(self._latched_force_n, self.limits.max_force_n)
-        return trip.kind != self.trip.kind
+        fmax = float(np.max(samples.fmag[:cut])) if samples.fmag is not None and cut else 0.0
+        return not self.arm._sim_lets_through(trip, fmax)
 
     def _rotations(self, plan: ArmPlan, n: int) -> np.ndarray:
         return plan.rotation if plan.rotation.ndim == 2 else plan.rotation[:n]

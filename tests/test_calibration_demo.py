@@ -109,3 +109,35 @@ def test_region_map_error_within_ten_percent_of_the_calibrated_cell_strict(compa
                                         "errors) on seeds 1-5; see the module docstring")
 def test_region_map_error_within_ten_percent_or_the_noise_floor(comparison: dict) -> None:
     assert comparison["goal_met_floored"], json.dumps(comparison["comparisons"])
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(7200)
+def test_restated_goal_after_calibration_within_the_margin_of_exact_and_of_the_calibrated_cell(
+        comparison: dict) -> None:
+    """Issue 16's restatement, on the truth surface: after calibration within max(10 %, the noise
+    floor) of an exact calibration of the same cell, and within the same margin of the
+    calibrated cell."""
+    assert comparison["goal_restated_met"], json.dumps([comparison["goal_restated_parts"],
+                                                        comparison["comparisons"]])
+
+
+def _bench():
+    sys.path.insert(0, str(ROOT / "bench"))
+    import calibrated_demo
+
+    return calibrated_demo
+
+
+def test_restated_goal_is_both_floored_verdicts_and_needs_the_exact_calibration() -> None:
+    bench = _bench()
+    ref = {"region_map_error": {"mean": 1.0e-4, "sem": 1.0e-5}}
+    near = {"region_map_error": {"mean": 1.08e-4, "sem": 1.0e-5}}         # within 10 %
+    noisy = {"region_map_error": {"mean": 1.2e-4, "sem": 1.0e-5}}         # 20 %, inside 2 x sqrt(2) sem
+    far = {"region_map_error": {"mean": 2.0e-4, "sem": 1.0e-5}}           # outside both
+    for vs_exact, vs_cal, met in ((near, noisy, True), (near, far, False), (far, near, False)):
+        comparisons = {"after_calibration_draw0_vs_perfect_calibration": bench.compare(ref, vs_exact),
+                       "after_calibration_draw0_vs_calibrated": bench.compare(ref, vs_cal)}
+        got = bench.restated_goal(comparisons, "after_calibration_draw0_vs_calibrated", 0)
+        assert got["goal_restated_met"] is met, got
+    assert bench.restated_goal({}, "x", None)["goal_restated_met"] is None

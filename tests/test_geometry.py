@@ -70,3 +70,33 @@ def test_interpolate_pose_endpoints():
     assert np.allclose(interpolate_pose(a, b, 1.0).matrix(), b.matrix())
     mid = interpolate_pose(a, b, 0.5)
     assert np.allclose(matrix_to_rotvec(mid.rotation), [0, 0, 0.5])
+
+
+def test_rotvec_of_a_nearly_orthogonal_matrix_near_pi():
+    """Generated object 1003, target 46: a 90-degree probe on a flat top with the stored normal
+    and scan direction (rounded to 9 digits, so the matrix is orthogonal only to ~4e-9) is a
+    rotation 6e-6 rad short of pi. Its rotation vector must give back the same rotation: the
+    trace-based angle gave 0.85 rad, the recorded scan poses were tilted 54 degrees, the
+    scans fell 30 mm off the object and the placement check paused the session
+    (a false object_moved)."""
+    normal = np.array([0.00801757, 0.00801548, 0.99993573])
+    t = np.array([-6.42670000e-05, 9.99967876e-01, -8.01521800e-03])
+    pose = probe_tcp_pose(np.array([-56.79479, -63.281301, 26.7412]), normal, t, 90.0, offset_mm=15.0)
+    assert abs(np.linalg.norm(matrix_to_rotvec(pose.rotation)) - np.pi) < 1e-4
+    back = Pose.from_list(pose.to_list())
+    assert np.abs(back.rotation - pose.rotation).max() < 1e-7
+    assert np.abs(Pose.from_ur(pose.to_ur()).rotation - pose.rotation).max() < 1e-7
+
+
+def test_rotvec_round_trip_of_perturbed_matrices_at_every_angle():
+    """Matrices orthogonal only to ~1e-9 (sums of rounded inputs) round-trip to ~1e-9 at any
+    angle, near 0 and within 1e-12..1e-2 rad of pi included."""
+    rng = np.random.default_rng(3)
+    for k in range(3000):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        angle = (rng.uniform(0.0, np.pi), np.pi - 10 ** rng.uniform(-12, -2), 10 ** rng.uniform(-14, -3))[k % 3]
+        m = rotvec_to_matrix(axis * angle) + rng.normal(size=(3, 3)) * 1e-9
+        r = matrix_to_rotvec(m)
+        assert np.linalg.norm(r) <= np.pi + 1e-9
+        assert np.abs(rotvec_to_matrix(r) - m).max() < 2e-8, (angle, r)

@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from test_goals_composite import assert_whole_profile_goals
+
 ROOT = Path(__file__).resolve().parent.parent
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(1800)]
 
@@ -27,6 +29,7 @@ def test_homogeneous_ball_is_one_region_and_meets_the_profile_goals(ball_session
     assert ev["regions_found"] == 1
     goal = max(1.5 * ev["noise_floor_mm"], 0.03 * ev["peak_depth_mm"])
     assert ev["profile_rmse_mm"]["held_out_angles"] <= goal
+    assert_whole_profile_goals(ev)
 
 
 def _between(session_dir: Path) -> dict:
@@ -67,7 +70,8 @@ def _between(session_dir: Path) -> dict:
 def test_unseen_force_lies_between_the_trained_forces_at_every_roi_sample(ball_session: Path) -> None:
     # Issue 3: at every trained angle, the profile at each midpoint of adjacent trained
     # forces lies between theirs at every ROI sample (no tolerance). Training penalises
-    # non-monotone behaviour in force (models.py); nothing clips the predictions.
+    # non-monotone behaviour in force (models.py); the served bounds (issue 14) lie far
+    # outside these profiles, so clipping plays no part here.
     res = _between(ball_session)
     assert res["cases"] == 4 * 9
     assert res["fraction"] == 1.0, res["failed_cases"]

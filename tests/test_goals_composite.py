@@ -33,3 +33,14 @@ def test_demo_plan_maps_the_box_and_the_pillow(tmp_path: Path, seed: int) -> Non
     assert 0.0 < ev["coverage"] <= 1.0
     # The same map on the scanned cloud (the figures before the truth surface).
     assert ev["cloud"]["region_map_error"] <= 0.03 and ev["cloud"]["worst_region_iou"] >= 0.9
+    assert_whole_profile_goals(ev)
+
+
+def assert_whole_profile_goals(ev: dict) -> None:
+    """Issue 14: what predict serves is right over the whole profile, tip and shadow included."""
+    peak, floor = ev["peak_depth_mm"], ev["noise_floor_mm"]
+    assert ev["profile_rmse_full_mm"]["held_out_angles"] <= max(2.0 * floor, 0.05 * peak), ev["profile_rmse_full_mm"]
+    assert ev["profile_max_abs_error_mm"]["held_out_angles"] <= 0.25 * peak, ev["profile_max_abs_error_mm"]
+    assert ev["profile_full_scored_fraction"]["held_out_angles"] >= 0.8
+    for region, bounds in ev["served_bounds"].items():
+        assert bounds["queries"] == 10_000 and bounds["violations"] == 0, (region, bounds)

@@ -6,6 +6,7 @@ the real drivers' hardware process against it. ``Rig.close()`` stops everything.
 """
 from __future__ import annotations
 
+import socket
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -38,6 +39,43 @@ def wait_for(predicate: Callable[[], bool], timeout_s: float, period_s: float = 
 def wait_motion(motion: Motion, timeout_s: float) -> MotionState:
     wait_for(lambda: motion.state() != MotionState.RUNNING, timeout_s)
     return motion.state()
+
+
+def dashboard(host: str, *lines: str) -> list[str]:
+    """Send text commands to the UR dashboard (port 29999) at ``host``; their replies."""
+    with socket.create_connection((host, 29999), timeout=2.0) as s:
+        f = s.makefile("rwb")
+        assert f.readline().startswith(b"Connected: Universal Robots Dashboard Server")
+        out = []
+        for line in lines:
+            f.write(line.encode() + b"\n")
+            f.flush()
+            out.append(f.readline().decode().strip())
+        return out
+
+
+def read_exact(sock: socket.socket, n: int) -> bytes:
+    """Exactly ``n`` bytes from ``sock`` (ConnectionError if it closes first)."""
+    buf = b""
+    while len(buf) < n:
+        chunk = sock.recv(n - len(buf))
+        if not chunk:
+            raise ConnectionError("closed")
+        buf += chunk
+    return buf
+
+
+def copy_loopback_configs(tmp_path: Path, host: str) -> tuple[Path, Path]:
+    """The shipped loopback plan and cell in ``tmp_path``, the cell served on ``host`` and
+    object paths absolute."""
+    objects = ROOT / "config" / "objects"
+    cell = (ROOT / "config" / "cells" / "loopback.yaml").read_text()
+    cell = cell.replace("127.0.0.2", host).replace("file: ../objects/", f"file: {objects}/")
+    plan = (ROOT / "config" / "plans" / "loopback.yaml").read_text()
+    plan = plan.replace("simulated_object: ../objects/", f"simulated_object: {objects}/")
+    (tmp_path / "cell.yaml").write_text(cell)
+    (tmp_path / "plan.yaml").write_text(plan)
+    return tmp_path / "plan.yaml", tmp_path / "cell.yaml"
 
 
 def cell_on(host: str) -> CellSpec:

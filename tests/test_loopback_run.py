@@ -14,18 +14,7 @@ import pytest
 
 from elastoprobe.controller import cellfactory
 from elastoprobe.controller.drivers.real_cell import build_real_cell
-
-ROOT = Path(__file__).resolve().parent.parent
-
-
-def _copy_configs(tmp_path: Path, host: str) -> tuple[Path, Path]:
-    cell = (ROOT / "config" / "cells" / "loopback.yaml").read_text()
-    cell = cell.replace("127.0.0.2", host).replace("file: ../objects/", f"file: {ROOT / 'config' / 'objects'}/")
-    plan = (ROOT / "config" / "plans" / "loopback.yaml").read_text()
-    plan = plan.replace("simulated_object: ../objects/", f"simulated_object: {ROOT / 'config' / 'objects'}/")
-    (tmp_path / "cell.yaml").write_text(cell)
-    (tmp_path / "plan.yaml").write_text(plan)
-    return tmp_path / "plan.yaml", tmp_path / "cell.yaml"
+from test_loopback_rig import copy_loopback_configs
 
 
 @pytest.mark.slow
@@ -42,7 +31,7 @@ def test_loopback_plan_runs_end_to_end_on_the_real_drivers(tmp_path: Path, monke
     monkeypatch.setattr(cellfactory, "build_cell", build)
     from elastoprobe.controller.cli import main
 
-    plan, cell = _copy_configs(tmp_path, "127.0.0.191")
+    plan, cell = copy_loopback_configs(tmp_path, "127.0.0.191")
     out = tmp_path / "session"
     code = main(["run", str(plan), "--cell", str(cell), "--seed", "1", "--out", str(out), "--quiet"])
     assert code == 0

@@ -1,4 +1,4 @@
-"""Issue #5, "Done when": the loopback plan on the real drivers (ur_rtde 1.6.5, Net F/T over
+"""Issue #5, "Done when" (and issue #17's one force loop): the loopback plan on the real drivers (ur_rtde 1.6.5, Net F/T over
 UDP, the scanner over a socket, the world served in real time) and the same plan, seed and
 cell file on the in-process simulated cell (``--dry-run``) agree step by step: the held force
 and the dent under the tip within 3 sigma/sqrt(N) (sigma: per-scan standard deviation within
@@ -66,6 +66,13 @@ def _run_pair(base: Path, host: str, corr_floor_mm: float | None, reference_seed
         cmp.add_reference(result, base / "in_process", refs)
     # Survey at 90 deg and characterization at 45, 90 and 135 deg, two forces each: all done.
     assert result["steps_loopback"] == result["steps_in_process"] == result["steps_compared"] == 8
+    # One force loop: both runs journaled the same supervisor (code hash and gains), and each
+    # reports how its force levels went.
+    loops = result["force_loop"]
+    assert loops["same_supervisor"], (loops["loopback"]["identity"], loops["in_process"]["identity"])
+    for side in ("loopback", "in_process"):
+        assert loops[side]["levels"] == 8
+        assert loops[side]["overshoot_n"]["n"] == 8 and loops[side]["held_error_n"]["n"] == 8
     for row in result["steps"]:
         assert row["target_offset_mm"] == 0.0, row
         # A step whose scans all read one F/T sample (a time-mapping fault) has zero spread:

@@ -32,9 +32,12 @@ SIM_CELL = REPO / "config" / "cells" / "sim.yaml"
 SCANS_PER_STEP = 5
 FORCE_TOLERANCE_N = 0.5
 
-# The survey: 6 targets x angles [90, 80] x forces [4, 12]. With seed 2 these contacts
-# (first step ids) are reachable; 4 is refused by motion validation (a target too close
-# to the box wall for the scanner).
+# The survey: the targets kept when planned (five with seed 2: two more would have the
+# scanner meet the box wall on the way down) x angles [90, 80] x forces [4, 12], step ids
+# 0-19; each contact's first step id is even. The object's move (12 mm) takes a direction
+# drawn per step: only a move the scan lines can see counts. At step 0 it runs along -y and
+# the first target's line (along y) reaches the pillow's rounded rim beyond the dent (tried
+# at the target beside the box wall, steps 4 and 6: along x at 4, and at 6 no scan showed it).
 SURVEY_EDITS = {
     "    angles_deg: [90]\n    forces_n: [4.0, 12.0]": "    angles_deg: [90, 80]\n    forces_n: [4.0, 12.0]",
     "    angles_deg: [75, 90, 105]": "    angles_deg: [90]",
@@ -42,15 +45,15 @@ SURVEY_EDITS = {
 }
 # Device faults -> the fault kind the controller sees (its policy key).
 RETRY_FAULTS = {
-    "force_spike": (0, {"force", "force_rate"}),
+    "force_spike": (6, {"force", "force_rate"}),
     "ft_stall": (2, {"stale"}),
-    "ft_frozen": (6, {"frozen"}),
+    "ft_frozen": (4, {"frozen"}),
     "scanner_timeout": (8, {"scanner"}),
     "scanner_short_burst": (10, {"scanner"}),
     "protective_stop": (12, {"protective_stop"}),
     "connection_loss": (14, {"connection", "device"}),
     "slip": (16, {"slip"}),
-    "object_moved": (22, {"object_moved"}),
+    "object_moved": (0, {"object_moved"}),
 }
 
 

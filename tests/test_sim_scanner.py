@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -341,3 +342,24 @@ def test_rays_meet_the_dented_surface_with_the_scanner_turned_about_its_line(ang
     err_um = float(np.max(np.abs(below_mm - depth))) * 1e3
     print(f"turned {turn_deg} deg, {angle_deg} deg: peak seen {np.max(depth):.3f} mm, max height error {err_um:.3f} um")
     assert err_um < 1.0
+
+
+@pytest.mark.parametrize("material,force_n", [(None, 20.0), (SPONGE, 12.0)])
+def test_secant_start_and_bracketed_root_find_render_the_same_dent(material, force_n):
+    # The root find's secant start (the default) and the bracket from 0 and the depth at the
+    # crossing it replaced (the benchmark's previous renderer) meet the same dented surface,
+    # within the root find's tolerance, on the curved ball seen at 45 deg.
+    base = make_cell(obj="rubber_ball").world.obj
+    obj = base if material is None else SimObject("ball", base.mesh, np.zeros(len(base.mesh.faces), dtype=int),
+                                                   [material.name], [material])
+    cell = make_cell(obj="rubber_ball", object=obj, scanner={"noise_scale": 0.0, "probe_shadow": False})
+    press(cell, np.array([0.0, 0.0, 130.0]), UP, 45.0, force_n, travel_z_mm=250.0, settle_s=3.0)
+    snap = cell.world.snapshot_now()
+    x_new, z_new = cell.scanner.profile(snap, noise=False)
+    cell.scanner._s = replace(cell.scanner._s, secant_root_find=False)
+    x_old, z_old = cell.scanner.profile(snap, noise=False)
+    assert np.array_equal(np.isfinite(z_new), np.isfinite(z_old)) and np.isfinite(z_new).sum() > 100
+    ok = np.isfinite(z_new)
+    diff_um = float(np.max(np.hypot(x_new[ok] - x_old[ok], z_new[ok] - z_old[ok]))) * 1e3
+    print(f"{'rubber' if material is None else material.name}: secant vs bracketed {diff_um:.3f} um")
+    assert diff_um < 0.5

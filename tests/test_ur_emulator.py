@@ -19,6 +19,7 @@ import pytest
 from elastoprobe.sim.servers.ur_backend import KinematicBackend, trapezoid_position
 from elastoprobe.sim.servers.ur_emulator import Cmd, UREmulator
 from elastoprobe.sim.servers.ur_rtde_protocol import HEADER, frame
+from test_loopback_rig import dashboard, read_exact
 
 START_POSE = [0.4, -0.1, 0.3, 0.0, np.pi, 0.0]
 
@@ -108,25 +109,16 @@ def emulator_at():
 def _rtde_request(sock: socket.socket, command: int, payload: bytes = b"") -> tuple[int, bytes]:
     sock.sendall(frame(command, payload))
     while True:
-        size, cmd = HEADER.unpack(_read(sock, 3))
-        body = _read(sock, size - 3)
+        size, cmd = HEADER.unpack(read_exact(sock, 3))
+        body = read_exact(sock, size - 3)
         if cmd == command:
             return cmd, body
 
 
-def _read(sock: socket.socket, n: int) -> bytes:
-    buf = b""
-    while len(buf) < n:
-        chunk = sock.recv(n - len(buf))
-        if not chunk:
-            raise ConnectionError("closed")
-        buf += chunk
-    return buf
-
-
-def _run_client(code: str, host: str, timeout_s: float = 40.0) -> dict:
-    """Run real ur_rtde code in a subprocess; it prints one JSON line."""
-    done = subprocess.run([sys.executable, "-c", code, host], capture_output=True, text=True, timeout=timeout_s)
+def _run_client(code: str, host: str, *args: str, timeout_s: float = 40.0) -> dict:
+    """Run real ur_rtde code in a subprocess (argv: host, then ``args``); it prints one JSON line."""
+    done = subprocess.run([sys.executable, "-c", code, host, *args], capture_output=True, text=True,
+                          timeout=timeout_s)
     lines = [ln for ln in done.stdout.splitlines() if ln.startswith("{")]
     assert done.returncode == 0 and lines, f"client failed:\n{done.stdout}\n{done.stderr}"
     return json.loads(lines[-1])
@@ -155,8 +147,8 @@ def test_rtde_negotiation_recipes_and_input_ownership(emulator_at) -> None:
         assert body[1:].decode() == "IN_USE"          # another client owns it
         _, body = _rtde_request(a, ord("S"))
         assert body == b"\x01"
-        size, cmd = HEADER.unpack(_read(a, 3))
-        data = _read(a, size - 3)
+        size, cmd = HEADER.unpack(read_exact(a, 3))
+        data = read_exact(a, size - 3)
         assert cmd == ord("U") and data[0] == 1
         values = struct.unpack(">6dI", data[1:])
         assert values[:6] == pytest.approx(START_POSE)
@@ -172,38 +164,26 @@ def test_rtde_negotiation_recipes_and_input_ownership(emulator_at) -> None:
         b.close()
 
 
-def _dashboard(host: str, *lines: str) -> list[str]:
-    with socket.create_connection((host, 29999), timeout=2.0) as s:
-        f = s.makefile("rwb")
-        assert f.readline().startswith(b"Connected: Universal Robots Dashboard Server")
-        out = []
-        for line in lines:
-            f.write(line.encode() + b"\n")
-            f.flush()
-            out.append(f.readline().decode().strip())
-        return out
-
-
 @pytest.mark.loopback
 @pytest.mark.timeout(30)
 def test_dashboard_refuses_unlock_for_the_delay_and_never_clears_an_estop(emulator_at) -> None:
     emu = emulator_at(23, unlock_delay_s=1.0)
-    assert _dashboard(emu.host, "PolyscopeVersion", "get serial number", "is in remote control") == [
+    assert dashboard(emu.host, "PolyscopeVersion", "get serial number", "is in remote control") == [
         "URSoftware 5.11.1.108318 (Mar 22 2021)", "20235500042", "true"]
     emu.inject_protective_stop()
-    assert _dashboard(emu.host, "safetystatus") == ["Safetystatus: PROTECTIVE_STOP"]
-    assert _dashboard(emu.host, "unlock protective stop")[0].startswith("Cannot unlock protective stop")
+    assert dashboard(emu.host, "safetystatus") == ["Safetystatus: PROTECTIVE_STOP"]
+    assert dashboard(emu.host, "unlock protective stop")[0].startswith("Cannot unlock protective stop")
     assert emu.protective_stopped
     time.sleep(1.1)
-    assert _dashboard(emu.host, "unlock protective stop", "close safety popup", "safetystatus") == [
+    assert dashboard(emu.host, "unlock protective stop", "close safety popup", "safetystatus") == [
         "Protective stop releasing", "closing safety popup", "Safetystatus: NORMAL"]
     emu.inject_emergency_stop()
-    replies = _dashboard(emu.host, "unlock protective stop", "close safety popup", "safetystatus")
+    replies = dashboard(emu.host, "unlock protective stop", "close safety popup", "safetystatus")
     assert replies[0] != "Protective stop releasing"
     assert replies[2] == "Safetystatus: ROBOT_EMERGENCY_STOP"
     assert emu.emergency_stopped
     emu.release_emergency_stop()
-    assert _dashboard(emu.host, "safetystatus") == ["Safetystatus: NORMAL"]
+    assert dashboard(emu.host, "safetystatus") == ["Safetystatus: NORMAL"]
 
 
 # ---------------------------------------------------------------- the real ur_rtde against it
@@ -389,3 +369,107 @@ def test_kinematic_backend_joint_move_and_joints_follow_the_pose() -> None:
         arm.advance(t)
     assert arm.joints_rad() == pytest.approx(q1)
     assert Pose.from_ur(arm.tcp_pose_ur()).distance_to(kin.forward(model, q1))[0] < 1e-6
+
+
+# ---------------------------------------------------------------- faithful to a real controller
+_THREADS_CLIENT = r"""
+import json, sys, time
+import rtde_control, rtde_receive
+host = sys.argv[1]
+r = rtde_receive.RTDEReceiveInterface(host, frequency=125.0)
+c = rtde_control.RTDEControlInterface(host, frequency=125.0, flags=rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT)
+start = r.getActualTCPPose(); up = list(start); up[2] += 0.02
+out = {}
+c.speedL([0.0, 0.0, -0.01, 0.0, 0.0, 0.0], 0.5, 0.0)
+time.sleep(0.2)
+out["speed_stop"] = c.speedStop(2.0)
+out["after_speed_stop"] = c.moveL(up, 0.1, 0.5)
+out["running_after_speed_stop"] = c.isProgramRunning()
+c.speedL([0.0, 0.0, -0.01, 0.0, 0.0, 0.0], 0.5, 0.0)
+time.sleep(0.2)
+# No speedStop: the speed thread still runs.
+if sys.argv[2] == "moveL":
+    c.moveL(start, 0.1, 0.5, True)
+elif sys.argv[2] == "stopL":
+    c.stopL(2.0, True)
+else:
+    c.forceModeStop()
+time.sleep(0.3)
+out["running_after_move_over_speed"] = c.isProgramRunning()
+print(json.dumps(out))
+"""
+
+
+@pytest.mark.loopback
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("octet, second", [(31, "moveL"), (35, "stopL"), (37, "forceModeStop")])
+def test_a_move_while_the_speed_thread_runs_halts_the_program(emulator_at, octet: int, second: str) -> None:
+    """ur_rtde 1.6.5's moveL stops only the async move thread, and stopL and forceModeStop
+    run stopl in the main thread: after speedL, any of them without speedStop makes two
+    threads command the robot, and URScript halts the program."""
+    emulator = emulator_at(octet)
+    out = _run_client(_THREADS_CLIENT, emulator.host, second)
+    assert out["speed_stop"] is True and out["after_speed_stop"] is True
+    assert out["running_after_speed_stop"] is True
+    assert out["running_after_move_over_speed"] is False
+    errors = emulator.events_of("runtime_error")
+    assert len(errors) == 1 and "Another thread is already controlling the robot" in errors[0].detail
+    assert emulator.events_of("program_stopped")[-1].detail == "runtime_error"
+    assert not emulator.is_moving()
+
+
+_REUPLOAD_CLIENT = r"""
+import json, sys, time
+import dashboard_client, rtde_control, rtde_receive
+host, clear = sys.argv[1], sys.argv[2] == "clear"
+db = dashboard_client.DashboardClient(host); db.connect()
+r = rtde_receive.RTDEReceiveInterface(host, frequency=125.0)
+c = rtde_control.RTDEControlInterface(host, frequency=125.0, flags=rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT)
+c.speedL([0.0, 0.0, -0.02, 0.0, 0.0, 0.0], 0.5, 0.0)
+print("speeding", flush=True)
+sys.stdin.readline()                     # the test protective-stops the arm, waits out the unlock delay
+db.unlockProtectiveStop()
+db.closeSafetyPopup()
+if clear:
+    c.kickWatchdog()                     # NO_CMD into input_int_register_0, with no program running
+c.reuploadScript()
+deadline = time.monotonic() + 5.0
+while not c.isProgramRunning() and time.monotonic() < deadline:
+    time.sleep(0.01)
+before = r.getActualTCPPose()
+time.sleep(0.5)
+after = r.getActualTCPPose()
+print(json.dumps({"running": c.isProgramRunning(), "before": before, "after": after}), flush=True)
+"""
+
+
+@pytest.mark.loopback
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("clear", [False, True])
+def test_input_registers_outlive_the_program(emulator_at, clear: bool) -> None:
+    """A protective stop during speedL, then the script uploaded again: without clearing the
+    command register first, the new program runs the last speedL again and the arm drives
+    itself down; cleared, it stays still."""
+    emulator = emulator_at(33, unlock_delay_s=0.3)
+    proc = subprocess.Popen([sys.executable, "-c", _REUPLOAD_CLIENT, emulator.host, "clear" if clear else "keep"],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "speeding"
+        time.sleep(0.2)
+        emulator.inject_protective_stop("test")
+        time.sleep(0.4)
+        assert emulator._inputs["input_int_register_0"] == Cmd.SPEEDL
+        proc.stdin.write("go\n")
+        proc.stdin.flush()
+        line = proc.stdout.readline()
+        assert line.startswith("{"), proc.stderr.read()
+        out = json.loads(line)
+    finally:
+        proc.kill()
+        proc.wait(5.0)
+    assert out["running"] is True
+    moved_mm = (out["before"][2] - out["after"][2]) * 1e3
+    if clear:
+        assert abs(moved_mm) < 0.01
+    else:
+        assert moved_mm > 5.0               # 0.5 s at the replayed 20 mm/s

@@ -400,3 +400,39 @@ def test_robot_clock_follows_drift_restarts_and_never_goes_back() -> None:
     assert after == pytest.approx(900.0)
     assert clock.offset_s == pytest.approx(899.0)
 
+
+
+# ---------------------------------------------------------------- the arm's primitives (no network)
+class _RecordingLink:
+    """What URPrimitives sends down the link, in order."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, tuple]] = []
+
+    def __getattr__(self, name: str) -> Callable[..., object]:
+        def call(*args: object) -> object:
+            self.calls.append((name, args))
+            return LinkMove(np.zeros(6), np.zeros(6), 0.0) if name == "move_linear" else 7
+        return call
+
+
+def test_primitives_end_the_speed_command_before_a_move_and_stop_it_with_speed_stop() -> None:
+    from elastoprobe.controller.drivers.ur_primitives import URPrimitives
+
+    link = _RecordingLink()
+    arm = URPrimitives(link, stop_decel_mm_s2=4000.0)        # type: ignore[arg-type]
+    arm.move_linear(np.array(START_POSE), 100.0, 500.0)
+    assert [c[0] for c in link.calls] == ["move_linear"]
+    arm.stop()
+    assert link.calls[-1] == ("stop_now", (True, 4.0))         # stopL: no speed command runs
+    arm.speed_linear(np.array([0.0, 0.0, -5.0]), 500.0)
+    assert link.calls[-1][0] == "speed_linear" and link.calls[-1][1][0][2] == pytest.approx(-0.005)
+    arm.stop()
+    assert link.calls[-1] == ("stop_now", (False, 4.0))        # speedStop: it ran
+    arm.speed_linear(np.array([0.0, 0.0, -5.0]), 500.0)
+    arm.move_linear(np.array(START_POSE), 100.0, 500.0)
+    assert [c[0] for c in link.calls[-3:]] == ["speed_linear", "speed_stop", "move_linear"]
+    arm.speed_linear(np.array([0.0, 0.0, -5.0]), 500.0)
+    arm.program_restarted()                                   # a new program runs no speed thread
+    arm.move_linear(np.array(START_POSE), 100.0, 500.0)
+    assert [c[0] for c in link.calls[-2:]] == ["speed_linear", "move_linear"]

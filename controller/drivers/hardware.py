@@ -1,6 +1,6 @@
 """The hardware process: owns the F/T stream and the arm driver and runs the check-and-stop path.
 
-Why a separate process (DESIGN §5): the safety path must keep running whatever the
+Why a separate process: the safety path must keep running whatever the
 controller does (a long journal fsync, model training, a Python exception, a debugger
 stop), and must stop when the controller is gone. So a ``spawn``-ed child — the
 hardware process — owns :class:`~.ati_netft.NetFTClient` and :class:`~.ur_link.URLink`
@@ -8,16 +8,18 @@ hardware process — owns :class:`~.ati_netft.NetFTClient` and :class:`~.ur_link
 
 - **safety** (:class:`SafetyLoop`): wakes on every RDT datagram (the client's receive
   thread signals it), reads the new samples, runs ``SafetyGuard.check_block`` (vectorised,
-  first crossing) and, on a trip, sends the stop (speedStop / stopL) AT ONCE, and only
-  then records the trip for the controller. It also watches for contact during a contact
-  search (|F| >= threshold stops the arm at the sample rate) and checks for a stale
-  stream. It is the only caller of ``URLink.heartbeat()``: the robot's watchdog is kicked
-  only while this loop runs (if it hangs, ur_rtde stops kicking and the arm stops).
-- **control**: at ``control_hz`` (121 Hz) reads the arm's state through the link and runs
-  the outer loops on UR motion: contact search = speedL along d (distance bound), force
-  regulation = PI on the ATI reading commanding speedL along d; and follows moveL
-  progress. A gate lock orders its speedL against the safety thread's stop: once a motion
-  is marked stopped, no later speedL of it can reach the robot.
+  first crossing) and hands the block to the force loop's supervisor
+  (:class:`~elastoprobe.controller.forceloop.ForceSupervisor`, the same code the simulated
+  cell runs): a crossing (unless it belongs to a motion that unloads a latched trip) or a
+  contact during a contact search stops the arm AT ONCE (speedStop / stopL), and only
+  then is the trip recorded. It also checks for a stale stream. It is the only caller of
+  ``URLink.heartbeat()``: the robot's watchdog is kicked only while this loop runs (if it
+  hangs, ur_rtde stops kicking and the arm stops).
+- **control**: reads the arm's state through the link at ``control_hz`` (121 Hz), follows
+  moveL progress and the contact search's distance, and runs the supervisor's force
+  regulation once per ``force_loop.period_s`` (the cell's gains), sending its speedL. A
+  gate lock orders its speedL against the safety thread's stop: once a motion is marked
+  stopped, no later speedL of it can reach the robot.
 - **main**: serves the controller's requests (a pipe, one request at a time) and dies
   with its parent: ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` plus a parent-pid check.
 - the NetFT receive thread (inside the client).
@@ -48,8 +50,6 @@ from __future__ import annotations
 import atexit
 import collections
 import ctypes
-import itertools
-import math
 import multiprocessing as mp
 import os
 import signal
@@ -64,11 +64,13 @@ import numpy as np
 
 from ..clock import Clock, RealClock
 from ..devices import ArmStatus, DeviceIdentity, MotionState, Trip, WrenchBlock
-from ..errors import DeviceError, DeviceTimeout, MotionRefused
+from ..errors import DeviceError, DeviceTimeout, MotionRefused, ProgramNotRunning
 from .supervised import await_ready, kill_child
+from ..forceloop import BlockVerdict, ForceLoopGains, ForceSupervisor, SupervisedMotion
 from ..geometry import Pose
 from ..safety import SafetyGuard, SafetyLimits
-from .ur_link import URLinkConfig, URState
+from .ur_link import LinkMove, URLinkConfig, URState
+from .ur_primitives import URPrimitives
 
 PR_SET_PDEATHSIG = 1
 _ACTIVE = (MotionState.RUNNING,)
@@ -76,31 +78,12 @@ _ACTIVE = (MotionState.RUNNING,)
 
 # ====================================================================== configuration
 @dataclass(frozen=True)
-class RegulatorSettings:
-    """The force loop (PI on |F| with feed-forward of the reference ramp, speedL along d).
-
-    ``gain``: fraction of the force error corrected per loop period; ``integral_per_s``:
-    integral action; the loop's gain is scaled by an online contact-stiffness estimate (N/mm),
-    since rubber is ~50x stiffer than foam. DONE once |error| <= max(tolerance_n,
-    tolerance_rel x target) for ``settle_updates`` periods at the target; then it holds.
-    """
-
-    max_speed_mm_s: float = 15.0
-    accel_mm_s2: float = 500.0
-    gain: float = 0.2
-    integral_per_s: float = 1.0
-    tolerance_n: float = 0.1
-    tolerance_rel: float = 0.02
-    settle_updates: int = 10
-    initial_stiffness_n_mm: float = 2.0
-    force_window: int = 10           # samples averaged for the loop's force reading
-
-
-@dataclass(frozen=True)
 class HardwareConfig:
     """What the hardware process needs (units in the names, base frame).
 
-    ``probe_axis_sensor``: the probe axis in the sensor frame (for the lateral-force limit).
+    ``probe_axis_sensor``: the probe axis in the sensor frame (for the lateral-force limit);
+    ``tcp_to_sensor``: the sensor mount (the supervisor maps forces into the base frame with
+    it). ``force_loop``: the cell's gains (the simulated cell runs the same).
     ``flange_to_tcp`` (the believed tool) and ``joint_limits_rad`` give the controller-side
     IK; ``flange_to_tcp`` is also the TCP set on the robot (setTcp), whatever
     ``link.tcp_offset_ur`` says: poses go to and come from the arm as this TCP's.
@@ -115,14 +98,14 @@ class HardwareConfig:
     probe_axis_sensor: tuple[float, float, float] = (0.0, 0.0, 1.0)
     flange_to_tcp: Pose = field(default_factory=Pose.identity)
     joint_limits_rad: np.ndarray | None = None
+    tcp_to_sensor: Pose = field(default_factory=Pose.identity)
     link: URLinkConfig = field(default_factory=URLinkConfig)
-    regulator: RegulatorSettings = field(default_factory=RegulatorSettings)
+    force_loop: ForceLoopGains = field(default_factory=ForceLoopGains)
     # Not 125 Hz: polling the RTDE stream (125 or 500 Hz) at its own rate would read every
     # package at the same delay after it arrived, and RobotClock (ur_link), which times
     # packages by their quickest reading, would carry that delay into every pose's time.
     control_hz: float = 121.0
     stop_decel_m_s2: float = 4.0          # stopL / speedStop on a trip, a contact, stop()
-    seek_accel_m_s2: float = 0.5
     move_tolerance_mm: float = 0.5        # a moveL counts as DONE within this of its target
     move_grace_s: float = 0.5             # time for a new moveL to show up in the state
     safety_period_s: float = 0.002        # longest wait for F/T data before a stale check
@@ -226,45 +209,42 @@ class SafetyLoop:
 
     ``read_block()`` returns the samples that arrived since the last call; ``wait_data(t)``
     blocks up to t s for new data (True if some arrived); ``arrival_s()`` the wall time the
-    newest data arrived; ``on_trip(trip, arrival_s)`` must stop the arm at once;
-    ``on_contact(t_s, arrival_s)`` ends a contact search; ``heartbeat()`` tells the robot
-    link the safety path is alive. The guard and its carry-over are protected by ``lock``
-    (a tare must not fall between a read and its check).
+    newest data arrived; ``on_stop(verdict, arrival_s)`` must stop the arm at once (a trip
+    or a contact: what ``supervisor.on_block`` decided for the block the guard checked);
+    ``heartbeat()`` tells the robot link the safety path is alive. The guard, its
+    carry-over and the supervisor's samples are protected by ``lock`` (a tare must not fall
+    between a read and its check).
     """
 
-    def __init__(self, guard: SafetyGuard, read_block: Callable[[], WrenchBlock],
+    def __init__(self, guard: SafetyGuard, supervisor: ForceSupervisor, read_block: Callable[[], WrenchBlock],
                  wait_data: Callable[[float], bool], arrival_s: Callable[[], float],
-                 on_trip: Callable[[Trip, float], None], on_contact: Callable[[float, float], None],
+                 on_stop: Callable[[BlockVerdict, float], None],
                  heartbeat: Callable[[], None] = lambda: None, period_s: float = 0.002,
-                 forward: Callable[[WrenchBlock], None] | None = None, recent: int = 64) -> None:
+                 forward: Callable[[WrenchBlock], None] | None = None) -> None:
         self.guard = guard
+        self.supervisor = supervisor
         self.read_block = read_block
         self.wait_data = wait_data
         self.arrival_s = arrival_s
-        self.on_trip = on_trip
-        self.on_contact = on_contact
+        self.on_stop = on_stop
         self.heartbeat = heartbeat
         self.period_s = period_s
         self.forward = forward
         self.lock = threading.Lock()
-        self.contact_threshold_n: float | None = None
-        self._recent = np.zeros((recent, 3))
-        self._recent_n = 0
         self.iterations = 0
         self.blocks = 0
         # Monotonic stamps of the current iteration (woke, block read, guard decided) and the
-        # length of its block: the trip callback reads them for the latency breakdown.
+        # length of its block: the stop callback reads them for the latency breakdown.
         self.t_woke_s = self.t_read_s = self.t_decided_s = 0.0
         self.block_len = 0
 
-    def recent_force_n(self, count: int) -> np.ndarray:
-        """The latest ``count`` force samples (sensor frame, tared), oldest first."""
+    def force_now_n(self) -> float:
+        """The force the loop reads now (the supervisor's latest samples, under the lock)."""
         with self.lock:
-            k = min(count, self._recent_n, self._recent.shape[0])
-            return self._recent[self._recent.shape[0] - k:].copy()
+            return self.supervisor.force_now_n()
 
     def step(self) -> None:
-        """One iteration: wait for data (bounded), check it, act on a crossing."""
+        """One iteration: wait for data (bounded), check it, act on a crossing or a contact."""
         got = self.wait_data(self.period_s)
         self.t_woke_s = time.monotonic()
         self.heartbeat()
@@ -274,40 +254,23 @@ class SafetyLoop:
             self.t_read_s = time.monotonic()
             self.block_len = len(block)
             if not len(block):
-                trip = self.guard.check_stale(time.monotonic())
                 arrival = time.monotonic()
-                contact_t = None
+                trip = self.guard.check_stale(arrival)
             else:
                 self.blocks += 1
                 arrival = self.arrival_s()
                 trip = self.guard.check_block(block)
-                contact_t = None
-                thr = self.contact_threshold_n
-                if thr is not None:
-                    fmag = np.sqrt(np.einsum("ij,ij->i", block.force_n, block.force_n))
-                    hit = np.flatnonzero(fmag >= thr)
-                    if hit.size and (trip is None or block.t_s[hit[0]] < trip.t_s):
-                        contact_t = float(block.t_s[hit[0]])
-                self._remember(block.force_n)
+            verdict = self.supervisor.on_block(block, trip)
         self.t_decided_s = time.monotonic()
         # Act first, then report: the stop goes out before anything else happens.
-        if trip is not None:
-            self.on_trip(trip, arrival)
+        if verdict.stop:
+            self.on_stop(verdict, arrival)
             attach = getattr(self.guard, "attach_raw", None)
-            if attach is not None and trip.raw is None:
+            if attach is not None and verdict.trip is not None and verdict.trip.raw is None:
                 with self.lock:
-                    attach(trip)
-        elif contact_t is not None:
-            self.contact_threshold_n = None
-            self.on_contact(contact_t, arrival)
+                    attach(verdict.trip)
         if len(block) and self.forward is not None:
             self.forward(block)
-
-    def _remember(self, force_n: np.ndarray) -> None:
-        k = min(force_n.shape[0], self._recent.shape[0])
-        self._recent = np.roll(self._recent, -k, axis=0)
-        self._recent[-k:] = force_n[-k:]
-        self._recent_n = min(self._recent_n + k, self._recent.shape[0])
 
     def run(self, stop: threading.Event, end_s: float) -> None:
         while not stop.is_set() and time.monotonic() < end_s:
@@ -315,57 +278,6 @@ class SafetyLoop:
 
 
 # ====================================================================== hardware-process side
-class _Motion:
-    """One motion command inside the hardware process (its state is read by the controller)."""
-
-    # Ids unique across restarts of the hardware process (a stale handle never aliases a new motion).
-    _ids = itertools.count(time.time_ns() // 1000 % 10**12)
-
-    def __init__(self, kind: str, **params: Any) -> None:
-        self.id = next(self._ids)
-        self.kind = kind
-        self.state = MotionState.RUNNING
-        self.progress = 0.0
-        self.t_start_s = time.monotonic()
-        self.params = params
-        self.holding = False              # regulate_force: DONE and still holding the force
-        self.note = ""
-
-    @property
-    def active(self) -> bool:
-        """Still commanding the arm (RUNNING, or a regulation holding its force)."""
-        return self.state == MotionState.RUNNING or self.holding
-
-    def finish(self, state: MotionState, note: str = "") -> None:
-        if self.active:
-            self.state = state
-            self.holding = False
-            self.note = note
-            if state in (MotionState.DONE, MotionState.CONTACT):
-                self.progress = 1.0
-
-
-@dataclass
-class _Regulation:
-    direction: np.ndarray
-    target_n: float
-    rate_n_s: float
-    start_n: float
-    t0_s: float
-    stiffness_n_mm: float
-    integral: float = 0.0
-    last_force_n: float | None = None
-    last_u_mm: float = 0.0
-    in_band: int = 0
-    trace: collections.deque = field(default_factory=lambda: collections.deque(maxlen=2000))  # (t, F, ref, v, k)
-
-    def reference_n(self, t_s: float) -> float:
-        elapsed = t_s - self.t0_s
-        if self.target_n >= self.start_n:
-            return min(self.target_n, self.start_n + self.rate_n_s * elapsed)
-        return max(self.target_n, self.start_n - self.rate_n_s * elapsed)
-
-
 def _set_parent_death_signal() -> None:
     if sys.platform.startswith("linux"):
         libc = ctypes.CDLL(None, use_errno=True)
@@ -404,11 +316,17 @@ class _HardwareServer:
         link_cfg = replace(cfg.link, tcp_offset_ur=tuple(float(v) for v in cfg.flange_to_tcp.to_ur()))
         self.link = URLink(cfg.robot_host, link_cfg).start()
         self.guard = StopFirstGuard(cfg.limits, np.asarray(cfg.probe_axis_sensor, float), rate_hz=cfg.ft_rate_hz)
-        self.gate = threading.Lock()          # orders speedL (control) against stops (safety)
-        self.motion: _Motion | None = None
-        self.motions: collections.OrderedDict[int, _Motion] = collections.OrderedDict()
-        self.regulation: _Regulation | None = None
-        self.last_regulation: _Regulation | None = None
+        # The force loop: the same supervisor (and the cell's gains) as the simulated cell's.
+        self.sup = ForceSupervisor(cfg.force_loop, cfg.limits, cfg.tcp_to_sensor.rotation)
+        # Orders commands: speedL (control) against stops (safety) and new motions (main).
+        self.gate = threading.Lock()
+        self.wake = threading.Event()         # a new regulation: the control thread runs it now
+        self.motions: collections.OrderedDict[int, SupervisedMotion] = collections.OrderedDict()
+        # The moveL in flight: its motion, the link's handle, its target (ur units).
+        self.move: tuple[SupervisedMotion, LinkMove, np.ndarray] | None = None
+        # The arm's primitives (moveL, speedL, stops: the supervisor's commands go through them).
+        self.arm = URPrimitives(self.link, cfg.stop_decel_m_s2 * 1e3, cfg.direct_stop)
+        self.trace: collections.deque = collections.deque(maxlen=2000)   # (t, F, v, k, send s)
         self.state: URState | None = None
         self.pending_errors: list[str] = []
         self.latency = LatencyStats()
@@ -417,10 +335,9 @@ class _HardwareServer:
         self.outbox_n = 0
         self.outbox_lock = threading.Lock()
         self.timebase = DeviceTimebase(cfg.ft_rate_hz)
-        self.safety = SafetyLoop(self.guard, lambda: self.timebase.retime(self.ft.read_block()), self._wait_ft,
-                                 lambda: self.ft.last_arrival_s,
-                                 self._on_trip, self._on_contact, self.link.heartbeat, cfg.safety_period_s,
-                                 forward=self._forward)
+        self.safety = SafetyLoop(self.guard, self.sup, lambda: self.timebase.retime(self.ft.read_block()),
+                                 self._wait_ft, lambda: self.ft.last_arrival_s, self._on_stop, self.link.heartbeat,
+                                 cfg.safety_period_s, forward=self._forward)
         self.threads = [threading.Thread(target=self._safety_main, name="hw-safety", daemon=True),
                         threading.Thread(target=self._control_main, name="hw-control", daemon=True)]
 
@@ -456,175 +373,124 @@ class _HardwareServer:
                 self.outbox_n -= len(self.outbox.popleft())
 
     def _control_main(self) -> None:
-        period = 1.0 / self.cfg.control_hz
-        next_t = time.monotonic()
-        end = next_t + self.cfg.lifetime_s
+        poll_s = 1.0 / self.cfg.control_hz
+        next_poll = time.monotonic()
+        end = next_poll + self.cfg.lifetime_s
         while not self.stop_event.is_set() and time.monotonic() < end:
             try:
-                self.state = self.link.state()
-                self._update_motion(self.state)
+                # A local: a recovery (main thread) sets self.state to None at any moment.
+                st = self.state = self.link.state()
+                self._update_motion(st)
+                self._control_tick(st)
+            except ProgramNotRunning:
+                pass                    # a stop the next state explains (safety, operator, watchdog)
             except DeviceError as exc:
                 self._link_failed(str(exc))
             except Exception as exc:  # noqa: BLE001 — keep the loop alive; the controller hears of it
                 self._link_failed(f"control loop: {type(exc).__name__}: {exc}")
-            next_t += period
             now = time.monotonic()
-            if next_t < now - 0.1:
-                next_t = now
-            self.stop_event.wait(max(0.0, next_t - now))
+            next_poll += poll_s
+            if next_poll < now - 0.1:
+                next_poll = now
+            # While a regulation runs the state is read for each of its updates (on its own
+            # schedule, the loop period); otherwise at control_hz.
+            due = self.sup.next_update_s
+            wake = due if due is not None else next_poll
+            if due is not None:
+                next_poll = max(next_poll, due)
+            if self.wake.wait(max(0.0, wake - now)):
+                self.wake.clear()
+
+    def _control_tick(self, st: URState) -> None:
+        """The supervisor's control path on a fresh state: the search's distance, the regulation."""
+        with self.gate:
+            m = self.sup.motion
+            cmd = self.sup.on_tick(time.monotonic(), st.tcp_pose_ur[:3] * 1e3, self.safety.force_now_n())
+            if cmd.stop:
+                self._send_stop()
+            elif cmd.velocity_mm_s is not None and m is not None and m.active and m is self.sup.motion:
+                t_call = time.monotonic()
+                self.arm.speed_linear(cmd.velocity_mm_s, cmd.accel_mm_s2)
+                reg = self.sup.regulation
+                if reg is not None and m.kind == "regulate_force":
+                    self.trace.append((t_call, reg.last_force_n, float(np.linalg.norm(cmd.velocity_mm_s)),
+                                       reg.stiffness_n_mm, time.monotonic() - t_call))
 
     def _link_failed(self, message: str) -> None:
         self.pending_errors.append(message)
-        m = self.motion
-        if m is not None:
-            m.finish(MotionState.FAULT, message)
-        self.regulation = None
-        self.safety.contact_threshold_n = None
+        self.sup.faulted(message)
+        self.move = None
+        # A failed link restarts its child: the new program runs no speed thread.
+        self.arm.program_restarted()
         self.state = None
 
     # ------------------------------------------------------------------ stops (safety thread)
-    def _send_stop(self, m: _Motion | None) -> int | None:
-        """Stop the arm now: speedStop after speedL motions, stopL otherwise. Returns the
-        direct channel's sequence number (None for a call through the request pipe)."""
-        decel = self.cfg.stop_decel_m_s2
-        speed_motion = m is not None and m.kind in ("seek_contact", "regulate_force")
-        if self.cfg.direct_stop:
-            try:
-                return self.link.stop_now(not speed_motion, decel)
-            except DeviceError as exc:
-                # The link restarts its child, whose new program stops the arm anyway.
-                self.pending_errors.append(f"stop failed: {exc}")
-                return None
+    def _send_stop(self) -> int | None:
+        """Stop the arm now (URPrimitives.stop). Returns the direct channel's sequence number
+        (None for a call through the request pipe). The caller holds the gate."""
         try:
-            if speed_motion:
-                self.link.speed_stop(decel)
-            else:
-                self.link.stop_linear(decel)
+            return self.arm.stop()
         except DeviceError as exc:
             # The link restarts its child, whose new program stops the arm anyway.
             self.pending_errors.append(f"stop failed: {exc}")
+        return None
 
-    def _on_trip(self, trip: Trip, arrival_s: float) -> None:
-        m = self.motion
-        first = self.guard.tripped is trip
-        if (m is not None and m.active) or first:
-            if m is not None:
-                m.finish(MotionState.TRIPPED, trip.message)
-            self.regulation = None
-            self.safety.contact_threshold_n = None
-            t_stop_s = time.monotonic()
-            with self.gate:
-                t_gate_s = time.monotonic()
-                seq = self._send_stop(m)
-            now = time.monotonic()
-            self.latency.add(now - arrival_s)
-            sl = self.safety
-            # Direct stops: no call lock; "sent" = handed to the pipe (the child's stamps are in
-            # its report, merged by op_stop_timings).
-            link = ({"t_call_s": t_gate_s, "t_locked_s": t_gate_s, "t_sent_s": self.link.last_stop_sent_s}
-                    if self.cfg.direct_stop else dict(self.link.last_stop_timing))
-            self.stop_timings.append({
-                "arrival_s": arrival_s, "woke_s": sl.t_woke_s, "read_s": sl.t_read_s, "decided_s": sl.t_decided_s,
-                "block_len": sl.block_len, "stop_s": t_stop_s, "gate_s": t_gate_s, "sent_or_acknowledged_s": now,
-                "stop_seq": seq, **link})
-
-    def _on_contact(self, t_s: float, arrival_s: float) -> None:
-        m = self.motion
-        if m is None or m.kind != "seek_contact" or not m.active:
-            return
-        m.finish(MotionState.CONTACT, f"contact at t={t_s:.4f} s")
+    def _on_stop(self, verdict: BlockVerdict, arrival_s: float) -> None:
+        """The safety thread's stop: a crossing, or the contact a search was looking for."""
+        t_stop_s = time.monotonic()
         with self.gate:
-            self._send_stop(m)
+            t_gate_s = time.monotonic()
+            seq = self._send_stop()
+        now = time.monotonic()
+        trip = verdict.trip
+        if trip is None:
+            return
+        self.latency.add(now - arrival_s)
+        sl = self.safety
+        # Direct stops: no call lock; "sent" = handed to the pipe (the child's stamps are in
+        # its report, merged by op_stop_timings).
+        link = ({"t_call_s": t_gate_s, "t_locked_s": t_gate_s, "t_sent_s": self.link.last_stop_sent_s}
+                if self.cfg.direct_stop else dict(self.link.last_stop_timing))
+        self.stop_timings.append({
+            "arrival_s": arrival_s, "woke_s": sl.t_woke_s, "read_s": sl.t_read_s, "decided_s": sl.t_decided_s,
+            "block_len": sl.block_len, "stop_s": t_stop_s, "gate_s": t_gate_s, "sent_or_acknowledged_s": now,
+            "stop_seq": seq, **link})
+        # Then the record: the latch, with the direction that unloads the contact.
+        st = self.state
+        rotation = Pose.from_ur(st.tcp_pose_ur).rotation if st is not None else None
+        with sl.lock:
+            force_base = self.sup.force_base_n(rotation) if rotation is not None else None
+        self.sup.tripped(trip, verdict.peak_force_n, force_base)
 
     # ------------------------------------------------------------------ motion updates (control thread)
     def _update_motion(self, st: URState) -> None:
-        m = self.motion
+        m = self.sup.motion
         if m is None or not m.active:
             return
         if st.protective_stopped or st.emergency_stopped or not st.program_running or not st.connected:
             why = ("emergency stop" if st.emergency_stopped else "protective stop" if st.protective_stopped
+                   else st.stop_reason if st.operator_stop
                    else "program not running" if not st.program_running else "connection lost")
-            m.finish(MotionState.FAULT, why)
-            self.regulation = None
-            self.safety.contact_threshold_n = None
+            with self.gate:
+                self.sup.faulted(why)
+                self.move = None
             return
-        pos_mm = st.tcp_pose_ur[:3] * 1e3
-        if m.kind == "move_linear":
-            move = m.params["link_move"]
-            m.progress = move.fraction_done(st)
-            target = np.asarray(m.params["target_ur"][:3]) * 1e3
-            at_target = float(np.linalg.norm(pos_mm - target)) <= self.cfg.move_tolerance_mm
-            if not move.is_running(st):
-                if at_target and st.tcp_speed_m_s < 1e-4:
-                    m.finish(MotionState.DONE)
-                elif time.monotonic() - m.t_start_s > self.cfg.move_grace_s and st.tcp_speed_m_s < 1e-4:
-                    m.finish(MotionState.FAULT, "moveL ended away from its target")
-        elif m.kind == "seek_contact":
-            d = m.params["direction"]
-            travelled = float((pos_mm - m.params["start_mm"]) @ d)
-            m.progress = travelled / m.params["max_distance_mm"]
-            if travelled >= m.params["max_distance_mm"]:
-                self.safety.contact_threshold_n = None
-                m.finish(MotionState.NO_CONTACT, f"no contact within {m.params['max_distance_mm']:.1f} mm")
-                with self.gate:
-                    self._send_stop(m)
-        elif m.kind == "regulate_force":
-            self._regulate(m, pos_mm)
-
-    def _measured_force_n(self) -> float:
-        recent = self.safety.recent_force_n(self.cfg.regulator.force_window)
-        return float(np.linalg.norm(recent.mean(axis=0))) if recent.shape[0] else 0.0
-
-    def _regulate(self, m: _Motion, pos_mm: np.ndarray) -> None:
-        reg = self.regulation
-        if reg is None:
+        move = self.move
+        if move is None or move[0] is not m:
             return
-        s = self.cfg.regulator
-        period = 1.0 / self.cfg.control_hz
-        now = time.monotonic()
-        force = self._measured_force_n()
-        u = float(pos_mm @ reg.direction)
-        if reg.last_force_n is not None:
-            du, df = u - reg.last_u_mm, force - reg.last_force_n
-            # Contact stiffness (N/mm) from successive periods while moving into the load.
-            if abs(du) > 2e-3 and force > 0.3 and df * du > 0:
-                k_obs = min(max(df / du, 0.05), 1000.0)
-                reg.stiffness_n_mm = math.exp(0.8 * math.log(reg.stiffness_n_mm) + 0.2 * math.log(k_obs))
-        reg.last_force_n, reg.last_u_mm = force, u
-        ref, ref_next = reg.reference_n(now), reg.reference_n(now + period)
-        err = ref - force
-        k = reg.stiffness_n_mm
-        reg.integral += err * period
-        bound = s.max_speed_mm_s * k / max(s.integral_per_s, 1e-9)
-        reg.integral = min(max(reg.integral, -bound), bound)
-        speed = (ref_next - ref) / period / k + s.gain * err / (k * period) + s.integral_per_s * reg.integral / k
-        speed = min(max(speed, -s.max_speed_mm_s), s.max_speed_mm_s)
-        with self.gate:
-            if not m.active or self.regulation is not reg:
-                return
-            t_call = time.monotonic()
-            self.link.speed_linear(np.concatenate([reg.direction * speed * 1e-3, np.zeros(3)]), s.accel_mm_s2 * 1e-3)
-        reg.trace.append((now, force, ref, speed, k, time.monotonic() - t_call))
-        tol = max(s.tolerance_n, s.tolerance_rel * reg.target_n)
-        reg.in_band = reg.in_band + 1 if (ref == reg.target_n and abs(err) <= tol) else 0
-        if m.state == MotionState.RUNNING:
-            m.progress = force / reg.target_n if reg.target_n > 0 else 1.0
-            if reg.in_band >= s.settle_updates:
-                m.state, m.progress, m.holding = MotionState.DONE, 1.0, True
+        _, link_move, target_ur = move
+        m.set_progress(link_move.fraction_done(st))
+        at_target = float(np.linalg.norm(st.tcp_pose_ur[:3] - target_ur[:3])) * 1e3 <= self.cfg.move_tolerance_mm
+        if not link_move.is_running(st) and st.tcp_speed_m_s < 1e-4:
+            if at_target:
+                m.finish(MotionState.DONE)
+                self.move = None
+            elif time.monotonic() - link_move.t_start_s > self.cfg.move_grace_s:
+                self.sup.faulted("moveL ended away from its target")
+                self.move = None
 
     # ------------------------------------------------------------------ requests (main thread)
-    def _new_motion(self, kind: str, **params: Any) -> _Motion:
-        """Supersede the current motion; the new one is published by :meth:`_publish`."""
-        self._raise_pending()
-        old = self.motion
-        if old is not None and old.active:
-            old.finish(MotionState.STOPPED, "superseded")
-        self.regulation = None
-        self.safety.contact_threshold_n = None
-        return _Motion(kind, **params)
-
-    def _publish(self, m: _Motion) -> None:
-        self.motion = m
+    def _publish(self, m: SupervisedMotion) -> None:
         self.motions[m.id] = m
         while len(self.motions) > 256:
             self.motions.popitem(last=False)
@@ -646,56 +512,55 @@ class _HardwareServer:
         return {"t_s": st.t_s, "pose_ur": st.tcp_pose_ur.tolist(), "q": st.joints_rad.tolist(),
                 "speed_mm_s": st.tcp_speed_m_s * 1e3, "program_running": st.program_running,
                 "protective": st.protective_stopped, "emergency": st.emergency_stopped,
-                "connected": st.connected and self.link.alive}
+                "connected": st.connected and self.link.alive, "operator_stop": st.operator_stop,
+                "stop_reason": st.stop_reason}
 
     def op_move_linear(self, target_ur: list[float], speed_mm_s: float, accel_mm_s2: float) -> int:
-        m = self._new_motion("move_linear", target_ur=list(target_ur))
+        self._raise_pending()
+        target = np.asarray(target_ur, float)
+        start = self._ready_state().tcp_pose_ur
         with self.gate:
-            m.params["link_move"] = self.link.move_linear(target_ur, speed_mm_s * 1e-3, accel_mm_s2 * 1e-3)
-            m.t_start_s = time.monotonic()
+            m = self.sup.begin_move(start[:3] * 1e3, target[:3] * 1e3)
             self._publish(m)
+            self.move = (m, self.arm.move_linear(target, speed_mm_s, accel_mm_s2), target)
         return m.id
 
     def op_seek_contact(self, direction: list[float], speed_mm_s: float, contact_force_n: float,
                         max_distance_mm: float) -> int:
-        d = np.asarray(direction, float)
-        d = d / np.linalg.norm(d)
+        self._raise_pending()
         st = self._ready_state()
-        m = self._new_motion("seek_contact", direction=d, start_mm=st.tcp_pose_ur[:3] * 1e3,
-                             max_distance_mm=float(max_distance_mm))
         with self.gate:
+            m = self.sup.begin_seek(np.asarray(direction, float), speed_mm_s, contact_force_n, max_distance_mm,
+                                    st.tcp_pose_ur[:3] * 1e3, time.monotonic())
             self._publish(m)
-            self.safety.contact_threshold_n = float(contact_force_n)
-            self.link.speed_linear(np.concatenate([d * speed_mm_s * 1e-3, np.zeros(3)]), self.cfg.seek_accel_m_s2)
+            self.move = None
+            search = self.sup.search
+            assert search is not None
+            self.arm.speed_linear(search.velocity_mm_s(), self.cfg.force_loop.seek_accel_mm_s2)
         return m.id
 
     def op_regulate_force(self, direction: list[float], target_force_n: float, rate_n_s: float) -> int:
-        d = np.asarray(direction, float)
-        d = d / np.linalg.norm(d)
-        m = self._new_motion("regulate_force", direction=d)
-        s = self.cfg.regulator
-        reg = _Regulation(d, float(target_force_n), float(rate_n_s), self._measured_force_n(), time.monotonic(),
-                          s.initial_stiffness_n_mm)
+        self._raise_pending()
         with self.gate:
+            m = self.sup.begin_regulation(np.asarray(direction, float), target_force_n, rate_n_s, time.monotonic(),
+                                          self.safety.force_now_n())
             self._publish(m)
-            self.regulation = self.last_regulation = reg
+            self.move = None
+        self.wake.set()
         return m.id
 
     def op_stop(self) -> bool:
-        m = self.motion
-        if m is not None:
-            m.finish(MotionState.STOPPED, "stop requested")
-        self.regulation = None
-        self.safety.contact_threshold_n = None
         with self.gate:
-            self._send_stop(m)
+            self.sup.stopped()
+            self.move = None
+            self._send_stop()
         return True
 
     def op_motion(self, motion_id: int) -> tuple[str, float, str]:
         m = self.motions.get(motion_id)
         if m is None:
             return MotionState.STOPPED.value, 0.0, "forgotten"
-        return m.state.value, float(min(max(m.progress, 0.0), 1.0)), m.note
+        return m.state().value, m.progress(), m.note
 
     def op_trip(self) -> Trip | None:
         with self.safety.lock:
@@ -706,10 +571,15 @@ class _HardwareServer:
 
     def op_rearm(self) -> bool:
         with self.safety.lock:
-            return self.guard.rearm()
+            if not self.guard.rearm():
+                return False
+            self.sup.rearmed()
+            return True
 
     def op_recover(self) -> bool:
-        result = self.link.recover_protective_stop()
+        with self.gate:
+            result = self.link.recover_protective_stop()
+            self.arm.program_restarted()
         self.state = None
         return bool(result.get("ok", False))
 
@@ -723,13 +593,14 @@ class _HardwareServer:
     def op_tare(self) -> bool:
         with self.safety.lock:
             self.ft.tare()
-            # A deliberate step in the readings is not a force rate.
+            # A deliberate step in the readings is not a force rate, nor a force to regulate from.
             self.guard.note_stream_restart()
+            self.sup.forget_samples()
         return True
 
     def op_identity(self) -> dict[str, Any]:
         ft = self.ft.identity()
-        return {"arm": dict(self.link.identity()), "ft": {"model": ft.model, "serial": ft.serial,
+        return {"arm": {**self.link.identity(), "force_loop": self.sup.identity()}, "ft": {"model": ft.model, "serial": ft.serial,
                                                           "firmware": ft.firmware, "extra": dict(ft.extra)}}
 
     def op_stop_timings(self) -> list[dict[str, Any]]:
@@ -750,7 +621,7 @@ class _HardwareServer:
                 "safety_blocks": self.safety.blocks, "link_restarts": self.link.restarts,
                 "link_child_pid": self.link.child_pid, "ft_received": c.received, "ft_lost": c.lost,
                 "link_faults": [f"{f.kind}: {f.message}" for f in self.link.faults],
-                "regulation_trace": [] if self.last_regulation is None else list(self.last_regulation.trace)}
+                "supervisor": self.sup.describe(), "regulation_trace": list(self.trace)}
 
     # ------------------------------------------------------------------ serve
     def serve(self) -> int:
@@ -772,6 +643,8 @@ class _HardwareServer:
                 self.conn.send(("ok", rid, result))
             except MotionRefused as exc:
                 self.conn.send(("refused", rid, str(exc)))
+            except ProgramNotRunning as exc:
+                self.conn.send(("not_running", rid, str(exc)))
             except DeviceTimeout as exc:
                 self.conn.send(("timeout", rid, str(exc)))
             except Exception as exc:  # noqa: BLE001 — every failure goes back to the controller
@@ -780,11 +653,13 @@ class _HardwareServer:
 
     def close(self) -> None:
         self.stop_event.set()
+        self.wake.set()
         try:
-            m = self.motion
+            m = self.sup.motion
             if m is not None and m.active:
                 with self.gate:
-                    self._send_stop(m)
+                    self.sup.stopped("hardware process closing")
+                    self._send_stop()
         except Exception:  # noqa: BLE001 — closing is best effort
             pass
         for th in self.threads:
@@ -945,6 +820,8 @@ class HardwareProcess:
                     raise MotionRefused(payload)
                 if kind == "timeout":
                     raise DeviceTimeout(payload)
+                if kind == "not_running":
+                    raise ProgramNotRunning(payload)
                 raise DeviceError(f"hardware {name}: {payload}")
 
     def stats(self) -> dict[str, Any]:
@@ -1006,7 +883,8 @@ class HardwareArm:
                          joints_rad=np.asarray(d["q"], float), tcp_speed_mm_s=float(d["speed_mm_s"]),
                          program_running=bool(d["program_running"]), protective_stop=bool(d["protective"]),
                          emergency_stop=bool(d["emergency"]), is_moving=float(d["speed_mm_s"]) > 0.1,
-                         connected=bool(d["connected"]))
+                         connected=bool(d["connected"]), operator_stop=bool(d["operator_stop"]),
+                         stop_reason=str(d["stop_reason"]))
 
     def inverse_kinematics(self, tcp_pose: Pose, seed_joints_rad: np.ndarray | None = None) -> np.ndarray | None:
         from ..kinematics import inverse, ur5e
@@ -1075,5 +953,5 @@ class HardwareFT:
         self._proc.call("tare")
 
 
-__all__ = ["HardwareConfig", "HardwareProcess", "HardwareArm", "HardwareFT", "HardwareMotion", "RegulatorSettings",
+__all__ = ["HardwareConfig", "HardwareProcess", "HardwareArm", "HardwareFT", "HardwareMotion",
            "SafetyLoop", "LatencyStats", "DeviceTimebase", "StopFirstGuard", "Clock", "RealClock"]

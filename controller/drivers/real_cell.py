@@ -133,7 +133,8 @@ def hardware_config(cell: Any, limits: Any, *, robot_host: str | None = None, ft
     return HardwareConfig(robot_host=robot_host or cell.robot.host, ft_host=ft_host or cell.ft.host, limits=limits,
                           rdt_port=rdt_port or cell.ft.rdt_port, calinfo_port=calinfo_port or cell.ft.calinfo_port,
                           ft_rate_hz=cell.ft.rate_hz, probe_axis_sensor=tuple(float(v) for v in axis),
-                          flange_to_tcp=cell.tool.flange_to_tcp.pose(), joint_limits_rad=joint_limits, link=link)
+                          tcp_to_sensor=tcp_to_sensor, flange_to_tcp=cell.tool.flange_to_tcp.pose(),
+                          joint_limits_rad=joint_limits, link=link, force_loop=cell.force_loop.gains())
 
 
 def _object_mesh(path: Path) -> Any:

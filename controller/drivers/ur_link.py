@@ -1,6 +1,6 @@
 """The low-level UR link: the real ur_rtde 1.6.5 in a supervised child process.
 
-Why a child process (DESIGN §5, §9): ur_rtde 1.6.5 can crash its process (segfault)
+Why a child process (docs/ur_emulation.md, "Behaviour of ur_rtde 1.6.5"): ur_rtde 1.6.5 can crash its process (segfault)
 while reconnecting after a dropped connection, its constructors hold the GIL while they
 block on the network, and a blocking call starves the RTDE watchdog. So the library
 runs in a ``spawn``-ed child that
@@ -35,6 +35,7 @@ import math
 import multiprocessing as mp
 import multiprocessing.connection
 import os
+import re
 import signal
 import struct
 import sys
@@ -45,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import DeviceError, DeviceTimeout
+from ..errors import DeviceError, DeviceTimeout, ProgramNotRunning
 from .supervised import await_ready, kill_child
 
 UR_RTDE_VERSION = "1.6.5"
@@ -58,6 +59,9 @@ ROBOT_STATUS_BIT_PROGRAM_RUNNING = 1
 
 # How long a program stop may stay unexplained by the safety bits before it is a fault.
 UNEXPLAINED_STOP_GRACE_S = 0.2
+# A program stop this soon after the child's kick loop came late is the watchdog's (the link's
+# own failure: restarted), not an operator's: the late turn, the watchdog's period and the grace.
+LATE_KICK_MEMORY_S = 1.0
 
 # Child operations that write input_int_register_0 (and so also feed the watchdog).
 _REGISTER_WRITING_OPS = frozenset({"move_linear", "stop_linear", "speed_linear", "speed_stop", "force_mode",
@@ -145,6 +149,8 @@ class URState:
     async_progress: int
     connected: bool
     kicking: bool
+    operator_stop: bool = False
+    stop_reason: str = ""
 
     @property
     def tcp_speed_m_s(self) -> float:
@@ -230,6 +236,35 @@ class LinkMove:
         return state.async_progress >= 0
 
 
+# ====================================================================== dashboard replies
+_MODEL_RE = re.compile(r"^UR\d{1,2}e?$")
+_SERIAL_RE = re.compile(r"^[0-9A-Za-z-]{4,32}$")
+# ur_rtde's polyscopeVersion() returns the version it parsed from "URSoftware 5.11.1.108318 (...)".
+_POLYSCOPE_RE = re.compile(r"^(?:URSoftware )?(\d+\.\d+\.\d+(?:\.\d+)?)(?: \(.*\))?$")
+_PROGRAM_STATE_RE = re.compile(r"^(STOPPED|PLAYING|PAUSED)(?: (.*))?$")
+
+
+def parse_dashboard_identity(key: str, reply: str) -> str:
+    """A dashboard identity reply (``polyscope``: "5.11.1.108318" as ur_rtde parses it, or the
+    raw "URSoftware 5.11.1.108318 (Mar 22 2021)"; ``serial``; ``model``: "UR5"), checked; DeviceError for anything a UR controller does not
+    answer (e.g. "could not understand: 'get robot model'")."""
+    patterns = {"polyscope": _POLYSCOPE_RE, "serial": _SERIAL_RE, "model": _MODEL_RE}
+    match = patterns[key].match(reply)
+    if match is None:
+        raise DeviceError(f"the robot's dashboard answered the {key} query with {reply[:120]!r}, which is not "
+                          f"what a UR controller answers: is this a UR, and does it run PolyScope 5?")
+    return match.group(1) if key == "polyscope" else reply
+
+
+def parse_program_state(reply: str) -> str:
+    """The dashboard's ``programState`` ("PAUSED <name>") as "program state PAUSED (<name>)"."""
+    match = _PROGRAM_STATE_RE.match(reply)
+    if match is None:
+        raise DeviceError(f"the robot's dashboard answered programState with {reply[:120]!r}")
+    name = match.group(2)
+    return f"program state {match.group(1)}" + (f" ({name})" if name else "")
+
+
 # ====================================================================== child side
 def _set_parent_death_signal() -> None:
     """Linux: have the kernel SIGKILL this process when its parent dies."""
@@ -270,6 +305,8 @@ class _ChildLink:
         self.program_expected = False
         self.unexplained_since_s: float | None = None
         self.kicking = False
+        self.stop_reason = ""            # an operator's stop, in the controller's words (op_state)
+        self.late_at_s = -math.inf       # when a turn of the kick loop last came late
         self.last_write_s = 0.0
         self.t_lib_call_s = 0.0          # when the last stop op entered ur_rtde
         self.t_wait_s = self.t_woke_s = 0.0   # the loop's last wait for requests began / ended
@@ -318,13 +355,16 @@ class _ChildLink:
             raise DeviceError(f"the robot's TCP offset reads {got} after setTcp({wanted})")
 
     def identity(self) -> dict[str, str]:
+        """Who the robot is, from the dashboard; a reply that is not what a UR answers is a
+        DeviceError (it must never be stored as the robot's identity)."""
         out = {"host": self.host, "ur_rtde": UR_RTDE_VERSION}
         for key, call in (("polyscope", "polyscopeVersion"), ("serial", "getSerialNumber"),
                           ("model", "getRobotModel")):
             try:
-                out[key] = str(getattr(self.db, call)())
-            except Exception as exc:  # noqa: BLE001 — older PolyScope lacks some queries
-                out[key] = f"unavailable ({exc})"
+                reply = str(getattr(self.db, call)()).strip()
+            except Exception as exc:  # noqa: BLE001 — ur_rtde raises RuntimeError and others
+                raise DeviceError(f"the robot's dashboard did not answer {call}: {exc}") from exc
+            out[key] = parse_dashboard_identity(key, reply)
         return out
 
     # -- loop
@@ -334,9 +374,25 @@ class _ChildLink:
     def heartbeat_fresh(self) -> bool:
         return time.monotonic() - float(self.heartbeat.value) <= self.cfg.heartbeat_timeout_s
 
+    def _program_stop_reason(self) -> str:
+        """Why the program stopped, as the dashboard tells it (its program state, checked)."""
+        try:
+            state = parse_program_state(str(self.db.programState()).strip())
+        except (DeviceError, RuntimeError) as exc:
+            state = f"program state unknown: {exc}"
+        return (f"the robot program was stopped at the pendant or the dashboard, or halted on a script "
+                f"error (no safety stop; {state})")
+
     def run(self) -> int:
         end_s = time.monotonic() + self.cfg.child_lifetime_s
+        # A loop turn later than this may have let the watchdog's period pass without a kick.
+        late_limit_s = 0.5 / self.cfg.watchdog_min_hz
+        last_turn_s = time.monotonic()
         while time.monotonic() < end_s:
+            now = time.monotonic()
+            if now - last_turn_s > late_limit_s:
+                self.late_at_s = now
+            last_turn_s = now
             if not self.parent_alive():
                 return 0
             if not (self.ctl.isConnected() and self.rcv.isConnected()):
@@ -360,14 +416,25 @@ class _ChildLink:
                     # give the safety bits a moment to explain the stop.
                     self.unexplained_since_s = now
                 elif now - self.unexplained_since_s > UNEXPLAINED_STOP_GRACE_S:
-                    # Neither safety stop explains it: the watchdog (stale heartbeat or a
-                    # lost link) or someone else stopped the program.
+                    # Neither safety stop explains it. With a stale heartbeat it is our own
+                    # watchdog (the hardware process hung); with the link up and the heartbeat
+                    # fresh, someone stopped or paused the program at the pendant or the
+                    # dashboard (or it halted on a script error): the arm is the operator's
+                    # now. Reported, and nothing is re-uploaded until asked (recover()).
                     self.program_expected = False
                     self.unexplained_since_s = None
-                    kind = "program_stopped" if not self.heartbeat_fresh() else "connection_lost"
-                    self.conn.send(("fault", kind, "the control program stopped (watchdog or connection)"))
-                    if kind == "connection_lost":
+                    if not self.heartbeat_fresh():
+                        self.conn.send(("fault", "program_stopped", "the control program stopped (watchdog: the "
+                                        "safety heartbeat was stale)"))
+                    elif now - self.late_at_s < LATE_KICK_MEMORY_S:
+                        # This process's own kicks came late (it was starved): the watchdog
+                        # stopped the program, the link's failure, not an operator's.
+                        self.conn.send(("fault", "connection_lost", "the control program stopped (watchdog: the "
+                                        "link's kicks came late)"))
                         return 3
+                    else:
+                        self.stop_reason = self._program_stop_reason()
+                        self.conn.send(("fault", "operator_stop", self.stop_reason))
             else:
                 self.unexplained_since_s = None
             self.kicking = running and self.heartbeat_fresh()
@@ -444,6 +511,8 @@ class _ChildLink:
                 self.conn.send(("ok", rid, result, stamps))
             else:
                 self.conn.send(("ok", rid, result))
+        except ProgramNotRunning as exc:
+            self.conn.send(("not_running", rid, str(exc)))
         except Exception as exc:  # noqa: BLE001 — every failure goes back to the parent
             self.conn.send(("err", rid, f"{type(exc).__name__}: {exc}"))
         finally:
@@ -462,7 +531,8 @@ class _ChildLink:
     # -- operations (each returns plain data)
     def _require_program(self) -> None:
         if not self.ctl.isProgramRunning():
-            raise DeviceError("the control program is not running (protective stop, e-stop or watchdog)")
+            raise ProgramNotRunning("the control program is not running (a protective stop, an e-stop, the "
+                                    "watchdog or an operator's stop)")
 
     def op_identity(self) -> dict[str, str]:
         return self.identity()
@@ -490,6 +560,7 @@ class _ChildLink:
             "protective": bool(self.rcv.isProtectiveStopped()), "emergency": bool(self.rcv.isEmergencyStopped()),
             "async_progress": int(self.ctl.getAsyncOperationProgress()),
             "connected": bool(self.ctl.isConnected() and self.rcv.isConnected()), "kicking": self.kicking,
+            "stop_reason": self.stop_reason,
         }
 
     def op_move_linear(self, pose_ur: list[float], speed_m_s: float, accel_m_s2: float) -> bool:
@@ -557,6 +628,11 @@ class _ChildLink:
             if self.rcv.isProtectiveStopped():
                 return {"ok": False, "reason": "still protective-stopped after unlocking", "attempts": attempts}
         if not self.ctl.isProgramRunning():
+            # The command register keeps its value across program restarts: a script uploaded
+            # now would run the last command again (a speedL replayed drives the arm where the
+            # force loop last sent it). ur_rtde clears it before its first upload only; here
+            # kickWatchdog writes NO_CMD into it (it is sent with no program running too).
+            self.ctl.kickWatchdog()
             self.ctl.reuploadScript()
             deadline = time.monotonic() + 5.0
             while not self.ctl.isProgramRunning() and time.monotonic() < deadline:
@@ -564,6 +640,7 @@ class _ChildLink:
             if not self.ctl.isProgramRunning():
                 return {"ok": False, "reason": "the control script did not start", "attempts": attempts}
             self._arm_watchdog()
+            self.stop_reason = ""
         # Re-seed from where the arm actually is: the caller plans from this pose.
         return {"ok": True, "pose": list(self.rcv.getActualTCPPose()), "q": list(self.rcv.getActualQ()),
                 "attempts": attempts}
@@ -580,6 +657,7 @@ def _child_main(conn: Any, host: str, cfg: URLinkConfig, heartbeat: Any, parent_
     _set_parent_death_signal()
     if os.getppid() != parent_pid:     # the parent died before prctl took effect
         os._exit(0)
+    link: _ChildLink | None = None
     try:
         check_ur_rtde_version()
         link = _ChildLink(conn, host, cfg, heartbeat, parent_pid, stop_conn)
@@ -587,6 +665,10 @@ def _child_main(conn: Any, host: str, cfg: URLinkConfig, heartbeat: Any, parent_
         conn.send(("ready", link.identity()))
     except Exception as exc:  # noqa: BLE001 — report why, then exit
         try:
+            # A failed start leaves no control script running (it would run on, unsupervised:
+            # e.g. after setTcp read back wrong, a script holding a TCP nobody planned with).
+            if link is not None:
+                link.close()
             conn.send(("fatal", f"{type(exc).__name__}: {exc}"))
         finally:
             os._exit(2)
@@ -690,7 +772,7 @@ class URLink:
                        np.asarray(d["speed"], dtype=float), np.asarray(d["force"], dtype=float),
                        int(d["robot_status_bits"]), int(d["safety_status_bits"]), bool(d["program_running"]),
                        bool(d["protective"]), bool(d["emergency"]), int(d["async_progress"]),
-                       bool(d["connected"]), bool(d["kicking"]))
+                       bool(d["connected"]), bool(d["kicking"]), bool(d["stop_reason"]), str(d["stop_reason"]))
 
     def move_linear(self, pose_ur: "np.ndarray | list[float]", speed_m_s: float, accel_m_s2: float) -> LinkMove:
         """Start an asynchronous moveL; returns once the controller has accepted it."""
@@ -819,8 +901,11 @@ class URLink:
 
     def _handle_unsolicited(self, msg: tuple[Any, ...]) -> None:
         if msg[0] == "fault":
-            # connection_lost: the child exits; program_stopped: it stays, waiting for recover().
-            if msg[1] == "program_stopped":
+            # connection_lost: the child exits; program_stopped: it stays, waiting for recover();
+            # operator_stop: it stays, and the state says so (no error: the operator has the arm).
+            if msg[1] == "operator_stop":
+                self.faults.append(LinkFault(time.monotonic(), msg[1], msg[2]))
+            elif msg[1] == "program_stopped":
                 fault = LinkFault(time.monotonic(), msg[1], msg[2])
                 self.faults.append(fault)
                 self._unreported.append(fault)
@@ -877,6 +962,8 @@ class URLink:
                     return msg[2]
                 if msg[0] == "err" and msg[1] == rid:
                     raise DeviceError(f"UR {name} failed: {msg[2]}")
+                if msg[0] == "not_running" and msg[1] == rid:
+                    raise ProgramNotRunning(f"UR {name}: {msg[2]}")
                 self._handle_unsolicited(msg)
                 if self._conn is None or (self._proc is not None and not self._proc.is_alive()):
                     self._raise_unreported()

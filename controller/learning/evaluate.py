@@ -1,4 +1,4 @@
-"""Honest metrics against the simulator's ground truth (DESIGN §7).
+"""Honest metrics against the simulator's ground truth.
 
 Profiles: RMSE in mm against the noise-free truth over a region of interest (ROI):
 by default, per profile, the samples where the true depth exceeds ``ROI_FRACTION``
@@ -20,7 +20,7 @@ from typing import Any, Callable
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from .profiles import mirror, mirror_angle_deg
+from .profiles import MAX_FACE_SLOPE, mirror, mirror_angle_deg
 
 ROI_FRACTION = 0.05
 
@@ -30,6 +30,40 @@ def roi_mask(truth_mm: np.ndarray, fraction: float = ROI_FRACTION) -> np.ndarray
     t = np.atleast_2d(np.asarray(truth_mm, dtype=float))
     peak = np.nanmax(np.where(np.isfinite(t), t, -np.inf), axis=1, keepdims=True)
     return np.isfinite(t) & (t > fraction * np.maximum(peak, 0.0)) & (peak > 0)
+
+
+def profile_face_mask(truth: Any, point_mm: np.ndarray, normal: np.ndarray, t: np.ndarray, x_mm: np.ndarray,
+                      max_slope: float = MAX_FACE_SLOPE) -> np.ndarray:
+    """(L,) where a profile's true surface is defined: the samples x along the line
+    point + x t whose nearest true surface is the contact's own material, facing within
+    atan(``max_slope``) of its normal, reached from the contact without a step steeper
+    than ``max_slope`` (the same rule the measurement uses for the probed face).
+
+    Past the object's rim, or where the line runs onto another part (a box on a
+    pillow), the analytic dent of the contact says nothing true: those samples are not
+    scored (their share is reported). ``truth`` needs ``closest_surface(points) ->
+    (points, normals, labels)``.
+    """
+    p = np.asarray(point_mm, dtype=float)
+    n = np.asarray(normal, dtype=float) / np.linalg.norm(normal)
+    tt = np.asarray(t, dtype=float) / np.linalg.norm(t)
+    x = np.asarray(x_mm, dtype=float)
+    closest, normals, labels = truth.closest_surface(p[None, :] + x[:, None] * tt[None, :])
+    _, _, own = truth.closest_surface(p[None, :])
+    h = (closest - p) @ n
+    facing = normals @ n >= 1.0 / np.sqrt(1.0 + max_slope ** 2)
+    ok = (labels == own[0]) & facing & np.isfinite(h)
+    out = np.zeros(x.shape, dtype=bool)
+    start = int(np.argmin(np.abs(x)))
+    if not ok[start]:
+        return out
+    out[start] = True
+    for step in (1, -1):
+        k = start
+        while 0 <= k + step < x.size and ok[k + step] and abs(h[k + step] - h[k]) <= max_slope * abs(x[k + step] - x[k]):
+            k += step
+            out[k] = True
+    return out
 
 
 def window_mask(x_mm: np.ndarray, half_width_mm: float) -> np.ndarray:
@@ -341,6 +375,27 @@ def spread_along_surface(points_mm: np.ndarray, labels: np.ndarray, known: np.nd
     return out
 
 
+def carried_sources(surface_points_mm: np.ndarray, surface_normals: np.ndarray, cloud_points_mm: np.ndarray,
+                    cloud_normals: np.ndarray, spacing_mm: float, covered_mm: float = COVERED_MM
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Which cloud point each surface sample takes its label from, as :func:`truth_surface_scores`
+    carries a map: (source index (S,) into the cloud, distance (S,) mm from the sample to the
+    cloud point :func:`carry_labels` chose for it; > ``covered_mm``: not covered).
+
+    The label of a map over the cloud on the samples is ``cloud_labels[source]``: the
+    sources depend on the cloud and the samples only, so scoring many maps of one cloud
+    needs them once (bench/sampling_efficiency.py). An uncovered sample takes the source
+    of the nearest covered sample along the surface (:func:`spread_along_surface`).
+    """
+    index = np.arange(np.asarray(cloud_points_mm).reshape(-1, 3).shape[0])
+    source, dist = carry_labels(surface_points_mm, surface_normals, cloud_points_mm, cloud_normals, index)
+    # An unscanned band takes its labels from its own edges, along the face it lies on: the
+    # nearest scanned point in space may lie across a step (the pillow beside the box: the
+    # box's top edge is nearer than the pillow beyond the scanner's shadow).
+    source = spread_along_surface(surface_points_mm, source, dist <= covered_mm, SPREAD_STEP_SPACINGS * spacing_mm)
+    return source, dist
+
+
 def truth_surface_scores(surface_points_mm: np.ndarray, surface_normals: np.ndarray, true_labels: np.ndarray,
                          area_mm2: np.ndarray, cloud_points_mm: np.ndarray, cloud_normals: np.ndarray,
                          cloud_labels: np.ndarray, spacing_mm: float, covered_mm: float = COVERED_MM,
@@ -366,12 +421,9 @@ def truth_surface_scores(surface_points_mm: np.ndarray, surface_normals: np.ndar
     pts = np.asarray(surface_points_mm, dtype=float).reshape(-1, 3)
     true = np.asarray(true_labels).reshape(-1)
     w = np.asarray(area_mm2, dtype=float).reshape(-1)
-    carried, dist = carry_labels(pts, surface_normals, cloud_points_mm, cloud_normals, cloud_labels)
+    source, dist = carried_sources(pts, surface_normals, cloud_points_mm, cloud_normals, spacing_mm, covered_mm)
     covered = dist <= covered_mm
-    # An unscanned band takes its labels from its own edges, along the face it lies on: the
-    # nearest scanned point in space may lie across a step (the pillow beside the box: the
-    # box's top edge is nearer than the pillow beyond the scanner's shadow).
-    carried = spread_along_surface(pts, carried, covered, SPREAD_STEP_SPACINGS * spacing_mm)
+    carried = np.asarray(cloud_labels).reshape(-1)[source]
     radius = 1.5 * spacing_mm
     scores = region_map_scores(carried, true, w, pts, radius_mm=radius)
     if scores["boundary_mm_mean"] is None and seam_distance_mm is not None \

@@ -1,4 +1,4 @@
-"""Per-region neural models of the deformation profile (DESIGN §7; paper §IV).
+"""Per-region neural models of the deformation profile (paper §IV).
 
 One network per region maps (F, α) -> the L-sample depth profile:
 inputs F (N) and α (deg) each mapped linearly to [-1, 1] (the ranges are stored),
@@ -6,12 +6,18 @@ inputs F (N) and α (deg) each mapped linearly to [-1, 1] (the ranges are stored
 (depth_mm / depth_scale_mm, so the region's deepest measured depth is 1).
 
 Training (torch, imported lazily): full-batch resilient propagation
-(``torch.optim.Rprop``) on a masked MSE, so missing (NaN) samples cost nothing.
+(``torch.optim.Rprop``) on a weighted, masked MSE, so missing (NaN) samples cost nothing
+and each sample counts by its support (the session trains on complete targets, see
+:mod:`.support`). The output layer may be trained through a cubic B-spline basis along x
+(``basis_spacing_mm``): every output profile is then smooth at the knot spacing whatever
+the data, and fewer output weights make an epoch cheaper; served, it is the plain L x H
+layer. Training runs in float32 (the served weights are float64).
 Stopping rule: at most ``stages x epochs_per_stage`` epochs (the paper trained in
 five steps of 5000; one continuous Rprop run here, since restarting its step sizes
-makes the loss jump); a member stops early when its
-training loss improved by less than ``plateau_rel_tol`` (relative) over the last
-``plateau_patience`` epochs, or fell below ``loss_goal``.
+makes the loss jump); a member stops early when its training loss improved by less
+than ``plateau_rel_tol`` (relative) over the last ``plateau_patience`` epochs, or its RMS
+fit by less than ``plateau_noise_fraction`` of the data's noise, or the loss fell below
+``loss_goal`` (or the noise itself: the discrepancy principle).
 
 Disagreement: member 0 is fitted on all the data; members 1..E are fitted on
 bootstrap resamples of probe POINTS (every profile of a drawn point comes along,
@@ -28,7 +34,10 @@ steps against that sample's own end-to-end trend along a force grid
 midway between them). Only training changes; serving is untouched.
 
 Serving is pure numpy with the normalisation folded into the weights and
-preallocated buffers (``predict_mm``), fast enough for a 1 kHz haptic loop.
+preallocated buffers (``predict_mm``), fast enough for a 1 kHz haptic loop. A model
+may carry :class:`ServingLimits`: every serving path clips to its physical depth
+bounds, and :meth:`RegionModel.serve` refuses queries outside the trained ranges unless
+asked to extrapolate and says where each sample's training value came from.
 """
 from __future__ import annotations
 
@@ -59,8 +68,11 @@ class TrainConfig:
     stages: int = 5
     epochs_per_stage: int = 2000
     check_every: int = 50               # epochs between stopping-rule checks
-    plateau_patience: int = 400         # epochs over which improvement is measured
+    plateau_patience: int = 200         # epochs over which improvement is measured
     plateau_rel_tol: float = 2e-3       # relative improvement below which training stops
+    # With the data's noise known: training also stops when the RMS fit (mm) improved by
+    # less than this fraction of the noise over ``plateau_patience`` epochs (0 = off).
+    plateau_noise_fraction: float = 0.1
     loss_goal: float = 1e-7             # normalised MSE at which training stops
     rprop_lr: float = 0.01              # Rprop's initial step size
     rprop_etas: tuple[float, float] = (0.5, 1.2)
@@ -72,6 +84,11 @@ class TrainConfig:
     monotone_weight: float = 0.1
     monotone_forces: int = 25
     monotone_margin: float = 1e-5
+    # The training precision (see ``_fit``).
+    dtype: str = "float32"
+    # Smooth outputs: the output layer is trained as a cubic B-spline along x with knots this
+    # far apart (mm; None = one free weight per output sample). See ``_spline_basis``.
+    basis_spacing_mm: float | None = None
 
     def __post_init__(self) -> None:
         if self.activation not in ("tanh", "sigmoid"):
@@ -80,6 +97,21 @@ class TrainConfig:
             raise ValueError("hidden_units, stages, epochs_per_stage must be >= 1 and ensemble >= 0")
         if self.monotone_weight < 0.0 or self.monotone_forces < 2 or self.monotone_margin < 0.0:
             raise ValueError("monotone_weight and monotone_margin must be >= 0 and monotone_forces >= 2")
+        if self.dtype not in ("float32", "float64"):
+            raise ValueError(f"dtype must be float32 or float64, not {self.dtype!r}")
+        if self.plateau_noise_fraction < 0.0:
+            raise ValueError("plateau_noise_fraction must be >= 0")
+        if self.basis_spacing_mm is not None and not self.basis_spacing_mm > 0.0:
+            raise ValueError("basis_spacing_mm must be > 0 (or None)")
+
+    @classmethod
+    def baseline(cls, **changes: Any) -> "TrainConfig":
+        """The training as it was before it was made faster (float64, a 400-epoch plateau
+        window at 0.2 %, no noise-relative stop; with no spline basis, the default): the
+        bench's baseline."""
+        settings: dict[str, Any] = {"dtype": "float64", "plateau_patience": 400, "plateau_noise_fraction": 0.0}
+        settings.update(changes)
+        return cls(**settings)
 
 
 @dataclass
@@ -130,6 +162,78 @@ def data_hash(force_n: np.ndarray, angle_deg: np.ndarray, depth_mm: np.ndarray,
     return h.hexdigest()
 
 
+class OutOfRange(ValueError):
+    """A query outside the forces and angles the model was trained on (see :meth:`RegionModel.serve`)."""
+
+
+@dataclass(frozen=True)
+class ServingLimits:
+    """What a model may be asked and what it may answer.
+
+    ``force_range_n``, ``angle_range_deg``: the trained ranges (queries outside are refused
+    unless the caller opts in); ``depth_min_mm``, ``depth_max_mm``: every served depth is
+    clipped to these physical bounds (no deeper than the tip went in the region's data
+    plus its measured spread, no higher above the undeformed surface than the data rose
+    plus that spread); ``support_forces_n`` (F,), ``support_angles_deg`` (A,),
+    ``support_codes`` (A,F,L) int8: where each output sample's training value came from
+    (:mod:`.support` codes) at each trained force level and angle.
+    """
+
+    force_range_n: tuple[float, float]
+    angle_range_deg: tuple[float, float]
+    depth_min_mm: float
+    depth_max_mm: float
+    support_forces_n: np.ndarray
+    support_angles_deg: np.ndarray
+    support_codes: np.ndarray
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {"limits": np.array([*self.force_range_n, *self.angle_range_deg, self.depth_min_mm, self.depth_max_mm]),
+                "support_forces_n": np.asarray(self.support_forces_n, dtype=np.float64),
+                "support_angles_deg": np.asarray(self.support_angles_deg, dtype=np.float64),
+                "support_codes": np.asarray(self.support_codes, dtype=np.int8)}
+
+    @staticmethod
+    def from_arrays(arrays: dict[str, np.ndarray]) -> "ServingLimits | None":
+        if "limits" not in arrays:
+            return None
+        lim = np.asarray(arrays["limits"], dtype=float)
+        return ServingLimits((float(lim[0]), float(lim[1])), (float(lim[2]), float(lim[3])), float(lim[4]),
+                             float(lim[5]), np.asarray(arrays["support_forces_n"], dtype=float),
+                             np.asarray(arrays["support_angles_deg"], dtype=float),
+                             np.asarray(arrays["support_codes"], dtype=np.int8))
+
+    def inside(self, force_n: float, angle_deg: float) -> bool:
+        """Is (F, alpha) within the trained ranges?"""
+        (f0, f1), (a0, a1) = self.force_range_n, self.angle_range_deg
+        return f0 <= force_n <= f1 and a0 <= angle_deg <= a1
+
+    def support_at(self, force_n: float, angle_deg: float) -> np.ndarray:
+        """(L,) support code of each sample for a query: the weakest (largest code) over the
+        trained force levels and angles that bracket it."""
+        def bracket(grid: np.ndarray, v: float) -> list[int]:
+            k = int(np.searchsorted(grid, v))
+            if k < grid.size and abs(grid[k] - v) <= 1e-6 * max(1.0, abs(v)):
+                return [k]
+            return sorted({min(max(k - 1, 0), grid.size - 1), min(k, grid.size - 1)})
+        ai = bracket(self.support_angles_deg, angle_deg)
+        fi = bracket(self.support_forces_n, force_n)
+        return self.support_codes[np.ix_(ai, fi)].reshape(-1, self.support_codes.shape[-1]).max(axis=0)
+
+
+@dataclass
+class ServedProfile:
+    """What ``predict`` serves for one query: the full-data member's profile clipped to the
+    physical bounds, the bootstrap members' spread, and each sample's support."""
+
+    x_mm: np.ndarray
+    depth_mm: np.ndarray
+    spread_mm: np.ndarray
+    support: np.ndarray           # (L,) int8 support codes (support.SUPPORT_NAMES); -1 unknown
+    extrapolated: bool            # outside the trained ranges (served only on request)
+    clipped: np.ndarray           # (L,) bool: the net's value lay outside the bounds
+
+
 class RegionModel:
     """A trained region network (plus its bootstrap members), served in numpy.
 
@@ -141,7 +245,8 @@ class RegionModel:
     def __init__(self, w1: np.ndarray, b1: np.ndarray, w2: np.ndarray, b2: np.ndarray, *,
                  x_mm: np.ndarray, force_range_n: tuple[float, float],
                  angle_range_deg: tuple[float, float] = ANGLE_RANGE_DEG, depth_scale_mm: float,
-                 activation: str = "tanh", meta: dict[str, Any] | None = None) -> None:
+                 activation: str = "tanh", meta: dict[str, Any] | None = None,
+                 limits: ServingLimits | None = None) -> None:
         self.w1 = np.ascontiguousarray(w1, dtype=np.float64)
         self.b1 = np.ascontiguousarray(b1, dtype=np.float64)
         self.w2 = np.ascontiguousarray(w2, dtype=np.float64)
@@ -156,7 +261,16 @@ class RegionModel:
         self.meta: dict[str, Any] = dict(meta or {})
         if self.w2.shape[1] != self.x_mm.shape[0]:
             raise ValueError(f"model has {self.w2.shape[1]} outputs but the grid has {self.x_mm.shape[0]}")
+        self.limits = limits
+        if limits is not None and limits.support_codes.shape[-1] != self.x_mm.shape[0]:
+            raise ValueError("support codes and the grid differ in length")
         self._fold()
+
+    def with_limits(self, limits: ServingLimits) -> "RegionModel":
+        """The same net served within ``limits``."""
+        return RegionModel(self.w1, self.b1, self.w2, self.b2, x_mm=self.x_mm, force_range_n=self.force_range_n,
+                           angle_range_deg=self.angle_range_deg, depth_scale_mm=self.depth_scale_mm,
+                           activation=self.activation, meta=self.meta, limits=limits)
 
     # -- serving ------------------------------------------------------------------------
     @property
@@ -197,6 +311,8 @@ class RegionModel:
         self._h = np.empty(self.hidden_units)
         self._tmp = np.empty(self.hidden_units)
         self._o = np.empty(self.outputs)
+        lim = self.limits
+        self._lo, self._hi = (-np.inf, np.inf) if lim is None else (lim.depth_min_mm, lim.depth_max_mm)
 
     def predict_mm(self, force_n: float, angle_deg: float, out: np.ndarray | None = None) -> np.ndarray:
         """Depth profile (L,) in mm for one query (full-data member); numpy only.
@@ -211,13 +327,18 @@ class RegionModel:
         np.tanh(h, out=h)
         np.dot(self._s_w2, h, out=o)
         o += self._s_b2
+        np.clip(o, self._lo, self._hi, out=o)
         if out is None:
             return o.copy()
         out[...] = o
         return out
 
     def predict_batch_mm(self, force_n: np.ndarray, angle_deg: np.ndarray) -> np.ndarray:
-        """Depth profiles (Q,L) in mm for Q queries (full-data member)."""
+        """Depth profiles (Q,L) in mm for Q queries (full-data member), within the bounds."""
+        return np.clip(self.raw_batch_mm(force_n, angle_deg), self._lo, self._hi)
+
+    def raw_batch_mm(self, force_n: np.ndarray, angle_deg: np.ndarray) -> np.ndarray:
+        """The full-data net's output (Q,L) in mm before the physical bounds are applied."""
         f = np.asarray(force_n, dtype=float).reshape(-1, 1)
         a = np.asarray(angle_deg, dtype=float).reshape(-1, 1)
         h = np.tanh(f * self._s_w1f + a * self._s_w1a + self._s_b1)
@@ -228,7 +349,41 @@ class RegionModel:
         f = np.asarray(force_n, dtype=float).reshape(1, -1, 1)
         a = np.asarray(angle_deg, dtype=float).reshape(1, -1, 1)
         h = np.tanh(f * self._w1f[:, None, :] + a * self._w1a[:, None, :] + self._b1f[:, None, :])
-        return np.einsum("bqh,blh->bql", h, self._w2f) + self._b2f[:, None, :]
+        return np.clip(np.einsum("bqh,blh->bql", h, self._w2f) + self._b2f[:, None, :], self._lo, self._hi)
+
+    def serve(self, force_n: float, angle_deg: float, extrapolate: bool = False) -> ServedProfile:
+        """The profile ``predict`` serves for one query (see :class:`ServedProfile`).
+
+        Raises :class:`OutOfRange` for a query outside the trained ranges unless
+        ``extrapolate``; such a profile is still clipped to the bounds and is flagged.
+        """
+        return self.serve_batch(np.array([force_n]), np.array([angle_deg]), extrapolate)[0]
+
+    def serve_batch(self, force_n: np.ndarray, angle_deg: np.ndarray, extrapolate: bool = False
+                    ) -> list[ServedProfile]:
+        """:meth:`serve` for Q queries at once."""
+        f = np.asarray(force_n, dtype=float).reshape(-1)
+        a = np.asarray(angle_deg, dtype=float).reshape(-1)
+        lim = self.limits
+        inside = np.array([lim is None or lim.inside(fi, ai) for fi, ai in zip(f, a)], dtype=bool)
+        if not extrapolate and not inside.all():
+            k = int(np.flatnonzero(~inside)[0])
+            assert lim is not None
+            raise OutOfRange(f"F = {f[k]:g} N, angle = {a[k]:g} deg lies outside what the model was trained on "
+                             f"({lim.force_range_n[0]:g}-{lim.force_range_n[1]:g} N, "
+                             f"{lim.angle_range_deg[0]:g}-{lim.angle_range_deg[1]:g} deg)")
+        raw = self.raw_batch_mm(f, a)
+        members = self.predict_members_mm(f, a)
+        boot = members[1:] if self.n_members > 1 else members[:1]
+        spread = boot.std(axis=0, ddof=1) if boot.shape[0] > 1 else np.zeros_like(raw)
+        depth = np.clip(raw, self._lo, self._hi)
+        out = []
+        for q in range(f.size):
+            support = (lim.support_at(f[q], a[q]) if lim is not None
+                       else np.full(self.outputs, -1, dtype=np.int8))
+            out.append(ServedProfile(self.x_mm, depth[q], spread[q], support, not bool(inside[q]),
+                                     depth[q] != raw[q]))
+        return out
 
     def predict_ensemble(self, force_n: float | np.ndarray, angle_deg: float | np.ndarray
                          ) -> tuple[np.ndarray, np.ndarray]:
@@ -274,14 +429,31 @@ class RegionModel:
 
     # -- persistence -----------------------------------------------------------------------
     def _defining(self) -> dict[str, Any]:
-        return {"format": FORMAT, "activation": self.activation, "hidden_units": self.hidden_units,
-                "outputs": self.outputs, "members": self.n_members,
-                "force_range_n": list(self.force_range_n), "angle_range_deg": list(self.angle_range_deg),
-                "depth_scale_mm": self.depth_scale_mm}
+        out = {"format": FORMAT, "activation": self.activation, "hidden_units": self.hidden_units,
+               "outputs": self.outputs, "members": self.n_members,
+               "force_range_n": list(self.force_range_n), "angle_range_deg": list(self.angle_range_deg),
+               "depth_scale_mm": self.depth_scale_mm}
+        if self.limits is not None:
+            lim = self.limits
+            out["serving"] = {"force_range_n": list(lim.force_range_n), "angle_range_deg": list(lim.angle_range_deg),
+                              "depth_min_mm": lim.depth_min_mm, "depth_max_mm": lim.depth_max_mm}
+        return out
+
+    def _arrays(self) -> dict[str, np.ndarray]:
+        out = {"w1": self.w1, "b1": self.b1, "w2": self.w2, "b2": self.b2, "x_mm": self.x_mm}
+        if self.limits is not None:
+            out.update(self.limits.arrays())
+        return out
 
     def _weights_bytes(self) -> bytes:
-        return b"".join(np.ascontiguousarray(a, dtype="<f8").tobytes()
-                        for a in (self.w1, self.b1, self.w2, self.b2, self.x_mm))
+        """The stored arrays' bytes (serving limits included when present; a model without
+        them hashes exactly as before they existed)."""
+        arrays = self._arrays()
+        parts = [np.ascontiguousarray(arrays[k], dtype="<f8").tobytes() for k in ("w1", "b1", "w2", "b2", "x_mm")]
+        if self.limits is not None:
+            parts += [np.ascontiguousarray(arrays[k], dtype="<f8").tobytes()
+                      for k in ("limits", "support_forces_n", "support_angles_deg", "support_codes")]
+        return b"".join(parts)
 
     def model_hash(self) -> str:
         """sha256 of what defines the predictions: weights, grid, ranges, scale, activation."""
@@ -299,7 +471,7 @@ class RegionModel:
         if base.suffix in (".npz", ".json"):
             base = base.with_suffix("")
         buf = io.BytesIO()
-        np.savez(buf, w1=self.w1, b1=self.b1, w2=self.w2, b2=self.b2, x_mm=self.x_mm)
+        np.savez(buf, **self._arrays())
         atomic_write_bytes(base.with_suffix(".npz"), buf.getvalue())
         meta = dict(self.meta)
         meta.update(self._defining())
@@ -323,11 +495,12 @@ class RegionModel:
         if meta.get("format") != FORMAT:
             raise ValueError(f"{base}.json: not a {FORMAT} file")
         with np.load(base.with_suffix(".npz"), allow_pickle=False) as z:
-            arrays = {k: z[k] for k in ("w1", "b1", "w2", "b2", "x_mm")}
+            arrays = {k: z[k] for k in z.files}
         model = RegionModel(arrays["w1"], arrays["b1"], arrays["w2"], arrays["b2"], x_mm=arrays["x_mm"],
                             force_range_n=tuple(meta["force_range_n"]),
                             angle_range_deg=tuple(meta["angle_range_deg"]),
-                            depth_scale_mm=meta["depth_scale_mm"], activation=meta["activation"], meta=meta)
+                            depth_scale_mm=meta["depth_scale_mm"], activation=meta["activation"], meta=meta,
+                            limits=ServingLimits.from_arrays(arrays))
         if hashlib.sha256(model._weights_bytes()).hexdigest() != meta.get("weights_sha256"):
             raise ValueError(f"{base}.npz does not match the weights hash in {base}.json")
         if model.model_hash() != meta.get("model_hash"):
@@ -357,6 +530,26 @@ def _init_weights(rng: np.random.Generator, members: int, hidden: int, outputs: 
     w2 = rng.uniform(-1.0, 1.0, size=(members, outputs, hidden)) / hidden ** 0.5 * 0.1
     b2 = np.broadcast_to(y_mean, (members, outputs)).copy()
     return w1, b1, w2, b2
+
+
+def _spline_basis(x_mm: np.ndarray, spacing_mm: float | None) -> np.ndarray | None:
+    """(L,K) cubic B-spline design matrix on the grid, uniform knots ``spacing_mm`` apart
+    (None when no basis is asked for or the knots would be no coarser than the grid).
+
+    Trained through this basis, every output profile is a cubic spline: smooth at the
+    knot spacing whatever the data, so noise or an uneven fill in a few training samples
+    cannot show as spikes between them. Served, the layer is the plain L x H matrix."""
+    if spacing_mm is None or x_mm.size < 8:
+        return None
+    span = float(x_mm[-1] - x_mm[0])
+    intervals = int(np.ceil(span / spacing_mm))
+    if intervals + 3 >= x_mm.size:
+        return None
+    from scipy.interpolate import BSpline   # training only: serving stays numpy
+
+    inner = np.linspace(x_mm[0], x_mm[-1], intervals + 1)
+    knots = np.concatenate([[x_mm[0]] * 3, inner, [x_mm[-1]] * 3])
+    return BSpline.design_matrix(x_mm, knots, 3).toarray()
 
 
 def _monotone_grid(angle_deg: np.ndarray, f_range: tuple[float, float], config: TrainConfig) -> tuple[np.ndarray, tuple[int, int]] | None:
@@ -409,7 +602,8 @@ def fit_region_model(force_n: np.ndarray, angle_deg: np.ndarray, depth_mm: np.nd
                      point_ids: np.ndarray | None = None, mask: np.ndarray | None = None,
                      config: TrainConfig = TrainConfig(), force_range_n: tuple[float, float] | None = None,
                      depth_scale: float | None = None,
-                     noise_mm: float | np.ndarray | None = None) -> RegionModel:
+                     noise_mm: float | np.ndarray | None = None,
+                     sample_weight: np.ndarray | None = None) -> RegionModel:
     """Fit one region's network (and bootstrap members) to averaged profiles.
 
     ``force_n``, ``angle_deg`` (M,): the measured |F| (N) and commanded α (deg) of each
@@ -432,7 +626,7 @@ def fit_region_model(force_n: np.ndarray, angle_deg: np.ndarray, depth_mm: np.nd
     torch.set_num_threads(1)
     try:
         return _fit(force_n, angle_deg, depth_mm, x_mm, point_ids, mask, config, force_range_n,
-                    depth_scale, noise_mm)
+                    depth_scale, noise_mm, sample_weight)
     finally:
         torch.set_num_threads(threads)
 
@@ -440,7 +634,7 @@ def fit_region_model(force_n: np.ndarray, angle_deg: np.ndarray, depth_mm: np.nd
 def _fit(force_n: np.ndarray, angle_deg: np.ndarray, depth_mm: np.ndarray, x_mm: np.ndarray,
          point_ids: np.ndarray | None, mask: np.ndarray | None, config: TrainConfig,
          force_range_n: tuple[float, float] | None, depth_scale: float | None,
-         noise_mm: float | np.ndarray | None) -> RegionModel:
+         noise_mm: float | np.ndarray | None, sample_weight: np.ndarray | None = None) -> RegionModel:
     import torch
 
     t0 = time.perf_counter()
@@ -462,49 +656,67 @@ def _fit(force_n: np.ndarray, angle_deg: np.ndarray, depth_mm: np.ndarray, x_mm:
     y = np.where(valid, y_mm / scale, 0.0)
 
     goal = config.loss_goal
+    # The noise-relative plateau: an RMS improvement of noise_fraction x noise (mm), as a
+    # change of the normalised MSE's square root.
+    min_rms_gain = 0.0
     if noise_mm is not None:
         noise = np.broadcast_to(np.asarray(noise_mm, dtype=float), y.shape)
         noise_ok = valid & np.isfinite(noise)
         if noise_ok.any():
-            goal = max(goal, float(np.mean((noise[noise_ok] / scale) ** 2)))
+            noise_ms = float(np.mean((noise[noise_ok] / scale) ** 2))
+            goal = max(goal, noise_ms)
+            min_rms_gain = config.plateau_noise_fraction * np.sqrt(noise_ms)
 
     rng = np.random.default_rng(config.seed)
     members = config.ensemble
     row_w = bootstrap_point_weights(ids, members, rng)
     with np.errstate(invalid="ignore"):
         y_mean = np.where(valid.any(axis=0), y.sum(axis=0) / np.maximum(valid.sum(axis=0), 1), 0.0)
-    init = _init_weights(rng, members + 1, config.hidden_units, y.shape[1], y_mean)
+    basis = _spline_basis(np.asarray(x_mm, dtype=float), config.basis_spacing_mm)
+    coef_mean = y_mean if basis is None else np.linalg.lstsq(basis, y_mean, rcond=None)[0]
+    init = _init_weights(rng, members + 1, config.hidden_units, coef_mean.shape[0], coef_mean)
+    x_n = _normalize_inputs(f, a, f_range, ANGLE_RANGE_DEG)
+    sample_w = valid.astype(np.float64)
+    if sample_weight is not None:
+        sample_w = sample_w * np.broadcast_to(np.asarray(sample_weight, dtype=float), valid.shape)
 
-    x_t = torch.from_numpy(_normalize_inputs(f, a, f_range, ANGLE_RANGE_DEG))
-    y_t = torch.from_numpy(y)
-    w_t = torch.from_numpy(row_w)[:, :, None] * torch.from_numpy(valid.astype(np.float64))[None]
+    dtype = torch.float32 if config.dtype == "float32" else torch.float64
+    x_t = torch.from_numpy(x_n).to(dtype)
+    y_t = torch.from_numpy(y).to(dtype)
+    w_t = (torch.from_numpy(row_w)[:, :, None] * torch.from_numpy(sample_w)[None]).to(dtype)
     denom = w_t.sum(dim=(1, 2)).clamp_min(1e-12)
     # One flat parameter vector (views per layer): Rprop's per-tensor overhead dominates
     # an epoch of this tiny net, so one tensor instead of four is markedly faster.
     shapes = [p.shape for p in init]
     sizes = [int(np.prod(sh)) for sh in shapes]
-    flat = torch.from_numpy(np.concatenate([p.ravel() for p in init])).requires_grad_(True)
+    flat = torch.from_numpy(np.concatenate([p.ravel() for p in init])).to(dtype).requires_grad_(True)
 
     def unflatten(v: Any) -> list[Any]:
         return [piece.view(sh) for piece, sh in zip(torch.split(v, sizes), shapes)]
-    active = torch.ones(members + 1, dtype=torch.float64)
+    active = torch.ones(members + 1, dtype=dtype)
     epochs = [0] * (members + 1)
     reason = ["max_epochs"] * (members + 1)
     history: list[np.ndarray] = []
     lag = max(1, config.plateau_patience // config.check_every)
 
     grid = _monotone_grid(a, f_range, config) if config.monotone_weight > 0.0 else None
-    grid_t = torch.from_numpy(grid[0]) if grid is not None else None
+    grid_t = torch.from_numpy(grid[0]).to(dtype) if grid is not None else None
+    basis_t = torch.from_numpy(basis.T.copy()).to(dtype) if basis is not None else None
 
     def member_losses() -> tuple[Any, Any]:
         """(data MSE, monotone penalty) per member."""
         params = unflatten(flat)
         pred = _torch_forward(x_t, *params, config.activation)
+        if basis_t is not None:
+            pred = pred @ basis_t
         mse = ((pred - y_t[None]) ** 2 * w_t).sum(dim=(1, 2)) / denom
         if grid is None:
             return mse, torch.zeros_like(mse)
-        g = _torch_forward(grid_t, *params, config.activation).view(members + 1, *grid[1], -1)
-        return mse, config.monotone_weight * _monotone_penalty(g, config.monotone_margin)
+        g = _torch_forward(grid_t, *params, config.activation)
+        if basis_t is not None:
+            g = g @ basis_t
+        return mse, config.monotone_weight * _monotone_penalty(g.view(members + 1, *grid[1], -1),
+                                                               config.monotone_margin)
 
     opt = torch.optim.Rprop([flat], lr=config.rprop_lr, etas=config.rprop_etas,
                             step_sizes=config.rprop_step_sizes)
@@ -518,7 +730,7 @@ def _fit(force_n: np.ndarray, angle_deg: np.ndarray, depth_mm: np.ndarray, x_mm:
         opt.step()
         if epoch % config.check_every:
             continue
-        current = losses.detach().numpy().copy()
+        current = losses.detach().to(torch.float64).numpy().copy()
         history.append(current)
         for b in range(members + 1):
             if active[b] == 0:
@@ -527,7 +739,8 @@ def _fit(force_n: np.ndarray, angle_deg: np.ndarray, depth_mm: np.ndarray, x_mm:
                 active[b], epochs[b], reason[b] = 0.0, epoch, "goal"
             elif len(history) > lag:
                 old = history[-1 - lag][b]
-                if old - current[b] <= config.plateau_rel_tol * old:
+                if (old - current[b] <= config.plateau_rel_tol * old
+                        or np.sqrt(max(old, 0.0)) - np.sqrt(max(current[b], 0.0)) < min_rms_gain):
                     active[b], epochs[b], reason[b] = 0.0, epoch, "plateau"
         if not bool(active.any()):
             break
@@ -535,13 +748,17 @@ def _fit(force_n: np.ndarray, angle_deg: np.ndarray, depth_mm: np.ndarray, x_mm:
         if active[b] != 0:
             epochs[b] = epoch
     with torch.no_grad():
-        final_mse, final_pen = (v.numpy().tolist() for v in member_losses())
-    w1, b1, w2, b2 = (p.detach().numpy().copy() for p in unflatten(flat.detach()))
+        final_mse, final_pen = (v.to(torch.float64).numpy().tolist() for v in member_losses())
+    w1, b1, w2, b2 = (p.detach().to(torch.float64).numpy().copy() for p in unflatten(flat.detach()))
+    if basis is not None:
+        w2, b2 = np.einsum("lk,bkh->blh", basis, w2), b2 @ basis.T
     report = TrainReport(mse_norm=[float(v) for v in final_mse], epochs=epochs, stop_reason=reason,
                          train_s=time.perf_counter() - t0, n_profiles=int(f.shape[0]),
                          n_points=int(np.unique(ids).shape[0]), valid_fraction=float(valid.mean()),
                          extra={"loss_goal_norm": goal, "monotone_penalty": [float(v) for v in final_pen],
-                                "monotone_grid": None if grid is None else list(grid[1])})
+                                "monotone_grid": None if grid is None else list(grid[1]),
+                                "check_every": config.check_every,
+                                "loss_history": [[float(f"{v:.6g}") for v in row] for row in history]})
     meta = {
         "train_mse_norm": report.mse_norm[0],
         "training": asdict(report),

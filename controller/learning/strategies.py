@@ -1,4 +1,4 @@
-"""Survey sampling strategies, and the region map they lead to (DESIGN §7 "Honest metrics").
+"""Survey sampling strategies, and the region map they lead to.
 
 Where should the cheap survey probes go? Four answers, compared at the same number of
 survey contacts by ``bench/sampling_efficiency.py``:

@@ -35,6 +35,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+import select
 import socket
 import struct
 import threading
@@ -93,6 +94,10 @@ class Cmd:
     STOP_SCRIPT = 255
     # The script treats these as real-time: process and stay "ready", no "done".
     REALTIME = frozenset({6, 9, 10, 11, 24, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
+    # Motion commands the script runs in its main thread or its async move thread (not the
+    # speed thread): while the speed thread runs, each is a second thread controlling the robot
+    # (moveJ/moveJ_IK/moveL/moveL_FK, stopL/stopJ, and forceModeStop, which ends with stopl(10)).
+    MOTION_IN_MAIN_OR_MOVE_THREAD = frozenset({1, 2, 3, 4, 7, 33, 34})
 
 
 READY = 1
@@ -237,7 +242,8 @@ class UREmulator:
                  program_stop_decel_m_s2: float = 10.0, protective_stop_decel_m_s2: float = 20.0,
                  script_start_delay_s: float = 0.05, lifetime_s: float = 3600.0,
                  ports: dict[str, int] | None = None, max_connections: int = 32,
-                 installation_tcp_ur: "np.ndarray | list[float] | None" = None) -> None:
+                 installation_tcp_ur: "np.ndarray | list[float] | None" = None,
+                 dashboard_replies: dict[str, str] | None = None) -> None:
         if not host.startswith("127."):
             raise ValueError(f"the UR emulator only serves loopback addresses, not {host!r}")
         self.host = host
@@ -254,6 +260,9 @@ class UREmulator:
         self.lifetime_s = float(lifetime_s)
         self.ports = dict(DEFAULT_PORTS if ports is None else ports)
         self.max_connections = int(max_connections)
+        # Replies the dashboard gives instead of its own (lower-case command -> reply): a
+        # controller that answers something else (tests of the driver's checks).
+        self.dashboard_replies = {k.lower(): v for k, v in (dashboard_replies or {}).items()}
 
         self._lock = threading.RLock()
         self._stop = threading.Event()
@@ -283,6 +292,11 @@ class UREmulator:
         self._executing_cmd = False
         self._sync_wait: str | None = None           # "move" or "stop" while a blocking command runs
         self._async_running = False
+        # ur_rtde's speed thread: started by speedL/speedJ, killed by speedStop or the end of
+        # the program. A motion command of the script's main or move thread while it runs is a
+        # second thread controlling the robot: URScript halts the program.
+        self._speed_thread = False
+        self._paused = False
         self._async_op_id = 0
         self._async_wr_count = 0
         self._watchdog: tuple[str, float] | None = None   # (variable, period_s)
@@ -652,6 +666,8 @@ class UREmulator:
         cmd = text.strip()
         low = cmd.lower()
         now = time.monotonic()
+        if low in self.dashboard_replies:
+            return self.dashboard_replies[low]
         with self._lock:
             if low == "polyscopeversion":
                 return f"URSoftware {self.polyscope_version} (Mar 22 2021)"
@@ -666,7 +682,9 @@ class UREmulator:
             if low == "running":
                 return f"Program running: {'true' if self._program_running else 'false'}"
             if low == "programstate":
-                return f"PLAYING {self._program_name}" if self._program_running else "STOPPED <unnamed>"
+                if self._program_running:
+                    return f"PLAYING {self._program_name}"
+                return f"PAUSED {self._program_name}" if self._paused else f"STOPPED {self._program_name}"
             if low == "robotmode":
                 return "Robotmode: " + ("POWER_OFF" if self._emergency_stop else "RUNNING")
             if low in ("safetystatus", "safetymode"):
@@ -681,13 +699,28 @@ class UREmulator:
             if low.startswith("popup"):
                 return "showing popup"
             if low == "stop":
-                if self._program_running:
+                if self._program_running or self._paused:
+                    self._paused = False
                     self._end_program("dashboard_stop")
                     return "Stopped"
                 return "Failed to execute: stop"
             if low == "pause":
+                if self._program_running:
+                    # Paused, not ended: its threads and registers stay for "play". The arm stops.
+                    self._program_running = False
+                    self._paused = True
+                    if self.backend.is_moving():
+                        self.backend.stop(self.program_stop_decel_m_s2)
+                    self._event("program_paused", "dashboard")
+                    return "Pausing program"
                 return "Failed to execute: pause"
             if low == "play":
+                if self._paused and self._protective_stop_t_s is None and not self._emergency_stop:
+                    self._paused = False
+                    self._program_running = True
+                    self._watchdog_last_s = now
+                    self._event("program_resumed")
+                    return "Starting program"
                 return "Failed to execute: play"
             if low == "power on":
                 return "Powering on"
@@ -793,26 +826,33 @@ class UREmulator:
         offset = re.search(r"reg_offset_int\s*=\s*(?:#[^\n]*\n)?\s*(\d+)", text)
         self._reg_offset = int(offset.group(1)) if offset else 0
         self._program_running = True
+        self._paused = False
         self._executing_cmd = False
         self._sync_wait = None
         self._watchdog = None
         self._async_running = False
+        self._speed_thread = False
         # A program starts with the installation's TCP: a setTcp of an earlier program is gone.
         self._set_tcp_offset(self.installation_tcp_ur)
         self._write_async_progress(-1)
         self._out_int[self._reg_offset] = READY
-        self._event("program_started", f"{self._program_name} offset {self._reg_offset}")
+        # The input registers are the controller's, not the program's: what a client wrote
+        # before the upload is what the new program reads first.
+        command = self._cycle_inputs.get(f"input_int_register_{self._reg_offset}", 0)
+        self._event("program_started", f"{self._program_name} offset {self._reg_offset} command register {command}")
 
     def _end_program(self, reason: str) -> None:
         """The program stops (stop script, dashboard stop, watchdog, safety): so does the arm."""
         if self._pending_program is not None and reason in ("protective_stop", "emergency_stop"):
             self._pending_program = None
-        if not self._program_running:
+        if not self._program_running and not self._paused:
             return
         self._program_running = False
+        self._paused = False
         self._executing_cmd = False
         self._sync_wait = None
         self._watchdog = None
+        self._speed_thread = False
         if self._async_running:
             self._async_running = False
             self._write_async_progress(-1)
@@ -887,7 +927,8 @@ class UREmulator:
             self._start_program(text, now)
         if not self._program_running:
             return
-        if self._watchdog is not None and now - self._watchdog_last_s > self._watchdog[1]:
+        if (self._watchdog is not None and now - self._watchdog_last_s > self._watchdog[1]
+                and not self._watched_input_waiting()):
             self._event("watchdog_expired", f"{now - self._watchdog_last_s:.3f} s without {self._watchdog[0]}")
             self._end_program("watchdog")
             return
@@ -901,6 +942,21 @@ class UREmulator:
             self._sync_wait = None
             self._out_int[self._reg_offset] = DONE
         self._process_register_command(now)
+
+    def _watched_input_waiting(self) -> bool:
+        """True when the connection that writes the watched register has bytes this emulator
+        has not read yet: they reached the controller in time, and only this process's own
+        threads (sharing one interpreter with the served world) are late to read them. A
+        real controller's RTDE server is real-time; its watchdog would have seen them."""
+        assert self._watchdog is not None
+        owner = self._input_owner.get(self._watchdog[0])
+        if owner is None or owner.closed:
+            return False
+        try:
+            readable, _, _ = select.select([owner.sock], [], [], 0.0)
+        except (OSError, ValueError):
+            return False
+        return bool(readable)
 
     def _process_register_command(self, now: float) -> None:
         off = self._reg_offset
@@ -943,6 +999,13 @@ class UREmulator:
     # ------------------------------------------------------------------ command semantics
     def _execute(self, cmd: int, now: float) -> None:
         b = self.backend
+        if self._speed_thread and cmd in Cmd.MOTION_IN_MAIN_OR_MOVE_THREAD:
+            # ur_rtde 1.6.5's moveL/moveJ stop only the async move thread (stop_async_move),
+            # stopL/stopJ and forceModeStop run stopl/stopj in the main thread: the speed thread still runs
+            # speedl, so two threads command the robot.
+            self._event("runtime_error", f"command {cmd}: Another thread is already controlling the robot")
+            self._end_program("runtime_error")
+            return
         if cmd in (Cmd.MOVEL, Cmd.MOVEJ, Cmd.MOVEJ_IK, Cmd.MOVEL_FK):
             target = self._in_doubles(0, 6)
             speed, accel = self._in_double(6), self._in_double(7)
@@ -978,9 +1041,14 @@ class UREmulator:
             elif b.is_moving():
                 self._sync_wait = "stop"
         elif cmd == Cmd.SPEEDL:
+            self._speed_thread = True
             b.speed_linear(self._in_doubles(0, 6), self._in_double(6))
         elif cmd == Cmd.SPEED_STOP:
+            # kill speed_thrd, then stopl in the main thread: "done" once the arm is at rest.
+            self._speed_thread = False
             b.stop(self._in_double(0) if self._in_double(0) > 0 else 10.0)
+            if b.is_moving():
+                self._sync_wait = "stop"
         elif cmd == Cmd.FORCE_MODE:
             selection = np.array([self._in_int(2 + i) for i in range(6)])
             b.set_force_mode(True, self._in_doubles(0, 6), selection, self._in_doubles(6, 6), self._in_doubles(12, 6))

@@ -27,28 +27,22 @@ controller's hardware process (controller/drivers/hardware.py), not to the robot
 """
 from __future__ import annotations
 
-import math
 import threading
 import time
 from dataclasses import replace
 
 import numpy as np
 
-from elastoprobe.controller.devices import MotionState
 from elastoprobe.controller.errors import MotionRefused
 from elastoprobe.controller.geometry import Pose
 from elastoprobe.controller.safety import SafetyLimits
 
-from ..arm import SimMotion, _Law
 from ..cell import SimCell, SimCellParams
 from ..world import US_PER_S
 
 # A guard that never trips: the robot side has no ATI limits (see the module docstring).
 _UNTRIPPABLE = SafetyLimits(max_force_n=1e9, max_torque_nm=1e9, max_lateral_force_n=1e9,
                             max_force_rate_n_s=1e12, ft_stale_ms=1e9, ft_frozen_ms=1e9, slip_mm=1e9)
-
-# speedL lines are validated (IK) over this range around the start, tried from long to short.
-_SPEED_LINE_RANGES_MM = ((-150.0, 200.0), (-60.0, 100.0), (-20.0, 40.0))
 
 # Samples the F/T source may keep queued beyond what the server asks for: the world and the
 # server pace on the same wall clock, so a longer queue would only be a constant lag (a lag
@@ -81,8 +75,6 @@ class WorldBackend:
         self._ft_queue = np.zeros((0, 6))
         self._last_ft = np.zeros(6)
         self._last_status = 0
-        self._line_dir: np.ndarray | None = None            # direction of the current speedL line
-        self._line_motion: SimMotion | None = None
         self._pstop_reason: str | None = None
         self._prev_pose: tuple[float, np.ndarray] | None = None
         self._velocity = np.zeros(6)
@@ -120,7 +112,6 @@ class WorldBackend:
     # ------------------------------------------------------------------ ArmBackend: commands
     def move_linear(self, pose_ur: np.ndarray, speed_m_s: float, accel_m_s2: float) -> None:
         with self.lock:
-            self._line_dir, self._line_motion = None, None
             self.commands.append(("move_linear", time.monotonic()))
             try:
                 self.arm.move_linear(Pose.from_ur(np.asarray(pose_ur, float)), float(speed_m_s) * 1e3,
@@ -132,53 +123,19 @@ class WorldBackend:
         raise NotImplementedError("moveJ is not emulated on the simulated world (the controller uses moveL)")
 
     def speed_linear(self, xd: np.ndarray, accel_m_s2: float) -> None:
-        """speedL along a straight line: the TCP accelerates to ``xd[:3]`` and keeps it.
-
-        Successive speedL commands along the same (or the opposite) direction change the
-        speed on one IK-validated line, as the controller's contact search and force loop
-        do; a new direction starts a new line from the current pose. Rotational speeds
-        are ignored (the controller never sends them)."""
+        """speedL: the simulated arm's primitive (``SimArm.speed_linear``: successive commands
+        along one line change the speed on it, a new direction starts a new line). Rotational
+        speeds are ignored (the controller never sends them)."""
         with self.lock:
-            arm = self.arm
-            now = self.world.now_us
-            accel_mm_s2 = max(float(accel_m_s2) * 1e3, 1.0)
             v = np.asarray(xd, float)[:3] * 1e3
-            speed = float(np.linalg.norm(v))
-            same_line = (self._line_dir is not None and self._line_motion is not None
-                         and arm._motion is self._line_motion)
-            if speed < 1e-9:
-                if same_line:
-                    arm._law = _Law("ramp", now, arm._u, v0=arm._du, v1=0.0, accel=accel_mm_s2)
-                else:
-                    arm._halt(now, accel_mm_s2)
-                return
-            e = v / speed
-            if same_line and abs(float(e @ self._line_dir)) > 1.0 - 1e-9:
-                signed = speed * math.copysign(1.0, float(e @ self._line_dir))
-                arm._law = _Law("ramp", now, arm._u, v0=arm._du, v1=signed, accel=accel_mm_s2)
-                return
-            self.commands.append(("speed_linear", time.monotonic()))
-            path = None
-            for lo, hi in _SPEED_LINE_RANGES_MM:
-                try:
-                    path = arm._line_path(e, lo, hi)
-                    break
-                except MotionRefused:
-                    continue
-            if path is None:
-                self._pstop_reason = "speedL: no reachable straight line along the commanded direction"
-                return
-            motion = arm._start(SimMotion("speed_linear"), path, _Law("ramp", now, 0.0, v0=0.0, v1=speed,
-                                                                       accel=accel_mm_s2))
-            self._line_dir, self._line_motion = e, motion
+            if self.arm._speed_line is None and float(np.linalg.norm(v)) > 1e-9:
+                self.commands.append(("speed_linear", time.monotonic()))
+            self.arm.speed_linear(v, max(float(accel_m_s2) * 1e3, 1.0))
 
     def stop(self, decel_m_s2: float) -> None:
         with self.lock:
-            arm = self.arm
             self.commands.append(("stop", time.monotonic()))
-            arm._halt(self.world.now_us, max(float(decel_m_s2) * 1e3, 1.0))
-            if arm._motion is not None:
-                arm._motion._finish(MotionState.STOPPED)
+            self.arm.stop(max(float(decel_m_s2) * 1e3, 1.0))
 
     def set_force_mode(self, active: bool, task_frame_ur: np.ndarray | None = None,
                        selection: np.ndarray | None = None, wrench: np.ndarray | None = None,
@@ -244,7 +201,7 @@ class WorldBackend:
                 return True
             if kind == "ramp":
                 return abs(arm._du) > 1e-9 or abs(arm._law.v1) > 1e-9
-            return arm._regulator is not None
+            return False
 
     def protective_stop_requested(self) -> str | None:
         """Reported once; the emulator owns the protective stop from then on (its dashboard
@@ -256,7 +213,7 @@ class WorldBackend:
                 arm._halt(self.world.now_us, arm._settings.halt_decel_mm_s2)
                 arm._protective_since_us = None
                 arm._program_running = True
-                self._line_dir, self._line_motion = None, None
+                arm._speed_line = None
             return reason
 
     # ------------------------------------------------------------------ the F/T source

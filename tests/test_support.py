@@ -1,0 +1,167 @@
+"""Complete training targets (learning/support.py) and the step measurement behind them
+(learning/profiles.py: line pieces, robust mean, probed face)."""
+from __future__ import annotations
+
+import numpy as np
+
+from elastoprobe.controller.learning import profiles as prof
+from elastoprobe.controller.learning import support as sp
+
+X = np.linspace(-40.0, 40.0, 256)
+R = 5.0
+
+
+def dent(x: np.ndarray, depth: float, centre: float = 0.0, width: float = 6.0) -> np.ndarray:
+    return depth * np.exp(-((x - centre) / width) ** 2)
+
+
+# --------------------------------------------------------------------------- measurement
+
+def test_a_line_over_a_rim_keeps_the_top_not_the_table_beneath() -> None:
+    """A scan line runs over the top (h = 0 up to x = 20), down a wall and back along the
+    table 60 mm below (x from 26 down to 10 in the probe's tilted frame). The grid keeps
+    the top where both exist and never a blend of the two."""
+    top_x = np.linspace(-30.0, 20.0, 120)
+    wall_h = np.linspace(0.0, -60.0, 30)
+    table_x = np.linspace(26.0, 10.0, 40)
+    x = np.concatenate([top_x, np.full(30, 20.5), table_x])
+    h = np.concatenate([np.zeros(120), wall_h, np.full(40, -60.0)])
+    points = np.column_stack([x, np.zeros_like(x), h])
+    grid = prof.ProfileGrid(80.0, 256)
+    out = prof.height_on_grid(points, np.zeros(3), np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]), grid)
+    top = (grid.x_mm > -29.0) & (grid.x_mm < 19.5)
+    assert np.allclose(out[top], 0.0, atol=1e-9)
+    beyond = grid.x_mm > 21.0
+    assert np.all(np.isnan(out[beyond]) | np.isclose(out[beyond], -60.0))
+    # The old blend would have put samples between the two surfaces:
+    between = np.isfinite(out) & (out < -1.0) & (out > -59.0)
+    assert not between.any()
+
+
+def test_robust_mean_rejects_scattered_returns_and_counts_them() -> None:
+    rng = np.random.default_rng(0)
+    truth = dent(X, 3.0)
+    scans = truth[None, :] + rng.normal(0.0, 0.03, (30, X.size))
+    scans[:4, 100] += 8.0                         # a few scans pulled off at one sample
+    scans[7, 150] -= 5.0                          # and one at another
+    rm = prof.robust_mean(scans)
+    assert np.nanmax(np.abs(rm.mean_mm - truth)) < 0.05
+    assert rm.rejected_scan_samples >= 5
+    # The spike a plain mean keeps is gone without blanking the dent.
+    assert np.isfinite(rm.mean_mm).sum() >= X.size - 2
+
+
+def test_line_spikes_leave_a_steep_wall_alone_and_take_a_spike() -> None:
+    """A dent wall seen from one side only (the samples start on the steep flank) is not a
+    spike; a sample some scans pulled off is."""
+    wall = np.where(X > 8.0, dent(X, 15.0, width=9.0), np.nan)
+    se = np.full(X.shape, 0.01)
+    assert not prof.line_spikes(wall, se).any()
+    spiky = wall.copy()
+    k = int(np.flatnonzero(X > 20.0)[0])
+    spiky[k] += 3.0
+    flagged = prof.line_spikes(spiky, se)
+    assert flagged[k] and flagged.sum() == 1
+
+
+def test_probed_face_stops_at_the_rim() -> None:
+    h = np.where(X < 25.0, -0.002 * X ** 2, -60.0)
+    h[(X > 25.0) & (X < 27.0)] = np.linspace(-1.2, -60.0, int(((X > 25.0) & (X < 27.0)).sum()))
+    face = prof.probed_face(h, X)
+    assert face[np.abs(X) < 24.0].all()
+    assert not face[X > 25.5].any()
+
+
+# --------------------------------------------------------------------------- completion
+
+def region(asymmetry: float = 0.0, seed: int = 1, normal_repeat_n: float | None = None
+           ) -> tuple[sp.RegionSteps, np.ndarray]:
+    """Two points, nine angles, three forces; each profile seen only on the side its
+    tangential load pushes toward, beyond the tip (as the scanner sees it). With
+    ``normal_repeat_n``, every 90-degree step is repeated at that much more measured force
+    (the same planned level), as a session's repeated steps are."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for pid in (0, 1):
+        for a in (10.0, 25.0, 45.0, 75.0, 90.0, 105.0, 135.0, 155.0, 170.0):
+            repeats = (0.0, normal_repeat_n) if a == 90.0 and normal_repeat_n is not None else (0.0,)
+            for f, extra in ((f, extra) for f in (2.0, 8.0, 16.0) for extra in repeats):
+                depth_peak = 0.4 * (f * np.sin(np.radians(a))) ** (2.0 / 3.0)
+                shift = 1.5 * np.cos(np.radians(a))
+                # A material stiffer toward +t than toward -t: the dent decays faster on that side.
+                width = np.where(X > shift, 6.0, 6.0 * (1.0 + asymmetry))
+                truth = depth_peak * np.exp(-((X - shift) / width) ** 2)
+                lead = 1.0 if a <= 90.0 else -1.0
+                seen = lead * (X - shift) > R + 1.0
+                meas = np.where(seen, truth + rng.normal(0.0, 0.01, X.shape), np.nan)
+                rows.append((f + extra, f, a, meas, pid, shift, depth_peak, rng.normal(0.0, 0.005, X.shape), truth))
+    f, lvl, a, d, p, tx, td, rh, truth = (np.array(v) for v in zip(*rows))
+    return sp.RegionSteps(X, f, lvl, a, d, p.astype(np.int64), tx, td, rh), truth
+
+
+def test_symmetric_region_is_completed_with_every_support_and_close_to_the_truth() -> None:
+    steps, truth = region()
+    done = sp.complete_targets(steps, R)
+    assert done.mirror.admitted, done.mirror.reason
+    assert np.all(np.isfinite(done.depth_mm))
+    normal = steps.angle_deg == 90.0
+    assert (done.support[normal] == sp.TIP).any() and (done.support[normal] == sp.MIRRORED).any()
+    assert (done.support[~normal] == sp.INFERRED).any()
+    assert not (done.support[normal] == sp.INFERRED).any()
+    err = np.abs(done.depth_mm - truth)
+    peak = float(truth.max())
+    assert np.sqrt(np.mean(err ** 2)) < 0.05 * peak
+    assert err[done.support == sp.MEASURED].max() < 0.05
+
+
+def test_repeated_normal_steps_a_few_mn_apart_do_not_make_the_inferred_side_swing() -> None:
+    """Repeats of a 90-degree level, 3 mN apart in measured force, are one level of the
+    family the oblique rows are inferred from: as two knots, the interpolation between
+    them swung by many times the scans' noise (spikes in the targets, then in the model)."""
+    steps, truth = region(normal_repeat_n=0.003)
+    done = sp.complete_targets(steps, R)
+    assert done.mirror.admitted, done.mirror.reason
+    inferred = done.support == sp.INFERRED
+    assert inferred.any()
+    # Without repeats the inferred samples are within 6 % of the peak; with them as two
+    # knots, 11 %.
+    assert np.abs(done.depth_mm - truth)[inferred].max() < 0.08 * float(truth.max())
+
+
+def test_a_lopsided_material_is_not_mirrored_and_says_so() -> None:
+    steps, _ = region(asymmetry=0.5)
+    done = sp.complete_targets(steps, R)
+    assert not done.mirror.admitted and "not admitted" in done.mirror.reason
+    assert not np.isin(done.support, [sp.MIRRORED, sp.INFERRED]).any()
+    assert np.all(np.isfinite(done.depth_mm))
+    # The unseen side falls off away from the dent instead of holding its deepest value.
+    ends = done.depth_mm[:, [0, -1]].max(axis=1)
+    assert np.all(ends <= 0.5 * np.nanmax(done.depth_mm, axis=1) + 0.05)
+
+
+def test_fill_gaps_stays_between_its_neighbours() -> None:
+    v = np.full(X.shape, np.nan)
+    v[[10, 40, 200]] = [1.0, 5.0, 2.0]
+    out = sp.fill_gaps(X, v)
+    assert np.all(np.isfinite(out))
+    assert out[:10].tolist() == [1.0] * 10 and np.all(out[200:] == 2.0)
+    assert out[10:41].min() >= 1.0 and out[10:41].max() <= 5.0
+    assert out[40:201].min() >= 2.0 and out[40:201].max() <= 5.0
+
+
+def test_tip_zone_is_where_the_sphere_is_within_a_tenth_of_the_indentation() -> None:
+    half = sp.tip_half_width_mm(2.0, R)
+    sphere = sp.sphere_depth_mm(np.array([0.0, half]), 0.0, 2.0, R)
+    assert np.isclose(sphere[0] - sphere[1], 0.1 * 2.0, rtol=1e-6)
+    assert sp.tip_half_width_mm(0.0, R) == 0.0 and sp.tip_half_width_mm(np.nan, R) == 0.0
+    assert sp.tip_half_width_mm(500.0, R) == R
+
+
+def test_support_table_takes_the_common_code_and_fills_levels_from_the_nearest() -> None:
+    codes = np.array([[0, 4], [0, 4], [1, 3], [2, 2]], dtype=np.int8)
+    forces, angles, table = sp.support_table(np.array([2.0, 2.0, 2.0, 8.0]), np.array([45.0, 45.0, 45.0, 90.0]),
+                                             codes)
+    assert forces.tolist() == [2.0, 8.0] and angles.tolist() == [45.0, 90.0]
+    assert table[0, 0].tolist() == [0, 4]
+    assert table[0, 1].tolist() == [0, 4]          # 45 deg at 8 N: nearest level at 45 deg
+    assert table[1, 1].tolist() == [2, 2]
