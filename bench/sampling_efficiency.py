@@ -252,14 +252,15 @@ class SeedRun:
 
     def regions(self, points: np.ndarray, normals: np.ndarray, measured: list
                 ) -> tuple[np.ndarray, np.ndarray, Any, np.ndarray]:
-        """The session's regions of the surveyed points: (seen mask, labels of the seen points,
-        the RegionMap, surface-graph edges over the seen points)."""
+        """The session's regions of the surveyed points (with the measured noise): (seen mask,
+        labels of the seen points, the RegionMap, surface-graph edges over the seen points)."""
         from elastoprobe.controller.learning import strategies as st
         from elastoprobe.controller.phases import FEATURE_HALF_WINDOW_MM
 
         depth = np.array([m.depth_mm for m in measured])
         return st.region_labels(points, normals, depth, self.prober.grid.x_mm, self.prober.forces_n, seed=self.seed,
-                                half_window_mm=FEATURE_HALF_WINDOW_MM, graph=self.graph)
+                                half_window_mm=FEATURE_HALF_WINDOW_MM, graph=self.graph,
+                                noise_mm=self.noise(measured))
 
     def score_surface_labels(self, surface_labels: np.ndarray) -> dict:
         """Scores of a map over the bench's surface, on the true top (evaluate.region_map_scores of
@@ -275,11 +276,17 @@ class SeedRun:
               ) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
         """Map scores on the true top, and (seen mask, labels of the seen points, surface graph
         over them). The map is the session's: nearest labelled target along the surface,
-        parts split at folds."""
+        parts split at folds, the seam drawn through targets whose dent lies between regions."""
+        from elastoprobe.controller.learning import regions as rg
+        from elastoprobe.controller.learning import strategies as st
         from elastoprobe.controller.learning import surface_map as sm
+        from elastoprobe.controller.phases import FEATURE_HALF_WINDOW_MM
 
         seen, labels, rmap, edges = self.regions(points, normals, measured)
-        scores = self.score_surface_labels(sm.labels_from_seeds(self.graph, points[seen], labels))
+        depth = np.array([m.depth_mm for m in measured])[seen]
+        feats, names = st.dent_features(depth, self.prober.grid.x_mm, self.prober.forces_n, FEATURE_HALF_WINDOW_MM)
+        levels = rg.log_peaks(feats, names, self.noise(measured))[0].mean(axis=1)
+        scores = self.score_surface_labels(sm.labels_from_seeds(self.graph, points[seen], labels, seed_levels=levels))
         scores["n_regions_found"] = int(rmap.n_regions)
         scores["unseen_targets"] = int(np.sum(~seen))
         return scores, seen, labels, edges
@@ -394,7 +401,7 @@ def run_densify(run: SeedRun, start_units: int, per_round: int, max_budget: int,
                                             run.prober.grid.x_mm,
                                             run.prober.forces_n, run.prober.angles_deg, run.noise(measured),
                                             min(per_round, room), dp.min_spacing_mm, dp.resolution_mm, run.surface,
-                                            seed=run.seed, half_window_mm=FEATURE_HALF_WINDOW_MM)
+                                            seed=run.seed, half_window_mm=FEATURE_HALF_WINDOW_MM, graph=run.graph)
         point.extra["densify_reason"] = rnd.reason
         if len(new) == 0:
             point.extra["stopped"] = "densify proposed nothing"

@@ -337,17 +337,18 @@ def phase_sampling(ctx: PhaseContext) -> None:
         assert pts is not None and nrm is not None
         if plan.sampling.units > 0:
             curv = cl.curvature(pts, k=16)
-            feats, weights = ng.geometry_aware_inputs(pts, nrm, curv,
+            rules = _target_rules(ctx)
+            # The units go where targets may: the probe-able part of the cloud (targets.probeable).
+            where = tg.probeable(pts, nrm, curv, rules)
+            if np.count_nonzero(where) < plan.sampling.units:
+                where = np.ones(len(pts), bool)
+            feats, weights = ng.geometry_aware_inputs(pts[where], nrm[where], curv[where],
                                                       normal_weight_mm=10.0 * plan.sampling.geometry_weight)
             result = ng.train_neural_gas(feats, n_units=plan.sampling.units,
                                          n_steps=max(200, plan.sampling.units * plan.sampling.steps_per_unit // 16),
                                          batch_size=256, seed=s.seed, sample_weights=weights)
             units = np.asarray(result.units)[:, :3].astype(np.float64)
             ng_qe: float | None = float(result.quantization_error)
-            radius = s.inputs.cell.tool.tip_radius_mm
-            rules = tg.TargetRules(tip_radius_mm=radius,
-                                   edge_clearance_radii=plan.sampling.edge_clearance_mm / radius,
-                                   max_tilt_deg=plan.sampling.max_tilt_deg)
             found = tg.make_targets(units, pts, nrm, curv, rules=rules,
                                     reference_dir=np.array(plan.sampling.reference_direction))
             t_dirs = np.asarray(found.t).reshape(-1, 3)
@@ -386,6 +387,16 @@ def phase_sampling(ctx: PhaseContext) -> None:
     # Targets moved off a sharp edge are not characterized (their normal is less sure).
     flags = rec.arrays.get("edge_flag", np.zeros(len(rec.arrays["target_index"]), np.int8))
     ctx.edge_flag.update({int(i): bool(f) for i, f in zip(rec.arrays["target_index"], flags)})
+
+
+def _target_rules(ctx: PhaseContext) -> Any:
+    """The plan's rules for where a target may sit (learning.targets.TargetRules)."""
+    from .learning import targets as tg
+
+    plan = ctx.session.inputs.plan
+    radius = ctx.session.inputs.cell.tool.tip_radius_mm
+    return tg.TargetRules(tip_radius_mm=radius, edge_clearance_radii=plan.sampling.edge_clearance_mm / radius,
+                          max_tilt_deg=plan.sampling.max_tilt_deg)
 
 
 def _reachable(ctx: PhaseContext, pts: np.ndarray, nrm: np.ndarray, t_dirs: np.ndarray, what: str) -> np.ndarray:
@@ -474,8 +485,15 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
         pts = np.array([ctx.targets[i].point_mm for i in ids])
         # Neighbours along the scanned surface (cells on the cloud), never across a fold.
         edges = ctx.surface_neighbours(pts)
+        # The previous round's regions, so a material separated then is not lost now that
+        # more points have arrived (regions.cluster_regions, previous_labels).
+        before = j.phase("regions", round_ - 1) if round_ > 0 else None
+        known = (dict(zip(before.arrays["labelled_targets"].tolist(), before.arrays["labels"].tolist()))
+                 if before is not None else {})
+        previous = np.array([known.get(i, -1) for i in ids], dtype=np.int64)
         rmap = rg.cluster_regions(feats, edges, names, seed=s.seed,
-                                  min_contrast=s.inputs.plan.phases.survey.min_contrast)
+                                  min_contrast=s.inputs.plan.phases.survey.min_contrast,
+                                  noise_mm=measured_noise_mm(ctx), previous_labels=previous)
         labels = {i: int(l) for i, l in zip(ids, rmap.labels)}
         chosen, angles_by_target = _characterize_choice(ctx, labels, rmap.n_regions, pts, ids)
         ch = s.inputs.plan.phases.characterize
@@ -707,8 +725,12 @@ def phase_models(ctx: PhaseContext, round_: int) -> None:
 
 
 def phase_densify(ctx: PhaseContext, round_: int) -> bool:
-    """Add survey targets where adjacent regions' models disagree; False when resolved or out of budget."""
+    """Add survey targets where adjacent regions differ (their models or their survey dents)
+    and around survey points their region explains badly; False when resolved or out of budget."""
+    from .learning import cloud as cl
     from .learning import densify as dn
+    from .learning import surface_map as sm
+    from .learning import targets as tg
 
     s = ctx.session
     j = s.journal
@@ -720,14 +742,23 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
         ids = sorted(ctx.labels)
         pts = np.array([ctx.targets[i].point_mm for i in ids])
         labels = np.array([ctx.labels[i] for i in ids])
-        edges = ctx.surface_neighbours(pts)
+        edges = ctx.surface_neighbours(pts).reshape(-1, 2)
         sv = plan.phases.survey
         grid_forces = np.array(sv.forces_n, dtype=float)
+        noise = measured_noise_mm(ctx)
+        border = sm.shared_border(ctx.surface(), sm.cells(ctx.surface(), pts), edges)
+        # The survey's own evidence beside the models': every labelled point's dent, how far
+        # apart the regions' dents lie, and which points their region explains badly.
+        found = _region_features(ctx, ids)
+        assert found is not None
+        curv = cl.curvature(ctx.cloud_mm, k=16)
+        surface = ctx.cloud_mm[tg.probeable(ctx.cloud_mm, ctx.cloud_normals, curv, _target_rules(ctx))]
         rnd = dn.plan_round(round_, pts, np.asarray(edges).reshape(-1, 2), labels, ctx.models,
                             forces_n=grid_forces, angles_deg=np.array(sv.angles_deg, dtype=float),
-                            noise_mm=measured_noise_mm(ctx), budget=dp.points_per_round,
+                            noise_mm=noise, budget=dp.points_per_round,
                             min_spacing_mm=dp.min_spacing_mm, resolution_mm=dp.resolution_mm,
-                            surface_points_mm=ctx.cloud_mm)
+                            surface_points_mm=surface if len(surface) else ctx.cloud_mm,
+                            border=border, **dn.survey_evidence(found[0], found[1], labels, noise, sv.min_contrast))
         new_pts = canonical(np.asarray(rnd.proposed_mm, dtype=float).reshape(-1, 3), 6)
         new_nrm = canonical(_cloud_normals_at(ctx, new_pts), 9)
         first = max(ctx.targets) + 1 if ctx.targets else 0
@@ -751,6 +782,34 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
     if len(rec.arrays["target_index"]):
         ctx.targets.update(_targets_from_arrays(rec.arrays))
     return int(rec.outputs["n_new"]) > 0
+
+
+def _region_features(ctx: PhaseContext, ids: list[int]) -> tuple[np.ndarray, list[str]] | None:
+    """Survey features (len(ids), D) and their names of labelled targets, from the latest
+    regions round (None when there is none, or it did not label every one of ``ids``)."""
+    j = ctx.session.journal
+    assert j is not None
+    r = 0
+    while j.phase("regions", r + 1) is not None:
+        r += 1
+    rec = j.phase("regions", r)
+    if rec is None:
+        return None
+    row = {int(t): k for k, t in enumerate(rec.arrays["labelled_targets"])}
+    if any(i not in row for i in ids):
+        return None
+    return rec.arrays["features"][[row[i] for i in ids]], list(rec.outputs["feature_names"])
+
+
+def _survey_levels(ctx: PhaseContext, ids: list[int]) -> np.ndarray | None:
+    """Each labelled target's dent on the scale regions differ on (mean over survey forces of
+    log(peak + noise), regions.log_peaks); None without a regions round."""
+    from .learning import regions as rg
+
+    found = _region_features(ctx, ids)
+    if found is None:
+        return None
+    return rg.log_peaks(found[0], found[1], measured_noise_mm(ctx))[0].mean(axis=1)
 
 
 def _cloud_normals_at(ctx: PhaseContext, points_mm: np.ndarray) -> np.ndarray:
@@ -798,8 +857,10 @@ def phase_final(ctx: PhaseContext) -> None:
         ids = sorted(ctx.labels)
         pts = np.array([ctx.targets[i].point_mm for i in ids])
         # Each cloud point: the region of the nearest labelled target along the surface,
-        # parts split at concave folds (learning/surface_map.py).
-        cloud_labels = sm.labels_from_seeds(ctx.surface(), pts, np.array([ctx.labels[i] for i in ids]))
+        # parts split at concave folds, the seam drawn through targets whose dent lies
+        # between two regions (learning/surface_map.py).
+        cloud_labels = sm.labels_from_seeds(ctx.surface(), pts, np.array([ctx.labels[i] for i in ids]),
+                                            seed_levels=_survey_levels(ctx, ids))
         j.commit_phase("final", 0, {"n_regions": ctx.n_regions, "model_round": ctx.model_round,
                                     "robot_hours": j.robot_time_s()["total"] / 3600.0},
                        {"cloud_labels": cloud_labels.astype(np.int64)})

@@ -138,3 +138,99 @@ def test_bisects_the_widest_unresolved_gaps_first(models):
     one = plan_round(0, pos, edges, labels, {0: models[0], 1: models[1]}, SURVEY_F, SURVEY_A, NOISE_MM,
                      budget=5, min_spacing_mm=2.0, resolution_mm=8.0)
     assert [3.0, 0.0, 0.0] not in one.proposed_mm           # the 6 mm edge is resolved
+
+
+class _Dent:
+    """A stand-in region model: a Gaussian dent of ``peak_mm`` (at the larger survey force,
+    linear in force), and an ensemble spread of ``rel_spread`` x the profile."""
+
+    def __init__(self, peak_mm: float, rel_spread: float) -> None:
+        self.peak_mm, self.rel_spread = peak_mm, rel_spread
+
+    def predict_batch_mm(self, force_n, angle_deg):
+        f = np.asarray(force_n, dtype=float).reshape(-1, 1)
+        return self.peak_mm * f / SURVEY_F.max() * np.exp(-(X_MM[None, :] / 8.0) ** 2)
+
+    def predict_ensemble(self, force_n, angle_deg):
+        mean = self.predict_batch_mm(force_n, angle_deg)
+        return mean, self.rel_spread * mean
+
+
+def test_an_order_of_magnitude_is_not_drowned_by_the_ensemble_spread():
+    """A sponge 20x deeper than an elastomer, each model unsure of its depth by 40 % (two or
+    three bootstrapped probe points): in millimetres the difference is 2.4 spreads, under the
+    threshold; as a ratio of depths it is 5.3 spreads, far above."""
+    from elastoprobe.controller.learning.densify import DEFAULT_THRESHOLD, model_distance, peak_ratio_score
+
+    stiff, soft = _Dent(0.1, 0.4), _Dent(2.0, 0.4)
+    diff, spread = model_distance(stiff, soft, SURVEY_F, SURVEY_A)
+    assert diff / np.hypot(NOISE_MM, spread) < DEFAULT_THRESHOLD
+    assert peak_ratio_score(stiff, soft, SURVEY_F, SURVEY_A, NOISE_MM) > 1.5 * DEFAULT_THRESHOLD
+    assert pair_scores(np.array([0, 1]), {0: stiff, 1: soft}, SURVEY_F, SURVEY_A, NOISE_MM)[(0, 1)] > 5.0
+    # One material, two regions: no disagreement either way.
+    assert peak_ratio_score(_Dent(0.5, 0.3), _Dent(0.55, 0.3), SURVEY_F, SURVEY_A, NOISE_MM) < 1.0
+
+
+def test_survey_scores_from_every_point_of_each_region():
+    """The survey's own dents tell two regions apart (medians many standard errors apart)
+    while the models may not; one material split in two scores low."""
+    from elastoprobe.controller.learning.densify import survey_pair_scores
+
+    rng = np.random.default_rng(4)
+    labels = np.repeat([0, 1], 12)
+    log_depth = np.where(labels[:, None] == 0, np.log(0.1), np.log(2.0)) + rng.normal(0, 0.15, (24, 2))
+    rel = np.full((24, 2), 0.02)
+    assert survey_pair_scores(log_depth, labels, rel)[(0, 1)] > 20.0
+    same = np.log(0.5) + rng.normal(0, 0.15, (24, 2))
+    assert survey_pair_scores(same, labels, rel)[(0, 1)] < 3.0
+
+
+def test_a_point_its_region_explains_badly_is_probed_around():
+    """One region, no boundary: resolved. A survey point flagged as a misfit (its dent beyond
+    what its region explains): the round proposes the ring of its long edges."""
+    labels = np.zeros(N * N, dtype=int)
+    models = {0: _Dent(0.5, 0.1)}
+    calm = plan_round(1, POS, EDGES, labels, models, SURVEY_F, SURVEY_A, NOISE_MM, budget=8,
+                      min_spacing_mm=3.0, resolution_mm=6.0)
+    assert calm.resolved and calm.proposed_mm == []
+    odd = 4 * N + 4
+    misfit = np.zeros(N * N)
+    misfit[odd] = 1.8
+    rnd = plan_round(1, POS, EDGES, labels, models, SURVEY_F, SURVEY_A, NOISE_MM, budget=8,
+                     min_spacing_mm=3.0, resolution_mm=6.0, misfit=misfit)
+    assert not rnd.resolved and rnd.extra["misfit_points"] == [odd]
+    prop = np.asarray(rnd.proposed_mm)
+    assert prop.shape == (4, 3)                                   # the four edges of a grid point
+    assert np.allclose(np.linalg.norm(prop - POS[odd], axis=1), 5.0)
+
+
+def test_a_crossing_edge_is_split_where_the_level_crosses_midway():
+    """A crossing edge whose stiff end dents a little deeper than its region (a probe straddling
+    the seam): the seam is near that end, and the new point goes there, not to the midpoint."""
+    pos = np.array([[0.0, 0, 0], [-20.0, 0, 0], [-30.0, 0, 0], [20.0, 0, 0], [30.0, 0, 0]])
+    edges = np.array([[0, 3], [1, 0], [2, 1], [3, 4]])
+    labels = np.array([0, 0, 0, 1, 1])
+    # Levels (log depth): region 0 near log 0.1, region 1 near log 2.0; point 0 part way.
+    levels = np.log(np.array([0.4, 0.1, 0.1, 2.0, 2.0]))
+    models = {0: _Dent(0.1, 0.1), 1: _Dent(2.0, 0.1)}
+    plain = plan_round(1, pos, edges, labels, models, SURVEY_F, SURVEY_A, NOISE_MM, budget=1,
+                       min_spacing_mm=2.0, resolution_mm=6.0)
+    assert np.allclose(plain.proposed_mm, [[10.0, 0, 0]])
+    toward = plan_round(1, pos, edges, labels, models, SURVEY_F, SURVEY_A, NOISE_MM, budget=1,
+                        min_spacing_mm=2.0, resolution_mm=6.0, levels=levels)
+    assert 0.0 < toward.proposed_mm[0][0] < 10.0
+
+
+def test_a_longer_border_is_split_before_an_equal_gap_at_a_corner(models):
+    """Two crossing edges of equal length: with ``border`` the one whose cells share more
+    surface (more area hangs on where that boundary is drawn) is split first."""
+    pos = np.array([[0.0, 0, 0], [20.0, 0, 0], [0.0, 40, 0], [20.0, 40, 0]])
+    edges = np.array([[0, 1], [2, 3], [0, 2], [1, 3]])
+    labels = np.array([0, 1, 0, 1])
+    kw = dict(budget=1, min_spacing_mm=2.0, resolution_mm=8.0)
+    first = plan_round(0, pos, edges, labels, {0: models[0], 1: models[1]}, SURVEY_F, SURVEY_A, NOISE_MM,
+                       border=np.array([2.0, 30.0, 0.0, 0.0]), **kw)
+    assert np.allclose(first.proposed_mm, [[10.0, 40, 0]])
+    other = plan_round(0, pos, edges, labels, {0: models[0], 1: models[1]}, SURVEY_F, SURVEY_A, NOISE_MM,
+                       border=np.array([30.0, 2.0, 0.0, 0.0]), **kw)
+    assert np.allclose(other.proposed_mm, [[10.0, 0, 0]])

@@ -1,4 +1,5 @@
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -90,18 +91,28 @@ def test_homogeneous_gives_one_region(seed):
     assert rm.n_regions == 1 and np.all(rm.labels == 0)
 
 
-def test_planted_island_is_removed_and_recorded():
-    e = np.where(TRUE_TWO == 1, E_STIFF_MPA, E_SOFT_MPA)
+def test_an_ambiguous_island_follows_its_neighbours_a_distinct_one_is_a_material():
+    """One point of the soft half planted between the two materials (its dent 1.7x shallower
+    than its neighbours', within the contrast): whatever its features say, it joins its
+    neighbours (recorded as an island, for densification to look at). One point planted
+    with the stiff material's modulus (2.9x, beyond the contrast): one probe on a small
+    inclusion. It keeps its region, as a material separated by enough contrast."""
     island = 2 * N + 2                                  # an interior point of the soft half
-    e[island] = E_STIFF_MPA
+    e = np.where(TRUE_TWO == 1, E_STIFF_MPA, E_SOFT_MPA)
+    e[island] = E_SOFT_MPA * 1.7 ** 1.5                 # Hertz: depth ~ E^(-2/3)
     feats, names = survey(4, e)
     rm = cluster_regions(feats, EDGES, names, seed=0)
     assert rm.n_regions == 2
     assert rm.labels[island] == rm.labels[island + 1] == rm.labels[island - 1]
-    assert island in rm.stats["islands"]
-    # Without the coherence pass (islands allowed) the point keeps its own features' label.
-    raw = cluster_regions(feats, EDGES, names, seed=0, min_island_points=1, beta=0.0)
-    assert raw.labels[island] != raw.labels[island + 1]
+    assert rm.stats["distinct_islands"] == []
+
+    e[island] = E_STIFF_MPA
+    feats, names = survey(4, e)
+    rm = cluster_regions(feats, EDGES, names, seed=0)
+    assert rm.n_regions == 2
+    assert rm.labels[island] == rm.labels[TRUE_TWO == 1][0] != rm.labels[island + 1]
+    assert rm.stats["distinct_islands"] == [island]
+    assert np.mean(rm.labels == np.where(TRUE_TWO == 1, 0, 1)) == 1 - 1 / (N * N)
 
 
 def test_new_points_labelled_and_map_serialises():
@@ -192,8 +203,8 @@ def test_box_top_clamped_by_its_walls_is_one_region(round_):
     """Recorded survey of the composite (perfectly calibrated draw 0 of the miscalibrated
     cell, run seed 2, rounds 0 and 1): the box top dents 0.10 mm at 4 N by its walls and
     0.21 mm at its centre (a plate clamped at its edges), the foam 1.65 mm. The mixture
-    cuts the top into centre and rim (medians 1.9x apart); at the old contrast (1.5x) that
-    was a third region, at the default the map is the box and the foam."""
+    cuts the top into centre and rim (medians 1.9x apart); at a contrast of 1.5x that is
+    two regions, at the default the map is the box and the foam."""
     from pathlib import Path
 
     data = np.load(Path(__file__).parent / "data" / "regions" / "box_top_trend.npz")
@@ -203,4 +214,89 @@ def test_box_top_clamped_by_its_walls_is_one_region(round_):
     rm = cluster_regions(feats, edges, names, seed=2)
     assert rm.n_regions == 2
     assert np.all(rm.labels == np.where(on_box, 0, 1))           # region 0: the stiffer, the box
-    assert cluster_regions(feats, edges, names, seed=2, min_contrast=1.5).n_regions == 3
+    # The top alone: the mixture cuts it into centre and rim (medians ~1.9x apart); only
+    # the contrast rule keeps it one material.
+    idx = np.full(len(pts), -1)
+    idx[on_box] = np.arange(int(on_box.sum()))
+    top_edges = idx[edges[on_box[edges[:, 0]] & on_box[edges[:, 1]]]]
+    assert cluster_regions(feats[on_box], top_edges, names, seed=2).n_regions == 1
+    assert cluster_regions(feats[on_box], top_edges, names, seed=2, min_contrast=1.5).n_regions == 2
+
+
+def test_recorded_slab_with_a_strip_and_a_one_probe_inclusion_is_three_regions():
+    """Recorded survey (simulated scanner) of the suite's disc-and-strip slab (generated seed
+    1002, run seed 1, round 0): a gel matrix (0.52 mm at 6 N, 37 probes), an elastomer strip
+    along one end (0.037 mm, 7 probes) and a foam disc 38 mm across that one probe hit
+    (2.4 mm). The one probe was an island, relabelled to the gel around it: 2 regions of 3.
+    It differs from the gel by 4.6x, beyond the contrast: it is kept."""
+    data = np.load(Path(__file__).parent / "data" / "regions" / "disc_and_strip.npz")
+    names = [str(n) for n in data["names"]]
+    truth = data["truth"]
+    rm = cluster_regions(data["feats"], data["edges"], names, seed=1)
+    assert rm.n_regions == 3
+    # Region ids: 0 = the stiffest (elastomer, truth 1), 1 = gel (truth 0), 2 = foam (truth 2).
+    assert np.array_equal(rm.labels, np.array([1, 0, 2])[truth])
+    assert rm.stats["distinct_islands"] == np.flatnonzero(truth == 2).tolist()
+
+
+@pytest.mark.parametrize("stiff_points", [1, 3])
+def test_few_points_far_apart_in_depth_are_two_regions(stiff_points):
+    """Six survey points, the dents 15x apart: two regions whatever the split (a handful of
+    points must not read as one material, nor lose the lone stiff probe as an island)."""
+    pos = np.column_stack([np.arange(6) * 20.0, np.zeros(6), np.zeros(6)])
+    edges = np.array([(i, i + 1) for i in range(5)])
+    truth = (np.arange(6) < stiff_points).astype(int)
+    feats, names = survey(2, np.where(truth == 1, 8.0, 8.0 / 15 ** 1.5))
+    rm = cluster_regions(feats, edges, names, seed=0)
+    assert rm.n_regions == 2
+    assert np.array_equal(rm.labels, 1 - truth)              # region 0: the stiffer
+
+
+def test_previous_regions_persist_unless_closer_than_the_contrast():
+    """A material separated in one round stays separated when points arrive: a stiff
+    inclusion found by two survey points (round 0) is still its own region once twelve more
+    points, some on its seam, are added (round 1, previous labels given); a previous split
+    by less than the contrast is merged."""
+    inclusion = np.linalg.norm(POS[:, :2] - [30.0, 30.0], axis=1) <= 15.0       # 9 grid points
+    e = np.where(inclusion, E_STIFF_MPA, E_SOFT_MPA)
+    feats, names = survey(11, e)
+    first = np.flatnonzero(~inclusion | np.isin(np.arange(N * N), [27, 36]))    # 2 points on it
+    assert np.count_nonzero(inclusion[first]) == 2
+    idx = np.full(N * N, -1)
+    idx[first] = np.arange(first.size)
+    sub_edges = idx[EDGES[(idx[EDGES] >= 0).all(axis=1)]]
+    r0 = cluster_regions(feats[first], sub_edges, names, seed=0)
+    assert r0.n_regions == 2 and np.array_equal(r0.labels, np.where(inclusion[first], 0, 1))
+    previous = np.full(N * N, -1)
+    previous[first] = r0.labels
+    # The new points: the rest of the inclusion, and its seam (a blend of the two materials).
+    seam = ~inclusion & (np.linalg.norm(POS[:, :2] - [30.0, 30.0], axis=1) <= 25.0)
+    e2 = np.where(seam, np.sqrt(E_STIFF_MPA * E_SOFT_MPA), e)
+    feats2, _ = survey(12, e2)
+    feats2[first] = feats[first]
+    r1 = cluster_regions(feats2, EDGES, names, seed=0, previous_labels=previous)
+    assert r1.n_regions == 2
+    assert np.all(r1.labels[inclusion] == 0) and np.all(r1.labels[~inclusion & ~seam] == 1)
+    same, names = survey(9, np.full(N * N, 1.2))
+    assert cluster_regions(same, EDGES, names, seed=0, previous_labels=TRUE_TWO).n_regions == 1
+
+
+def test_survey_misfit_flags_another_material_not_the_drift_within_one():
+    """A point of the soft half pressed on a stiff speck (2.9x shallower) lies beyond what its
+    region explains; the rest of the half, with 5 % modulus variability, does not; the box
+    top's 2x drift from centre to walls is its own spread, no misfit."""
+    from elastoprobe.controller.learning.regions import survey_misfit
+
+    e = np.where(TRUE_TWO == 1, E_STIFF_MPA, E_SOFT_MPA)
+    speck = 3 * N + 1
+    e[speck] = E_STIFF_MPA
+    feats, names = survey(10, e)
+    labels = TRUE_TWO.copy()
+    labels[speck] = 0                                        # labelled with its neighbours
+    mf = survey_misfit(feats, labels, names, noise_mm=0.005)
+    assert mf[speck] > 1.0
+    assert np.max(np.delete(mf, speck)) < 1.0
+    data = np.load(Path(__file__).parent / "data" / "regions" / "box_top_trend.npz")
+    feats, pts = data["round1_feats"], data["round1_pts"]
+    names = [str(n) for n in data["round1_names"]]
+    assert np.max(survey_misfit(feats, (pts[:, 2] < 100.0).astype(int), names, noise_mm=0.005)) < 1.0

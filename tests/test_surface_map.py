@@ -82,3 +82,41 @@ def test_cells_do_not_touch_across_the_fold(composite_surface):
     pairs = sm.seed_neighbours(g, sm.cells(g, seeds))
     assert (1, 2) in pairs and (0, 3) in pairs
     assert (0, 1) not in pairs and (0, 2) not in pairs
+
+
+def test_a_seed_whose_dent_lies_between_two_regions_draws_the_seam_through_itself():
+    """A flat face, a stiff and a soft material meeting along x = 33 mm. Seeds 20 mm apart
+    (x = 0, 20, 40, ...): the plain map cuts midway, at x = 30. A seed at x = 32, 1 mm off
+    the seam, presses both materials: its dent lies between theirs (labelled stiff, its
+    level 40 % of the way to the soft one). With the seeds' levels, the boundary passes
+    next to it instead of midway to the next soft seed; with pure levels the map is the
+    plain one."""
+    pts, nrm = plane(101, 41, 1.0)
+    g = sm.build_graph(pts, nrm)
+    xs = np.array([0.0, 20.0, 32.0, 40.0, 60.0, 80.0, 100.0])
+    seeds = np.array([[x, y, 0.0] for x in xs for y in (0.0, 20.0, 40.0)])
+    labels = (seeds[:, 0] > 33.0).astype(int)
+    rng = np.random.default_rng(1)
+    pure = np.where(labels == 1, np.log(2.0), np.log(0.2)) + rng.normal(0, 0.05, len(seeds))
+    levels = pure.copy()
+    levels[seeds[:, 0] == 32.0] = np.log(0.2) + 0.4 * (np.log(2.0) - np.log(0.2))
+    truth = (pts[:, 0] > 33.0).astype(int)
+    plain = sm.labels_from_seeds(g, seeds, labels)
+    assert np.array_equal(sm.labels_from_seeds(g, seeds, labels, seed_levels=pure), plain)
+    refined = sm.labels_from_seeds(g, seeds, labels, seed_levels=levels)
+    err_plain, err_refined = np.mean(plain != truth), np.mean(refined != truth)
+    assert err_plain > 0.01 and err_refined < 0.4 * err_plain
+    # Nothing moves on the far side of the seam seed, nor between other seeds.
+    assert np.all(refined[pts[:, 0] < 31.5] == 0) and np.all(refined[pts[:, 0] > 36.0] == 1)
+
+
+def test_shared_border_counts_the_edges_between_two_cells():
+    """Three seeds in a row on a flat strip: neighbours share a border as wide as the strip,
+    the outer two none."""
+    pts, nrm = plane(41, 11, 2.0)
+    g = sm.build_graph(pts, nrm)
+    seeds = np.array([[10.0, 10.0, 0.0], [40.0, 10.0, 0.0], [70.0, 10.0, 0.0]])
+    border = sm.shared_border(g, sm.cells(g, seeds), np.array([[0, 1], [2, 1], [0, 2]]))
+    assert border[2] == 0.0
+    assert border[0] >= 11 and border[1] >= 11               # at least one edge per row of the strip
+    assert abs(border[0] - border[1]) <= 0.25 * border[0]    # the same width on both sides

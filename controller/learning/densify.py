@@ -35,6 +35,9 @@ from typing import Any, Mapping, Protocol
 
 import numpy as np
 
+from . import regions as rg
+from . import surface_map as sm
+
 ROI_FRACTION = 0.05
 DEFAULT_THRESHOLD = 3.0
 
@@ -62,11 +65,7 @@ def model_distance(model_a: ProfileModel, model_b: ProfileModel, forces_n: np.nd
                    angles_deg: np.ndarray) -> tuple[float, float]:
     """(RMS difference mm, RMS combined ensemble spread mm) at the setting where the two
     models differ most, over the region of interest of that setting."""
-    f, a = np.meshgrid(np.asarray(forces_n, dtype=float), np.asarray(angles_deg, dtype=float), indexing="ij")
-    f, a = f.ravel(), a.ravel()
-    pa, pb = model_a.predict_batch_mm(f, a), model_b.predict_batch_mm(f, a)
-    sa = _spread(model_a, f, a, pa.shape)
-    sb = _spread(model_b, f, a, pb.shape)
+    f, a, pa, pb, sa, sb = _predictions(model_a, model_b, forces_n, angles_deg)
     best = (0.0, 0.0)
     for i in range(f.shape[0]):
         peak = max(float(np.max(pa[i])), float(np.max(pb[i])), 0.0)
@@ -80,16 +79,102 @@ def model_distance(model_a: ProfileModel, model_b: ProfileModel, forces_n: np.nd
     return best
 
 
+def peak_ratio_score(model_a: ProfileModel, model_b: ProfileModel, forces_n: np.ndarray,
+                     angles_deg: np.ndarray, noise_mm: float) -> float:
+    """How far apart two models put the dent's depth, as a ratio against what each knows
+    of its own depth: the largest over settings of
+
+        |log((P_a + n) / (P_b + n))| / sqrt((s_a / (P_a + n))^2 + (s_b / (P_b + n))^2 + ...)
+
+    with P the peak of a model's profile, s its ensemble spread at that sample and n the
+    averaged noise (mm), whose own relative share (n / (P + n))^2 joins the sum for each.
+    Materials differ by factors: a sponge 20x deeper than an elastomer has an ensemble
+    spread (bootstrap over a few probe points) that, in millimetres, is as large as the
+    elastomer's whole dent, and the difference in millimetres (:func:`model_distance`)
+    reads as barely resolved; as a ratio the two dents are many spreads apart.
+    """
+    _, _, pa, pb, sa, sb = _predictions(model_a, model_b, forces_n, angles_deg)
+    n = max(float(noise_mm), 1e-6)
+    best = 0.0
+    for i in range(pa.shape[0]):
+        ia, ib = int(np.argmax(pa[i])), int(np.argmax(pb[i]))
+        da, db = max(float(pa[i, ia]), 0.0) + n, max(float(pb[i, ib]), 0.0) + n
+        rel = np.sqrt((sa[i, ia] / da) ** 2 + (sb[i, ib] / db) ** 2 + (n / da) ** 2 + (n / db) ** 2)
+        best = max(best, abs(float(np.log(da / db))) / float(rel))
+    return best
+
+
+def _predictions(model_a: ProfileModel, model_b: ProfileModel, forces_n: np.ndarray, angles_deg: np.ndarray
+                 ) -> tuple[np.ndarray, ...]:
+    """Settings (f, a) and both models' profiles and ensemble spreads (Q,L) at them."""
+    f, a = np.meshgrid(np.asarray(forces_n, dtype=float), np.asarray(angles_deg, dtype=float), indexing="ij")
+    f, a = f.ravel(), a.ravel()
+    pa, pb = model_a.predict_batch_mm(f, a), model_b.predict_batch_mm(f, a)
+    return f, a, pa, pb, _spread(model_a, f, a, pa.shape), _spread(model_b, f, a, pb.shape)
+
+
 def _spread(model: Any, f: np.ndarray, a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     if hasattr(model, "predict_ensemble"):
         return np.asarray(model.predict_ensemble(f, a)[1], dtype=float).reshape(shape)
     return np.zeros(shape)
 
 
+def survey_pair_scores(log_depth: np.ndarray, labels: np.ndarray, rel_noise: np.ndarray
+                       ) -> dict[tuple[int, int], float]:
+    """Score of every pair of regions (a < b) from the survey itself: the largest over survey
+    forces of |median_a - median_b| of the points' log peak depths (N,F), over its standard
+    error sqrt(v_a / n_a + v_b / n_b), v a region's robust variance (1.4826 MAD)^2, at least
+    its points' mean squared relative noise ``rel_noise`` (N,F) (noise / depth).
+
+    Every survey point of a region votes, not just the few that were characterized: two
+    regions whose dents differ by a factor are told apart here even when their models,
+    bootstrapped over two or three points, are not yet sure of their own depth.
+    """
+    y = np.asarray(log_depth, dtype=float)
+    lab = np.asarray(labels, dtype=np.int64).reshape(-1)
+    rn = np.asarray(rel_noise, dtype=float)
+    regions = sorted(int(v) for v in np.unique(lab))
+    stats = {}
+    for r in regions:
+        m = lab == r
+        with np.errstate(all="ignore"):
+            med = np.nanmedian(y[m], axis=0)
+            mad = 1.4826 * np.nanmedian(np.abs(y[m] - med), axis=0)
+            var = np.maximum(np.nan_to_num(mad) ** 2, np.nanmean(rn[m] ** 2, axis=0))
+        stats[r] = (med, var, int(m.sum()))
+    out: dict[tuple[int, int], float] = {}
+    for i, ra in enumerate(regions):
+        for rb in regions[i + 1:]:
+            (ma, va, na), (mb, vb, nb) = stats[ra], stats[rb]
+            with np.errstate(all="ignore"):
+                z = np.abs(ma - mb) / np.sqrt(va / na + vb / nb)
+            out[(ra, rb)] = float(np.nanmax(np.where(np.isfinite(z), z, 0.0), initial=0.0))
+    return out
+
+
+def survey_evidence(features: np.ndarray, feature_names: list[str], labels: np.ndarray, noise_mm: float,
+                    min_contrast: float = rg.MIN_CONTRAST) -> dict[str, Any]:
+    """What the survey itself says, as :func:`plan_round`'s keyword arguments: the pair scores
+    of the regions' dents (:func:`survey_pair_scores`), each point's misfit to its region
+    (regions.survey_misfit) and its level (mean over survey forces of log(peak + noise)).
+
+    ``features`` (N,D) and ``feature_names``: the survey features of the labelled points
+    (regions.survey_features); ``noise_mm``: the standard error of an averaged profile.
+    """
+    log_depth, rel_noise = rg.log_peaks(features, feature_names, noise_mm)
+    lab = np.asarray(labels, dtype=np.int64).reshape(-1)
+    return {"survey_scores": survey_pair_scores(log_depth, lab, rel_noise),
+            "misfit": rg.survey_misfit(features, lab, feature_names, noise_mm, min_contrast),
+            "levels": log_depth.mean(axis=1)}
+
+
 def pair_scores(labels_present: np.ndarray, models: Mapping[int, ProfileModel], forces_n: np.ndarray,
-                angles_deg: np.ndarray, noise_mm: float, missing_score: float = np.inf
-                ) -> dict[tuple[int, int], float]:
-    """Score of every pair of regions (a < b); a region without a model scores ``missing_score``."""
+                angles_deg: np.ndarray, noise_mm: float, missing_score: float = np.inf,
+                survey: Mapping[tuple[int, int], float] | None = None) -> dict[tuple[int, int], float]:
+    """Score of every pair of regions (a < b): the larger of the models' difference in mm
+    over noise and spreads (:func:`model_distance`) and as a ratio of depths
+    (:func:`peak_ratio_score`), and of the ``survey`` score when given
+    (:func:`survey_pair_scores`); a region without a model scores ``missing_score``."""
     regions = sorted(int(v) for v in np.unique(labels_present))
     out: dict[tuple[int, int], float] = {}
     for i, ra in enumerate(regions):
@@ -98,7 +183,11 @@ def pair_scores(labels_present: np.ndarray, models: Mapping[int, ProfileModel], 
                 out[(ra, rb)] = missing_score
                 continue
             diff, spread = model_distance(models[ra], models[rb], forces_n, angles_deg)
-            out[(ra, rb)] = diff / float(np.sqrt(noise_mm ** 2 + spread ** 2))
+            score = max(diff / float(np.sqrt(noise_mm ** 2 + spread ** 2)),
+                        peak_ratio_score(models[ra], models[rb], forces_n, angles_deg, noise_mm))
+            if survey is not None:
+                score = max(score, survey.get((ra, rb), 0.0))
+            out[(ra, rb)] = score
     return out
 
 
@@ -138,30 +227,32 @@ def snap_to_surface(points_mm: np.ndarray, surface_points_mm: np.ndarray) -> np.
 
 def candidate_points(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np.ndarray,
                      point_score: np.ndarray | None = None, surface_points_mm: np.ndarray | None = None,
-                     min_length_mm: float = 0.0, return_lengths: bool = False
-                     ) -> tuple[np.ndarray, ...]:
-    """Candidate new survey points (C,3) and their scores (C,) [and edge lengths (C,) mm].
+                     min_length_mm: float = 0.0, return_lengths: bool = False,
+                     fraction: np.ndarray | None = None, return_edges: bool = False) -> tuple[np.ndarray, ...]:
+    """Candidate new survey points (C,3) and their scores (C,) [and edge lengths (C,) mm]
+    [and the index (C,) of each one's edge].
 
-    Midpoints of edges with a positive score and longer than ``min_length_mm`` (a shorter
-    crossing edge has already placed its piece of the boundary within that length); for
-    points with a positive ambiguity score, the midpoints of all their edges (a ring
-    around the doubtful point) carry that score, whatever their length.
+    Points on edges longer than ``min_length_mm`` (a shorter edge has already placed its
+    piece of the boundary within that length) with a positive score: their own (a crossing
+    edge), or the larger ``point_score`` of their two ends (a ring around a doubtful point:
+    ambiguous features, or a misfit of its region). Each lies ``fraction`` (E,) of the way
+    from the edge's first end to its second (default 0.5, the midpoint).
     """
     pos = np.asarray(positions_mm, dtype=float).reshape(-1, 3)
     e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
     s = np.asarray(edge_score, dtype=float).copy()
     lengths = np.linalg.norm(pos[e[:, 0]] - pos[e[:, 1]], axis=1) if e.shape[0] else np.zeros(0)
-    s[lengths <= min_length_mm] = 0.0
     if point_score is not None:
         ps = np.asarray(point_score, dtype=float)
         s = np.maximum(s, np.maximum(ps[e[:, 0]], ps[e[:, 1]]))
+    s[lengths <= min_length_mm] = 0.0
     keep = s > 0
-    mids = 0.5 * (pos[e[keep, 0]] + pos[e[keep, 1]])
+    t = np.full(e.shape[0], 0.5) if fraction is None else np.asarray(fraction, dtype=float).reshape(-1)
+    mids = pos[e[keep, 0]] + t[keep, None] * (pos[e[keep, 1]] - pos[e[keep, 0]])
     if surface_points_mm is not None and mids.shape[0]:
         mids = snap_to_surface(mids, surface_points_mm)
-    if return_lengths:
-        return mids, s[keep], lengths[keep]
-    return mids, s[keep]
+    out = (mids, s[keep]) + ((lengths[keep],) if return_lengths else ())
+    return out + ((np.flatnonzero(keep),) if return_edges else ())
 
 
 def propose_points(candidates_mm: np.ndarray, scores: np.ndarray, existing_mm: np.ndarray, budget: int,
@@ -240,6 +331,22 @@ class DensifyRound:
         return out
 
 
+def _crossing_fraction(edges: np.ndarray, labels: np.ndarray, levels: np.ndarray,
+                       clip: tuple[float, float] = (0.2, 0.8)) -> np.ndarray:
+    """(E,) where along each crossing edge the interpolated level crosses midway between its
+    two regions (0.5 on edges within a region or when the regions' levels overlap)."""
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    out = np.full(e.shape[0], 0.5)
+    cross = np.flatnonzero(np.asarray(labels)[e[:, 0]] != np.asarray(labels)[e[:, 1]])
+    if cross.size == 0:
+        return out
+    s_a, s_b, usable = sm.seam_fractions(levels, labels, e[cross, 0], e[cross, 1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(np.abs(s_b - s_a) > 1e-9, (0.5 - s_a) / (s_b - s_a), 0.5)
+    out[cross] = np.where(usable, np.clip(t, *clip), 0.5)
+    return out
+
+
 def _finite_or_none(v: float) -> float | None:
     return float(v) if np.isfinite(v) else None
 
@@ -248,28 +355,57 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
                models: Mapping[int, ProfileModel], forces_n: np.ndarray, angles_deg: np.ndarray,
                noise_mm: float, budget: int, min_spacing_mm: float, resolution_mm: float,
                threshold: float = DEFAULT_THRESHOLD, posterior: np.ndarray | None = None,
-               surface_points_mm: np.ndarray | None = None) -> DensifyRound:
+               surface_points_mm: np.ndarray | None = None,
+               survey_scores: Mapping[tuple[int, int], float] | None = None,
+               misfit: np.ndarray | None = None, levels: np.ndarray | None = None,
+               border: np.ndarray | None = None) -> DensifyRound:
     """Score the current map, apply the stop rule and propose the next survey points.
 
     ``forces_n``, ``angles_deg``: the survey probe settings; ``posterior`` (N,K) optional
-    feature posteriors for ambiguous points; ``surface_points_mm``: the cloud to snap to.
-    Candidates are taken longest crossing edge first (the widest unresolved gap).
-    When resolved, nothing is proposed; when nothing can be placed (spacing), the reason says so.
+    feature posteriors for ambiguous points; ``surface_points_mm``: the surface to snap to
+    (where a target may go); ``survey_scores``: pair scores from the survey itself
+    (:func:`survey_pair_scores`); ``misfit`` (N,): how far each point lies beyond what its
+    region explains (regions.survey_misfit; > 1: maybe another material): when all its
+    neighbours share its region, its ring of edges scores ``threshold`` x misfit;
+    ``levels`` (N,): each point's dent on the scale the regions differ on (mean log peak
+    depth): a crossing edge is then split where the level interpolated between its ends
+    crosses midway (surface_map.seam_fractions; a false-position step, clipped to the
+    middle 60 % of the edge), the midpoint when both ends are pure; ``border`` (E,): the length of the border between each edge's two cells
+    (surface_map.shared_border). Candidates are taken in decreasing edge length x border
+    (the area whose label is unresolved; length alone without ``border``).
+    When resolved, nothing is proposed; when nothing can be placed (spacing), the reason
+    says so.
     """
     lab = np.asarray(labels)
     pscores = pair_scores(lab if posterior is None else np.arange(np.asarray(posterior).shape[1]),
-                          models, forces_n, angles_deg, noise_mm)
+                          models, forces_n, angles_deg, noise_mm, survey=survey_scores)
     es = edge_scores(edges, lab, pscores)
-    ps = point_scores(posterior, pscores) if posterior is not None else None
+    ps = point_scores(posterior, pscores) if posterior is not None else np.zeros(lab.shape[0])
+    odd = np.zeros(lab.shape[0], dtype=bool)
+    if misfit is not None:
+        # A misfit beside another region is the seam's blend, which the crossing edges
+        # already follow; one surrounded by its own region is unexplained.
+        e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+        on_seam = np.zeros(lab.shape[0], dtype=bool)
+        crossing = lab[e[:, 0]] != lab[e[:, 1]]
+        on_seam[e[crossing].ravel()] = True
+        mf = np.nan_to_num(np.asarray(misfit, dtype=float).reshape(-1))
+        odd = (mf > 1.0) & ~on_seam
+        ps = np.maximum(ps, np.where(odd, threshold * mf, 0.0))
     resolved, reason = boundaries_resolved(positions_mm, edges, es, resolution_mm, threshold)
+    where = None if levels is None else _crossing_fraction(edges, lab, levels)
+    cand, cs, gap_mm, used = candidate_points(positions_mm, edges, es, ps, surface_points_mm,
+                                              min_length_mm=resolution_mm, return_lengths=True,
+                                              fraction=where, return_edges=True)
+    area = gap_mm if border is None else gap_mm * np.maximum(np.asarray(border, dtype=float)[used], 1.0)
+    if resolved and np.any(cs >= threshold):
+        resolved = False
+        reason += (f"; around {int(np.sum(ps >= threshold))} points that their region explains badly or "
+                   f"that lie between regions, edges longer than {resolution_mm:g} mm remain")
     proposed = np.zeros((0, 3))
     proposed_scores = np.zeros(0)
-    if ps is not None and resolved and np.any(ps >= threshold):
-        resolved, reason = False, f"{int(np.sum(ps >= threshold))} points have ambiguous features between disagreeing regions"
     if not resolved:
-        cand, cs, gap_mm = candidate_points(positions_mm, edges, es, ps, surface_points_mm,
-                                            min_length_mm=resolution_mm, return_lengths=True)
-        idx = propose_points(cand, cs, positions_mm, budget, min_spacing_mm, threshold, priority=gap_mm)
+        idx = propose_points(cand, cs, positions_mm, budget, min_spacing_mm, threshold, priority=area)
         proposed, proposed_scores = cand[idx], cs[idx]
         if idx.size == 0:
             reason += f"; no candidate keeps {min_spacing_mm:g} mm from existing points"
@@ -281,4 +417,4 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
         pair_scores={f"{a}-{b}": _finite_or_none(v) for (a, b), v in pscores.items()},
         disagreeing_edges=e[hot].tolist(), disagreeing_scores=[_finite_or_none(v) for v in es[hot]],
         proposed_mm=proposed.tolist(), proposed_scores=[_finite_or_none(v) for v in proposed_scores],
-        resolved=resolved, reason=reason)
+        resolved=resolved, reason=reason, extra={"misfit_points": np.flatnonzero(odd).tolist()})

@@ -46,6 +46,9 @@ _MAX_ICM_PASSES = 20
 # top into a centre and a rim with medians ~1.9x apart. A plan probing materials that
 # differ by less sets phases.survey.min_contrast lower.
 MIN_CONTRAST = 2.5
+# The floor under log peak depths when the plan's noise is not known (mm): a dent this
+# shallow is about the standard error of an averaged survey profile.
+DEFAULT_LOG_FLOOR_MM = 0.005
 _MAX_ISLAND_PASSES = 10
 
 
@@ -168,10 +171,13 @@ class RegionMap:
     pooled_cov: np.ndarray          # (P,P)
     log_prior: np.ndarray           # (K,)
     stats: dict[str, Any] = field(default_factory=dict)
+    log_columns: list[int] = field(default_factory=list)    # raw features taken as log(value + floor)
+    log_floor_mm: float = 0.0
 
     def transform(self, features: np.ndarray) -> np.ndarray:
         """Raw features (M,D) -> model space (M,P); NaN features are replaced by the mean."""
-        z = (np.asarray(features, dtype=float) - self.scaler_mean) / self.scaler_std
+        x = _log_features(np.asarray(features, dtype=float), self.log_columns, self.log_floor_mm)
+        z = (x - self.scaler_mean) / self.scaler_std
         return np.where(np.isfinite(z), z, 0.0) @ self.projection.T
 
     def loglik(self, features: np.ndarray) -> np.ndarray:
@@ -222,6 +228,16 @@ def _jsonable(obj: Any) -> Any:
     if isinstance(obj, float) and not np.isfinite(obj):
         return None
     return obj
+
+
+def _log_features(features: np.ndarray, columns: list[int], floor_mm: float) -> np.ndarray:
+    """``features`` with the given columns replaced by log(max(value, 0) + floor_mm) (NaN stays NaN)."""
+    if not columns:
+        return features
+    out = np.array(features, dtype=float, copy=True)
+    with np.errstate(invalid="ignore"):
+        out[:, columns] = np.log(np.maximum(out[:, columns], 0.0) + floor_mm)
+    return out
 
 
 def _gauss_loglik(z: np.ndarray, means: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -319,34 +335,55 @@ def _merge_by_noise(features: np.ndarray, labels: np.ndarray, noise: np.ndarray,
 
 
 def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: list[int],
-                       min_contrast: float) -> tuple[np.ndarray, int]:
-    """Merge clusters whose median depths differ by less than a factor ``min_contrast`` at
-    every survey force (``depth_columns``: the peak-depth features), closest pair first.
+                       min_contrast: float, floor_mm: float = 0.0) -> tuple[np.ndarray, int]:
+    """Merge clusters that are not two materials, closest pair first: their median depths
+    (+ ``floor_mm``, the noise under which a dent is not seen) differ by less than a factor
+    ``min_contrast`` at every survey force (``depth_columns``: the peak-depth features), or
+    the difference does not hold at every force (one is shallower by the contrast at one
+    force, and not clearly shallower, by 3 noises of a difference, at another).
 
     The mixture splits one material wherever geometry shifts the visible dent (the rim of
     a pillow, a slope, a tilted ball surface: up to ~30 % deeper in the simulator, where
     the probe's shadow ends closer to the contact); that is not a different elasticity.
+    A stiffer material dents less at every force; two clusters of a stiff material whose
+    visible dents are a few hundredths of a millimetre can differ by 4x at one force
+    (ripple of the profile near the tip) and not at all at the other.
     """
     merges = 0
     if not depth_columns or min_contrast <= 1.0:
         return _compact(labels)[0], 0
     cols = features[:, depth_columns]
-    while True:
-        labels, k = _compact(labels)
-        if k < 2:
-            return labels, merges
-        med = _region_medians(cols, labels, k)
-        logs = np.log(np.maximum(med, 1e-6))
-        best: tuple[float, int, int] | None = None
-        for i in range(k):
-            for j in range(i + 1, k):
-                gap = float(np.nanmax(np.abs(logs[i] - logs[j])))
-                if gap < np.log(min_contrast) and (best is None or gap < best[0]):
-                    best = (gap, i, j)
-        if best is None:
-            return labels, merges
-        labels = np.where(labels == best[2], best[1], labels)
+    floor = max(floor_mm, 1e-6)
+    log_c = float(np.log(min_contrast))
+    labels, k = _compact(labels)
+    med = np.maximum(_region_medians(cols, labels, k), 0.0) + floor
+    while k > 1:
+        logs = np.log(med)
+        signed = logs[:, None, :] - logs[None, :, :]                       # (k,k,F)
+        finite = np.isfinite(signed)
+        absd = np.where(finite, np.abs(signed), -np.inf)
+        gap = absd.max(axis=2)
+        at = np.take_along_axis(signed, absd.argmax(axis=2)[:, :, None], axis=2)[:, :, 0]
+        # Shallower at every force by more than 3 noises of a difference (in mm: a dent at
+        # the noise floor is shallower than one 5 noises deep, whatever their ratio says).
+        diff_mm = med[:, None, :] - med[None, :, :]
+        resolved = (np.sign(at)[:, :, None] * diff_mm > 3.0 * np.sqrt(2.0) * floor) | ~finite
+        same = (gap < log_c) | ~resolved.all(axis=2)
+        same &= np.triu(np.ones((k, k), dtype=bool), 1) & np.isfinite(gap)
+        if not same.any():
+            break
+        i, j = np.unravel_index(int(np.argmin(np.where(same, gap, np.inf))), same.shape)
+        labels = np.where(labels == j, i, labels)
+        labels = np.where(labels > j, labels - 1, labels)
+        k -= 1
+        members = labels == i
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            merged = np.maximum(np.nanmedian(cols[members], axis=0), 0.0) + floor
+        med = np.delete(med, j, axis=0)
+        med[i] = merged
         merges += 1
+    return labels, merges
 
 
 def _icm(loglik: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray], beta: float,
@@ -371,15 +408,23 @@ def _icm(loglik: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray], b
 
 
 def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.ndarray],
-                    min_island_points: int) -> tuple[np.ndarray, list[int]]:
+                    min_island_points: int, log_depth: np.ndarray | None = None,
+                    min_log_gap: float = np.inf) -> tuple[np.ndarray, list[int], list[int]]:
     """Relabel connected same-label components smaller than ``min_island_points`` to the
-    majority label of the points bordering them; isolated points (no neighbours) are kept."""
+    majority label of the points bordering them; isolated points (no neighbours) are kept.
+
+    With ``log_depth`` (N,F) (log peak depths): an island whose median differs from the
+    bordering majority region's median by at least ``min_log_gap`` at some force is kept:
+    one probe on a small inclusion is a material, not noise. Returns (labels, relabelled
+    point indices, kept island point indices).
+    """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
     labels = labels.copy()
     n = labels.shape[0]
     relabelled: list[int] = []
+    kept: set[int] = set()
     e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
     for _ in range(_MAX_ISLAND_PASSES):
         same = e[labels[e[:, 0]] == labels[e[:, 1]]] if e.size else e
@@ -392,18 +437,32 @@ def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.n
             if sizes[c] >= min_island_points:
                 break
             members = np.flatnonzero(comp == c)
+            if kept.issuperset(members.tolist()):
+                continue
             border = np.concatenate([neighbours[i] for i in members]) if members.size else members
             border = border[labels[border] != labels[members[0]]]
             if border.size == 0:
                 continue
             votes = np.bincount(labels[border])
             new = int(np.argmax(votes))
+            if log_depth is not None and _distinct(log_depth, members, np.flatnonzero(labels == new), min_log_gap):
+                kept.update(int(i) for i in members)
+                continue
             labels[members] = new
             relabelled.extend(int(i) for i in members)
             changed = True
         if not changed:
             break
-    return labels, sorted(set(relabelled))
+    return labels, sorted(set(relabelled)), sorted(kept)
+
+
+def _distinct(log_depth: np.ndarray, members: np.ndarray, region: np.ndarray, min_log_gap: float) -> bool:
+    """True when the members' median log depth differs from the region's by >= ``min_log_gap``
+    at some force."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        gap = np.abs(np.nanmedian(log_depth[members], axis=0) - np.nanmedian(log_depth[region], axis=0))
+    return bool(np.nanmax(np.where(np.isfinite(gap), gap, 0.0), initial=0.0) >= min_log_gap)
 
 
 def _region_medians(columns: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
@@ -464,15 +523,19 @@ def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbour
 def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list[str] | None = None, *,
                     kmax: int = 6, beta: float = 1.5, min_island_points: int = 2,
                     feature_noise: np.ndarray | None = None, merge_sigmas: float = 4.0,
-                    min_contrast: float = MIN_CONTRAST,
-                    max_dims: int = 3, order_feature: int = 0, seed: int = 0) -> RegionMap:
+                    min_contrast: float = MIN_CONTRAST, max_dims: int = 3, order_feature: int = 0,
+                    seed: int = 0, noise_mm: float | None = None,
+                    previous_labels: np.ndarray | None = None) -> RegionMap:
     """Cluster surveyed points (features (N,D), surface graph edges (E,2)) into regions.
 
     ``feature_noise`` (D,): measurement noise of each feature (e.g. the standard error of
     the peak depth); when given, clusters closer than ``merge_sigmas`` noises in every
     feature are merged. Clusters whose peak depths (features named ``peak...``) differ
-    by less than a factor ``min_contrast`` at every force are merged. See the module
-    docstring for the steps.
+    by less than a factor ``min_contrast`` at every force are merged. ``noise_mm``: the
+    standard error of an averaged survey profile (mm), the floor under the peak depths'
+    logarithms (default :data:`DEFAULT_LOG_FLOOR_MM`). ``previous_labels`` (N,): each
+    point's region in the previous round (-1 for points added since): regions separated
+    then stay separable now (see the module docstring). See the module docstring for the steps.
     """
     x = np.asarray(features, dtype=float)
     if x.ndim != 2 or x.shape[0] == 0:
@@ -481,41 +544,70 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
     names = list(feature_names) if feature_names is not None else [f"f{i}" for i in range(d)]
     e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
     neighbours = _adjacency(n, e)
-    z_std, mean, std = _standardise(x)
-    proj = _projection(z_std, max_dims)
+    depth_cols = [j for j, name in enumerate(names) if name.startswith("peak")]
+    floor_mm = DEFAULT_LOG_FLOOR_MM if noise_mm is None else max(float(noise_mm), 1e-6)
+    log_cols = list(depth_cols)
+    if log_cols:
+        # Peak depths of different materials differ by factors: their logarithms, unscaled,
+        # are the model space (standardising would let the softest material's spread
+        # squeeze two stiff materials together).
+        xl = _log_features(x, log_cols, floor_mm)
+        mean = np.nanmean(xl, axis=0)
+        std = np.ones(d)
+        z_std = np.where(np.isfinite(xl - mean), xl - mean, 0.0)
+        proj = np.eye(d)[log_cols]
+    else:
+        z_std, mean, std = _standardise(x)
+        proj = _projection(z_std, max_dims)
     z = z_std @ proj.T
+    log_depth = z_std[:, log_cols] if log_cols else None
 
     stats: dict[str, Any] = {}
     if n >= 4:
         labels, bics = _choose_mixture(z, kmax, seed)
     else:
-        labels, bics = np.zeros(n, dtype=np.int64), {1: float("nan")}
+        labels, bics = np.arange(n, dtype=np.int64), {1: float("nan")}
     stats["bic"] = {int(k): v for k, v in bics.items()}
     labels, k = _compact(labels)
     stats["mixture_k"] = k
+    if log_cols and min_contrast > 1.0:
+        # The mixture may put two lone probes of two different inclusions in one component
+        # (one component per probe costs more than the likelihood it buys): split every
+        # cluster by the materials that the contrast rule alone finds among single points.
+        alone, _ = _merge_by_contrast(x, np.arange(n), depth_cols, min_contrast, floor_mm)
+        labels, k = _compact(labels * (int(alone.max()) + 1) + alone)
+    if previous_labels is not None:
+        prev = np.asarray(previous_labels, dtype=np.int64).reshape(-1)
+        if prev.shape[0] != n:
+            raise ValueError("previous_labels must give one label (or -1) per point")
+        # Split every cluster by the previous round's regions: a material separated then
+        # is a candidate again now, and only the contrast rule below may join it back.
+        labels, k = _compact(labels * (int(prev.max(initial=-1)) + 2) + (prev + 1))
     merges = 0
     if feature_noise is not None and k > 1:
         labels, merges = _merge_by_noise(x, labels, np.asarray(feature_noise, dtype=float), merge_sigmas)
         labels, k = _compact(labels)
     stats["merged"] = merges
-    depth_cols = [j for j, name in enumerate(names) if name.startswith("peak")]
     if k > 1:
-        labels, contrast_merges = _merge_by_contrast(x, labels, depth_cols, min_contrast)
+        labels, contrast_merges = _merge_by_contrast(x, labels, depth_cols, min_contrast, floor_mm)
         labels, k = _compact(labels)
         stats["merged_by_contrast"] = contrast_merges
 
     reg = 1e-3
     icm_changes = 0
+    kept: list[int] = []
     if k > 1:
         means, cov, log_prior = _fit_gaussians(z, labels, k, reg)
         labels, icm_changes = _icm(_gauss_loglik(z, means, cov) + log_prior, labels, neighbours, beta)
-        labels, islands = _remove_islands(labels, e, neighbours, min_island_points)
+        labels, islands, kept = _remove_islands(labels, e, neighbours, min_island_points, log_depth,
+                                                float(np.log(min_contrast)))
         labels, bands = _absorb_transition_bands(x, labels, neighbours, depth_cols)
         labels, k = _compact(labels)
     else:
         islands, bands = [], []
     stats["icm_changes"] = icm_changes
     stats["islands"] = islands
+    stats["distinct_islands"] = kept
     stats["transition_band_points"] = bands
 
     # Stable ids: sort regions by the mean of one feature (then by size, then by first index).
@@ -532,7 +624,54 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
     return RegionMap(labels=labels, n_regions=k, centroids=centroids, spread=spread,
                      counts=np.bincount(labels, minlength=k).astype(np.int64), feature_names=names,
                      scaler_mean=mean, scaler_std=std, projection=proj, region_means=means,
-                     pooled_cov=cov, log_prior=log_prior, stats=stats)
+                     pooled_cov=cov, log_prior=log_prior, stats=stats, log_columns=log_cols,
+                     log_floor_mm=floor_mm if log_cols else 0.0)
+
+
+def log_peaks(features: np.ndarray, feature_names: list[str], noise_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """(log(peak + noise) (N,F), relative noise noise / (peak + noise) (N,F)) of the peak-depth
+    features (named ``peak...``), one column per survey force; ``noise_mm`` the standard
+    error of an averaged survey profile."""
+    x = np.asarray(features, dtype=float)
+    cols = [j for j, name in enumerate(feature_names) if name.startswith("peak")]
+    floor = max(float(noise_mm), 1e-6)
+    peaks = np.maximum(x[:, cols], 0.0)
+    return np.log(peaks + floor), floor / (peaks + floor)
+
+
+def survey_misfit(features: np.ndarray, labels: np.ndarray, feature_names: list[str], noise_mm: float,
+                  min_contrast: float = MIN_CONTRAST, sigmas: float = 3.0) -> np.ndarray:
+    """(N,) how far each point's peak depths lie from its region's, in units of what the
+    region can explain; > 1 means "another material may be here".
+
+    Per survey force, the deviation |log(peak + noise) - median over the region| is
+    compared with the larger of ``sigmas`` x the region's robust spread (1.4826 MAD of
+    the same logarithms: the dent's drift with geometry and support within one material),
+    ``sigmas`` x the point's own relative noise, and the contrast that makes two materials
+    (log(min_contrast): a point that far from its region is another material by the rule
+    that made the regions; within one material geometry alone moves a dent by up to ~2x,
+    e.g. where the scan line runs off a block's shoulder). The result is the largest ratio
+    over the forces; NaN features give 0.
+
+    A model fitted to the region's survey profiles predicts about their mean at the survey
+    settings, pulled toward the misfit itself; the median is not.
+    """
+    lab = np.asarray(labels, dtype=np.int64).reshape(-1)
+    out = np.zeros(lab.shape[0])
+    if lab.shape[0] == 0 or not any(name.startswith("peak") for name in feature_names):
+        return out
+    y, rel_noise = log_peaks(features, feature_names, noise_mm)
+    contrast = float(np.log(min_contrast))
+    for region in np.unique(lab):
+        members = np.flatnonzero(lab == region)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(y[members], axis=0)
+            mad = 1.4826 * np.nanmedian(np.abs(y[members] - med), axis=0)
+        allowed = np.maximum(np.maximum(sigmas * np.nan_to_num(mad), sigmas * rel_noise[members]), contrast)
+        ratio = np.abs(y[members] - med) / allowed
+        out[members] = np.nanmax(np.where(np.isfinite(ratio), ratio, 0.0), axis=1)
+    return out
 
 
 def label_new_points(region_map: RegionMap, new_features: np.ndarray, edges: np.ndarray,

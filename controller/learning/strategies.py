@@ -208,11 +208,15 @@ def neural_gas_targets(surface: SurveySurface, rules: tg.TargetRules, n_units: i
                        reference_dir: np.ndarray = np.array([0.0, 1.0, 0.0]), geometry_weight: float = 1.0,
                        steps_per_unit: int = 200) -> tg.Targets:
     """Targets from geometry-aware neural gas with ``n_units`` units, as the session's sampling phase
-    (features xyz + scaled normals, curvature-weighted draws, 256-sample minibatches)."""
+    (trained on the probe-able surface, features xyz + scaled normals, curvature-weighted
+    draws, 256-sample minibatches)."""
     from . import neural_gas as ng
 
-    feats, weights = ng.geometry_aware_inputs(surface.points_mm, surface.normals, surface.curvature,
-                                              normal_weight_mm=10.0 * geometry_weight)
+    where = tg.probeable(surface.points_mm, surface.normals, surface.curvature, rules)
+    if np.count_nonzero(where) < n_units:
+        where = np.ones(len(surface), bool)
+    feats, weights = ng.geometry_aware_inputs(surface.points_mm[where], surface.normals[where],
+                                              surface.curvature[where], normal_weight_mm=10.0 * geometry_weight)
     result = ng.train_neural_gas(feats, n_units=int(n_units), n_steps=max(200, n_units * steps_per_unit // 16),
                                  batch_size=256, seed=seed, sample_weights=weights)
     units = np.asarray(result.units)[:, :3].astype(np.float64)
@@ -230,7 +234,8 @@ def dent_features(depth_mm: np.ndarray, x_mm: np.ndarray, forces_n: np.ndarray,
 
 def region_labels(points_mm: np.ndarray, normals: np.ndarray, depth_mm: np.ndarray, x_mm: np.ndarray,
                   forces_n: np.ndarray, seed: int = 0, half_window_mm: float = 15.0,
-                  graph: sm.SurfaceGraph | None = None) -> tuple[np.ndarray, np.ndarray, rg.RegionMap, np.ndarray]:
+                  graph: sm.SurfaceGraph | None = None, noise_mm: float | None = None,
+                  previous_labels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, rg.RegionMap, np.ndarray]:
     """Regions of surveyed points as the session's regions phase finds them, seen points only.
 
     ``depth_mm`` (N,F,L): averaged survey profiles. A point whose dent window the scanner
@@ -238,6 +243,9 @@ def region_labels(points_mm: np.ndarray, normals: np.ndarray, depth_mm: np.ndarr
     left out instead of entering the clustering with made-up (mean) features.
     Neighbours: cells of the surface ``graph`` that touch (as the session), or without one
     a k-NN chord graph (:func:`targets.surface_graph`).
+    ``noise_mm`` (the standard error of an averaged profile) and ``previous_labels`` (N,)
+    (each point's region in the previous round, -1 if new) as the session passes them to
+    :func:`regions.cluster_regions`.
     Returns (seen (N,) bool, labels (S,) of the seen points, the RegionMap, surface-graph
     edges (E,2) indexing the seen points).
     """
@@ -250,20 +258,23 @@ def region_labels(points_mm: np.ndarray, normals: np.ndarray, depth_mm: np.ndarr
         edges = np.asarray(sm.seed_neighbours(graph, sm.cells(graph, pts)), dtype=np.int64).reshape(-1, 2)
     else:
         edges = np.asarray(tg.surface_graph(pts, nrm), dtype=np.int64).reshape(-1, 2)
-    rmap = rg.cluster_regions(feats[seen], edges, names, seed=seed)
+    prev = None if previous_labels is None else np.asarray(previous_labels, dtype=np.int64).reshape(-1)[seen]
+    rmap = rg.cluster_regions(feats[seen], edges, names, seed=seed, noise_mm=noise_mm, previous_labels=prev)
     return seen, rmap.labels, rmap, edges
 
 
 def map_error(target_points_mm: np.ndarray, target_labels: np.ndarray, eval_points_mm: np.ndarray,
               true_labels: np.ndarray, graph: sm.SurfaceGraph | None = None,
-              eval_index: np.ndarray | None = None) -> dict:
+              eval_index: np.ndarray | None = None, seed_levels: np.ndarray | None = None) -> dict:
     """Scores (``evaluate.region_map_scores``) of the map spread from labelled targets to the
     evaluation points, against their true labels (equal area per point).
 
     With ``graph`` (over the surface) and ``eval_index`` (the evaluation points' indices in
-    it): the session's map (:func:`surface_map.labels_from_seeds`); else the nearest target."""
+    it): the session's map (:func:`surface_map.labels_from_seeds`, ``seed_levels`` (S,) each
+    target's survey level as the session's final phase gives it); else the nearest target."""
     if graph is not None and eval_index is not None:
-        pred = sm.labels_from_seeds(graph, target_points_mm, target_labels)[np.asarray(eval_index)]
+        pred = sm.labels_from_seeds(graph, target_points_mm, target_labels,
+                                    seed_levels=seed_levels)[np.asarray(eval_index)]
     else:
         pred = rg.propagate_labels(target_points_mm, target_labels, eval_points_mm)
     return ev.region_map_scores(pred, true_labels, None, eval_points_mm)
@@ -313,8 +324,11 @@ def densify_step(round_index: int, points_mm: np.ndarray, normals: np.ndarray, l
                  edges: np.ndarray, depth_mm: np.ndarray, x_mm: np.ndarray, forces_n: np.ndarray,
                  angles_deg: np.ndarray, noise_mm: float, budget: int, min_spacing_mm: float,
                  resolution_mm: float, surface: SurveySurface, seed: int = 0,
-                 half_window_mm: float = 15.0) -> tuple[np.ndarray, np.ndarray, dn.DensifyRound]:
-    """One densify round with :class:`SurveyMeanModel` per region (dent window only).
+                 half_window_mm: float = 15.0, graph: sm.SurfaceGraph | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, dn.DensifyRound]:
+    """One densify round with :class:`SurveyMeanModel` per region (dent window only), the
+    survey's own evidence (densify.survey_evidence) and, with the surface ``graph``, the
+    border each edge's cells share (as the session's densify phase).
 
     Returns (new points (K,3) mm snapped to the reachable surface, their normals (K,3), the
     round record). New points are not run through the target rules (as in the session,
@@ -325,9 +339,12 @@ def densify_step(round_index: int, points_mm: np.ndarray, normals: np.ndarray, l
     lab = np.asarray(labels)
     models = {int(r): SurveyMeanModel(d[lab == r], forces_n, seed=seed + 7 * int(r)) for r in np.unique(lab)}
     reach_pts = surface.points_mm[surface.reachable]
+    feats, names = dent_features(depth_mm, x_mm, forces_n, half_window_mm)
     rnd = dn.plan_round(round_index, points_mm, edges, lab, models, forces_n=np.asarray(forces_n, float),
                         angles_deg=np.asarray(angles_deg, float), noise_mm=noise_mm, budget=budget,
-                        min_spacing_mm=min_spacing_mm, resolution_mm=resolution_mm, surface_points_mm=reach_pts)
+                        min_spacing_mm=min_spacing_mm, resolution_mm=resolution_mm, surface_points_mm=reach_pts,
+                        border=None if graph is None else sm.shared_border(graph, sm.cells(graph, points_mm), edges),
+                        **dn.survey_evidence(feats, names, lab, noise_mm))
     new = np.asarray(rnd.proposed_mm, dtype=float).reshape(-1, 3)
     if new.shape[0] == 0:
         return new, np.zeros((0, 3)), rnd

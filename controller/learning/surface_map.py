@@ -50,6 +50,7 @@ MIN_CHORD_MM = 1.5
 _BRIDGE_ANGLE_DEG = 30.0
 _MAX_BRIDGE_PASSES = 20
 _MIN_BRIDGE_POINTS = 10
+SEAM_SIDE = 0.45          # the most of the way to the other region a seed's level may count
 
 
 @dataclass(frozen=True)
@@ -255,8 +256,15 @@ def cells(graph: SurfaceGraph, seeds_mm: np.ndarray) -> Cells:
 
 
 def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.ndarray,
-                      fit_radius_mm: float = 15.0, min_fit_points: int = 12) -> np.ndarray:
-    """Region label (P,) of every cloud point (see the module docstring, steps 3 and 4)."""
+                      fit_radius_mm: float = 15.0, min_fit_points: int = 12,
+                      seed_levels: np.ndarray | None = None) -> np.ndarray:
+    """Region label (P,) of every cloud point (see the module docstring, steps 3 and 4).
+
+    ``seed_levels`` (S,): each seed's dent on a scale where regions differ (e.g. its mean
+    log peak depth); with them, the faces between seeds of two regions are split where
+    the level interpolated along the surface crosses midway (:func:`_split_between`)
+    instead of midway between the seeds.
+    """
     lab = np.asarray(seed_labels, dtype=np.int64).reshape(-1)
     n = len(graph)
     out = np.full(n, -1, dtype=np.int64)
@@ -265,6 +273,8 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
     c = cells(graph, seeds_mm)
     reached = c.source >= 0
     out[reached] = lab[c.source[reached]]
+    if seed_levels is not None and np.unique(lab).size > 1:
+        out = _split_between(graph, seeds_mm, lab, np.asarray(seed_levels, dtype=float).reshape(-1), out, reached)
     # Fold points: the label of the face whose plane they lie on.
     fold = np.flatnonzero(graph.concave & ~reached)
     if fold.size and reached.any():
@@ -286,6 +296,90 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
             done = np.flatnonzero(~left)
             _, near = cKDTree(graph.points_mm[done]).query(graph.points_mm[left])
             out[left] = out[done[near]]
+    return out
+
+
+def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where seeds a (M,) and b (M,) (indices into ``levels``/``labels`` (N,)) stand on the way
+    from a's region A to b's region B: (s_a (M,), s_b (M,), usable (M,) bool).
+
+    s = (level - edge_A) / (edge_B - edge_A) clipped to [0, 1], with edge_A = A's median
+    level + 3 robust sigmas (1.4826 MAD) toward B and edge_B likewise: a seed within its
+    region's usual range counts as pure (0 or 1), so the drift of the dent within one
+    material moves nothing (the median and MAD, not percentiles: the seeds densification
+    put on the seam belong to a region too, and are exactly the ones that must count).
+    Not usable where the two ranges overlap (or a and b share a region). A seed stays on
+    its own region's side: s_a < 1/2 < s_b (its level is one measurement; its label was
+    decided with its neighbours).
+    """
+    lev = np.asarray(levels, dtype=float).reshape(-1)
+    lab = np.asarray(labels, dtype=np.int64).reshape(-1)
+    a, b = np.asarray(a, dtype=np.int64).reshape(-1), np.asarray(b, dtype=np.int64).reshape(-1)
+    regions = np.unique(lab)
+    k_of = {int(r): k for k, r in enumerate(regions)}
+    per = [lev[lab == r] for r in regions]
+    median = np.array([np.median(v) for v in per])
+    sigma = np.array([1.4826 * np.median(np.abs(v - np.median(v))) for v in per])
+    low, high = median - 3.0 * sigma, median + 3.0 * sigma
+    ka = np.array([k_of[int(v)] for v in lab[a]], dtype=np.int64)
+    kb = np.array([k_of[int(v)] for v in lab[b]], dtype=np.int64)
+    toward_b = median[kb] > median[ka]
+    edge_a = np.where(toward_b, high[ka], low[ka])
+    edge_b = np.where(toward_b, low[kb], high[kb])
+    span = edge_b - edge_a
+    usable = (span * (median[kb] - median[ka]) > 0.0) & (ka != kb)
+    safe = np.where(usable, span, 1.0)
+    s_a = np.where(usable, np.clip((lev[a] - edge_a) / safe, 0.0, SEAM_SIDE), 0.0)
+    s_b = np.where(usable, np.clip((lev[b] - edge_a) / safe, 1.0 - SEAM_SIDE, 1.0), 1.0)
+    return s_a, s_b, usable
+
+
+def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.ndarray, seed_levels: np.ndarray,
+                   labels: np.ndarray, reached: np.ndarray) -> np.ndarray:
+    """Move the boundary between two regions toward the seeds whose level lies between them.
+
+    A probe that straddles a seam presses both materials: its dent lies between theirs,
+    and the seam passes within a contact's width of it. Each reached point p has a
+    nearest seed a of its own region A and b of the nearest other region B (distances
+    along the surface), placed on the way from A to B by :func:`seam_fractions` (s_a, s_b).
+    With t the place of p along the way from a to b, (d_a^2 - d_b^2 + |ab|^2) / (2 |ab|^2)
+    clipped to [0, 1], p takes B when s_a + (s_b - s_a) t > 1/2: between two pure seeds that
+    is the midway split of the plain map; next to a seed part way between the levels the
+    boundary passes near that seed, on its side toward b.
+    """
+    regions = np.unique(seed_labels)
+    nodes = seed_nodes(graph, seeds_mm)
+    blocked = graph.concave.copy()
+    blocked[nodes] = False
+    free = _without(graph.lengths, blocked)
+    dist = np.full((regions.size, len(graph)), np.inf)
+    src = np.full((regions.size, len(graph)), -1, dtype=np.int64)
+    for k, r in enumerate(regions):
+        members = np.flatnonzero(seed_labels == r)
+        d, s = _multi_source(free, nodes[members])
+        dist[k], src[k] = d, np.where(s >= 0, members[np.maximum(s, 0)], -1)
+    out = labels.copy()
+    # A: the region the plain map gave (ties stay as it broke them); B: the nearest other one.
+    k_of = np.full(int(regions.max()) + 1, -1, dtype=np.int64)
+    k_of[regions] = np.arange(regions.size)
+    pts = np.flatnonzero(reached)
+    ka = k_of[labels[pts]]
+    others = dist[:, pts].copy()
+    others[ka, np.arange(pts.size)] = np.inf
+    kb = np.argmin(others, axis=0)
+    near = np.isfinite(others[kb, np.arange(pts.size)])
+    pts, ka, kb = pts[near], ka[near], kb[near]
+    a, b = src[ka, pts], src[kb, pts]
+    s_a, s_b, usable = seam_fractions(seed_levels, seed_labels, a, b)
+    # p's place along the way from a to b (law of cosines on its distances to both): beyond
+    # a on the far side from b (t < 0) the level is a's own, not one interpolated toward b.
+    da, db = dist[ka, pts], dist[kb, pts]
+    seeds = np.asarray(seeds_mm, dtype=float).reshape(-1, 3)
+    dab2 = np.maximum(np.sum((seeds[a] - seeds[b]) ** 2, axis=1), 1e-12)
+    t = np.clip((da ** 2 - db ** 2 + dab2) / (2.0 * dab2), 0.0, 1.0)
+    flip = usable & (s_a + (s_b - s_a) * t > 0.5)
+    out[pts] = np.where(flip, regions[kb], regions[ka])
     return out
 
 
@@ -311,6 +405,20 @@ def seed_neighbours(graph: SurfaceGraph, c: Cells) -> list[tuple[int, int]]:
     a, b = c.source[coo.row], c.source[coo.col]
     ok = (a >= 0) & (b >= 0) & (a != b)
     return sorted({(int(min(x, y)), int(max(x, y))) for x, y in zip(a[ok], b[ok])})
+
+
+def shared_border(graph: SurfaceGraph, c: Cells, pairs: np.ndarray) -> np.ndarray:
+    """(E,) how long the border between the cells of each pair of seeds (E,2) is, counted in
+    graph edges joining the two cells (0 where they do not touch): with the pair's distance,
+    the area whose label depends on where their boundary is drawn."""
+    p = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    coo = graph.lengths.tocoo()
+    a, b = c.source[coo.row], c.source[coo.col]
+    ok = (a >= 0) & (b >= 0) & (a < b)
+    n = max(int(c.source.max(initial=-1)) + 1, int(p.max(initial=-1)) + 1, 1)
+    counts = np.bincount(a[ok] * n + b[ok], minlength=n * n)
+    lo, hi = np.minimum(p[:, 0], p[:, 1]), np.maximum(p[:, 0], p[:, 1])
+    return counts[lo * n + hi].astype(float)
 
 
 def boundary_points(graph: SurfaceGraph, labels: np.ndarray) -> np.ndarray:

@@ -136,6 +136,26 @@ class _Surface:
         return near_mm - ((near_mm - centroid) @ n) * n, n
 
 
+def probeable(cloud_mm: np.ndarray, normals: np.ndarray, curvature: np.ndarray, rules: TargetRules = TargetRules(),
+              up: "np.ndarray | tuple" = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """(P,) True for cloud points a target could sit on: tilted less than ``max_tilt_deg``,
+    clear of every sharp edge by the edge clearance (plus the point spacing), and with at
+    least ``min_neighbours`` cloud points within ``density_radius_mm``.
+
+    The survey's neural gas is trained on these points only. Trained on the whole cloud,
+    its units follow the walls, the rounded rims and the steep flanks of a dome, where no
+    target may go: on a dome whose top is probe-able within 44 mm of its apex, 26 units
+    gave 2 targets; on a block with rounded shoulders 23 units gave 9.
+    """
+    surf = _Surface(cloud_mm, normals, curvature, rules, np.asarray(up, dtype=float))
+    idx = np.arange(surf.points.shape[0])
+    ok = surf.tilt_ok(idx) & ~surf.near_edge(idx)
+    if ok.any():
+        counts = surf.tree.query_ball_point(surf.points[ok], rules.density_radius_mm, return_length=True)
+        ok[np.flatnonzero(ok)[np.asarray(counts) < rules.min_neighbours]] = False
+    return ok
+
+
 def make_targets(units_mm: np.ndarray, cloud_mm: np.ndarray, normals: np.ndarray, curvature: np.ndarray,
                  rules: TargetRules = TargetRules(), reference_dir: "np.ndarray | tuple" = (1.0, 0.0, 0.0),
                  up: "np.ndarray | tuple" = (0.0, 0.0, 1.0)) -> Targets:
