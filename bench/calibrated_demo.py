@@ -173,9 +173,9 @@ def calibrate(cell: Path, seed: int) -> dict[str, Any]:
 def write_perfect_calibration(cell: Path) -> str:
     """The simulator's truth written as the cell copy's calibration file (an exact calibration;
     simulator internals, for the oracle run only). Returns the file's path."""
-    from elastoprobe.calibration.calfile import calibration_path, pose_list, write_section
-    from elastoprobe.controller.config import load_cell
-    from elastoprobe.controller.geometry import Pose
+    from elastoprobe.controller.core.calfile import calibration_path, pose_list, write_section
+    from elastoprobe.controller.core.config import load_cell
+    from elastoprobe.controller.core.geometry import Pose
     from elastoprobe.sim.cell import params_from_cell, true_geometry
 
     import numpy as np

@@ -28,8 +28,8 @@ GOALS = {"mass_rel_err": 0.02, "com_mm": 2.0, "tip_mm": 0.5, "scanner_deg": 0.5,
 
 def one_seed(seed: int) -> tuple[dict[str, float], dict[str, float], float]:
     from elastoprobe.calibration.runner import run_on_cell, simulated_cell
-    from elastoprobe.controller.config import load_cell
-    from elastoprobe.controller.geometry import Pose
+    from elastoprobe.controller.core.config import load_cell
+    from elastoprobe.controller.core.geometry import Pose
 
     spec, _ = load_cell(CELL)
     sim = spec.simulation
@@ -71,7 +71,7 @@ def one_seed(seed: int) -> tuple[dict[str, float], dict[str, float], float]:
 
 
 def _object_shift_mm() -> float:
-    from elastoprobe.controller.config import load_cell
+    from elastoprobe.controller.core.config import load_cell
 
     return float(load_cell(CELL)[0].simulation.miscalibration.object_mm)
 
@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     worst_base = {k: 0.0 for k in GOALS}
     refused: list[str] = []
     robot = []
-    from elastoprobe.calibration.common import CalibrationError
+    from elastoprobe.controller.core.errors import CalibrationError
 
     for seed in range(args.seeds):
         try:

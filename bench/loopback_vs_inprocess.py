@@ -41,7 +41,7 @@ diagnostic of the transports and drivers alone.
 Noise: the two runs do not share noise keys (real devices have none), so their differences
 are of the size the bound expects, not smaller.
 
-The force loop (``force_loop``): both runs run the same supervisor (controller/forceloop.py)
+The force loop (``force_loop``): both runs run the same supervisor (controller/core/forceloop.py)
 — ``same_supervisor`` says whether the two journals' arm identities name the same code (a
 hash of the module) and gains. Per backend, from each force level's ``force_regulated`` log
 event (controller/probe.py, ``regulation_record``): ``overshoot_n`` (peak of the loop's own
@@ -145,7 +145,7 @@ def _per_scan_roi_depth(result: Any, rec: Any, cell: Any, grid: Any, tip_radius_
 
 def session_steps(session_dir: Path) -> tuple[list[dict[str, Any]], Any]:
     """The done steps of a session with their per-scan force and ROI depth."""
-    from elastoprobe.controller.config import load_session_inputs
+    from elastoprobe.controller.core.config import load_session_inputs
     from elastoprobe.controller.journal import Journal
     from elastoprobe.controller.learning import profiles as prof
 

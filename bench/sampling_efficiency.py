@@ -142,7 +142,7 @@ class ScannerProber:
         return np.stack([np.column_stack(sc.profile(s, True, shape)) for s in snaps])
 
     def _measure(self, p: np.ndarray, n: np.ndarray, t: np.ndarray, key: tuple) -> Measured:
-        from elastoprobe.controller.geometry import push_direction
+        from elastoprobe.controller.core.geometry import push_direction
         from elastoprobe.controller.learning import profiles as prof
         from elastoprobe.controller.phases import plausible_depths
         from elastoprobe.controller.probe import standoff_pose
@@ -374,7 +374,7 @@ def run_neural_gas(run: SeedRun, budgets: list[int], stop: Callable[[list], bool
 def run_densify(run: SeedRun, start_units: int, per_round: int, max_budget: int, stop: Callable[[list], bool],
                 steps_per_unit: int) -> list[Point]:
     """NG start, then densify rounds (survey-mean proxy models) until the budget or the stop rule."""
-    from elastoprobe.controller.geometry import scan_direction
+    from elastoprobe.controller.core.geometry import scan_direction
     from elastoprobe.controller.learning import strategies as st
     from elastoprobe.controller.phases import FEATURE_HALF_WINDOW_MM
 
@@ -676,7 +676,7 @@ def inclusion_goal(r: dict) -> dict[str, Any]:
 def run_seed(args: argparse.Namespace, plan_path: str, seed: int, budgets: list[int], strategies: list[str]
              ) -> dict[str, Any]:
     """Every strategy's curve on one plan's object and one seed."""
-    from elastoprobe.controller.config import load_session_inputs
+    from elastoprobe.controller.core.config import load_session_inputs
     from elastoprobe.controller.learning import strategies as st
 
     inputs = load_session_inputs(plan_path)

@@ -48,8 +48,8 @@ FORCES_N = (2.0, 5.0, 9.0, 14.0, 20.0)
 
 
 def build_cell(cache: bool, batch: bool, hold_batch: bool = True, seed: int = 1, secant: bool = True):
-    from elastoprobe.controller.config import load_cell
-    from elastoprobe.controller.geometry import Pose
+    from elastoprobe.controller.core.config import load_cell
+    from elastoprobe.controller.core.geometry import Pose
     from elastoprobe.sim.cell import SimCell, params_from_cell
 
     spec, _ = load_cell(ROOT / "config" / "cells" / "sim.yaml")
@@ -89,7 +89,7 @@ class Driver:
             raise RuntimeError("unexpected arm state")
 
     def wait(self, motion, timeout_s: float = 120.0):
-        from elastoprobe.controller.devices import MotionState
+        from elastoprobe.controller.core.devices import MotionState
 
         deadline = self.cell.clock.now_s() + timeout_s
         while motion.state() == MotionState.RUNNING:
@@ -117,7 +117,7 @@ class Driver:
         return got
 
     def move(self, pose, speed: float = 150.0, accel: float = 600.0) -> None:
-        from elastoprobe.controller.devices import MotionState
+        from elastoprobe.controller.core.devices import MotionState
 
         state = self.wait(self.cell.arm.move_linear(pose, speed, accel))
         if state != MotionState.DONE:
@@ -126,8 +126,8 @@ class Driver:
 
 def probe_point(driver: Driver, point_obj: np.ndarray, normal_obj: np.ndarray, scans_per_step: int = 40) -> int:
     """9 angles x 5 forces at one point; returns the number of force steps done."""
-    from elastoprobe.controller.devices import MotionState
-    from elastoprobe.controller.geometry import Pose, probe_tcp_pose, scan_direction
+    from elastoprobe.controller.core.devices import MotionState
+    from elastoprobe.controller.core.geometry import Pose, probe_tcp_pose, scan_direction
 
     cell = driver.cell
     b2o = cell.base_to_object

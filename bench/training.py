@@ -27,7 +27,7 @@ import time
 
 import numpy as np
 
-from elastoprobe.controller.geometry import NINE_ANGLES_DEG
+from elastoprobe.controller.core.geometry import NINE_ANGLES_DEG
 from elastoprobe.controller.learning.models import TrainConfig, fit_region_model
 from elastoprobe.controller.learning.profiles import ProfileGrid
 

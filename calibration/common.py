@@ -13,12 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from elastoprobe.controller.errors import ElastoprobeError
-from elastoprobe.controller.geometry import matrix_to_rotvec
-
-
-class CalibrationError(ElastoprobeError):
-    """A calibration was refused: degenerate or too few poses, or a poor fit (the reason says which)."""
+from elastoprobe.controller.core.geometry import matrix_to_rotvec
 
 
 @dataclass(frozen=True)

@@ -10,14 +10,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from elastoprobe.controller.collision import SceneChecker, boxes_from_cell, shapes_from_cell
-from elastoprobe.controller.devices import Cell, MotionState, Scan, WrenchBlock
-from elastoprobe.controller.errors import MotionRefused
-from elastoprobe.controller.geometry import Pose
-from elastoprobe.controller.kinematics import ur5e
+from elastoprobe.controller.core.collision import SceneChecker, boxes_from_cell, shapes_from_cell
+from elastoprobe.controller.core.devices import Cell, MotionState, Scan, WrenchBlock
+from elastoprobe.controller.core.errors import MotionRefused
+from elastoprobe.controller.core.geometry import Pose
+from elastoprobe.controller.core.kinematics import ur5e
 from elastoprobe.controller.machine import SessionMachine
 from elastoprobe.controller.probe import ProbeExecutor, ProbeFault, ProbeSettings
-from elastoprobe.controller.validation import PathValidator
+from elastoprobe.controller.core.validation import PathValidator
 
 
 def build_validator(cell_spec, cell: Cell, obstacle_mesh_base=None,  # noqa: ANN001 — config.CellSpec, trimesh

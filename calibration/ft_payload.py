@@ -21,10 +21,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from elastoprobe.controller.devices import WrenchBlock
-from elastoprobe.controller.geometry import Pose
+from elastoprobe.controller.core.devices import WrenchBlock
+from elastoprobe.controller.core.errors import CalibrationError
+from elastoprobe.controller.core.geometry import Pose
 
-from .common import (CalibrationError, FitReport, axis_spread, data_sha256, residual_stats,
+from .common import (FitReport, axis_spread, data_sha256, residual_stats,
                      scaled_condition_number, skew_batch)
 
 GRAVITY_BASE_M_S2 = np.array([0.0, 0.0, -9.80665])

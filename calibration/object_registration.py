@@ -32,11 +32,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from elastoprobe.controller.geometry import Pose, rotvec_to_matrix
+from elastoprobe.controller.core.errors import CalibrationError
+from elastoprobe.controller.core.geometry import Pose, rotvec_to_matrix
 from elastoprobe.controller.learning.cloud import (REGISTRATION_GATE_MM, icp, refine_untrimmed, remove_table,
                                                   sample_mesh, truncated_cost_mm2)
 
-from .common import CalibrationError, FitReport, data_sha256, residual_stats
+from .common import FitReport, data_sha256, residual_stats
 
 
 START_SHIFT_MM = 6.0          # starts cover the placement's uncertainty (set down a few mm off)

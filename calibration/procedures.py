@@ -1,6 +1,6 @@
 """Calibration procedures: plan reachable poses, drive the cell, collect the data each solver needs.
 
-Each ``collect_*`` works on any :class:`~elastoprobe.controller.devices.Cell` through a
+Each ``collect_*`` works on any :class:`~elastoprobe.controller.core.devices.Cell` through a
 :class:`~.driver.CellDriver` (validated moves, the controller's polling loop). Poses
 the validator refuses (reach, joint limits, collisions, workspace) are skipped and
 listed; the solver then judges whether what remains is enough and well spread.
@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from elastoprobe.controller.errors import MotionRefused
-from elastoprobe.controller.geometry import Pose, rotvec_to_matrix
+from elastoprobe.controller.core.errors import MotionRefused
+from elastoprobe.controller.core.geometry import Pose, probe_tcp_pose, rotvec_to_matrix, scan_points_base
 from elastoprobe.controller.probe import ProbeFault
 
 from .driver import CellDriver, try_reach
@@ -199,8 +199,6 @@ def sweep_lines_both_axes(lo_mm: np.ndarray, hi_mm: np.ndarray, tcp_z_mm: float,
     both headings each. One axis alone samples the walls facing along the travel only at the profile
     spacing: the walls parallel to the laser plane are never hit, so the object's position along
     the travel would be known only to about that spacing."""
-    from elastoprobe.controller.geometry import probe_tcp_pose
-
     lo, hi = np.asarray(lo_mm, float), np.asarray(hi_mm, float)
     up = np.array([0.0, 0.0, 1.0])
     lines = []
@@ -229,8 +227,6 @@ def sweep_object(driver: CellDriver, lo_mm: np.ndarray, hi_mm: np.ndarray, tcp_t
                  spacing_mm: float = 3.0, height_above_mm: float = 40.0, strip_mm: float = 120.0) -> ObjectCloud:
     """Scan the object's bounding box (base frame) in both raster directions; points mapped with
     ``tcp_to_scanner`` (in the frame of the TCP the arm reports). Refused lines are skipped."""
-    from elastoprobe.controller.acquire import scan_points_base
-
     out = ObjectCloud()
     t0 = driver.cell.clock.now_s()
     speed = spacing_mm * driver.cell.scanner.rate_hz

@@ -16,11 +16,13 @@ from typing import Any
 
 import numpy as np
 
-from elastoprobe.controller.devices import Cell
-from elastoprobe.controller.geometry import Pose
+from elastoprobe.controller.cellfactory import simulated_calibration_cell
+from elastoprobe.controller.core.calfile import calibration_path, load_calibration, pose_list, write_section
+from elastoprobe.controller.core.config import load_cell
+from elastoprobe.controller.core.devices import Cell
+from elastoprobe.controller.core.errors import CalibrationError
+from elastoprobe.controller.core.geometry import Pose
 
-from .calfile import calibration_path, load_calibration, pose_list, write_section
-from .common import CalibrationError
 from .driver import CellDriver, build_validator, probe_settings
 from .ft_payload import PayloadFit, solve_payload
 from .object_registration import ObjectFit, register_object
@@ -113,27 +115,10 @@ def calibrate_object(driver: CellDriver, cell_spec, mesh, tcp_to_scanner: Pose, 
 
 
 # ------------------------------------------------------------------------------ simulated set-up
-def reference_sphere_object():  # noqa: ANN201 — sim.objects.BallObject
-    """The simulated reference sphere: rigid enough that a 0.4 N touch dents it by ~1 um."""
-    from elastoprobe.sim.materials import Material
-    from elastoprobe.sim.objects import BallObject
-
-    acetal = Material(name="acetal", kind="elastic", E_mpa=3000.0, nu=0.35, friction_mu=0.2,
-                      scanner_noise_mm=0.01, noise_corr_floor_mm=0.002, dropout_prob=0.01, steep_incidence_deg=80.0)
-    return BallObject("reference-sphere", SPHERE_RADIUS_MM, acetal)
-
-
 def simulated_cell(cell_spec, cell_path: str | Path, seed: int, kind: str):  # noqa: ANN001, ANN201
-    """(SimCell, obstacle mesh in the object frame) for a routine: the reference sphere for
-    ft/tcp/scanner, the cell's object for object."""
-    from elastoprobe.sim.cell import SimCell, params_from_cell
-
-    obj_path = Path(cell_path).parent / cell_spec.object.file
-    params = params_from_cell(cell_spec, obj_path, seed=seed)
-    if kind != "object":
-        params.object = reference_sphere_object()
-    cell = SimCell(params)
-    return cell, cell.world.obj.mesh
+    """(simulated cell, obstacle mesh in the object frame) for a routine: the reference sphere
+    for ft/tcp/scanner, the cell's object for object (through the cell registry)."""
+    return simulated_calibration_cell(cell_spec, cell_path, seed, None if kind == "object" else SPHERE_RADIUS_MM)
 
 
 def make_driver(cell_spec, cell: Cell, mesh, seed: int) -> CellDriver:  # noqa: ANN001
@@ -178,8 +163,6 @@ def run_calibration(kind: str, cell_path: Path, seed: int = 0, out_path: Path | 
     written path, result, fit (residuals, conditioning, skipped poses, robot time).
     Raises CalibrationError for a refused fit, InputError for a bad cell file.
     """
-    from elastoprobe.controller.config import load_cell
-
     if kind not in KINDS:
         raise CalibrationError(f"unknown calibration {kind!r} (one of {', '.join(KINDS)})")
     cell_path = Path(cell_path)

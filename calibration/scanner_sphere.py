@@ -20,9 +20,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from elastoprobe.controller.geometry import Pose, rotvec_to_matrix
+from elastoprobe.controller.core.errors import CalibrationError
+from elastoprobe.controller.core.geometry import Pose, rotvec_to_matrix
 
-from .common import (CalibrationError, FitReport, data_sha256, residual_stats, rotation_spread_deg,
+from .common import (FitReport, data_sha256, residual_stats, rotation_spread_deg,
                      scaled_condition_number)
 
 MIN_PROFILES = 8

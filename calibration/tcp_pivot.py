@@ -5,7 +5,7 @@ arm reported (base <- tcp with the cell's nominal flange_to_tcp, or base <- flan
 
 1. Pivoting about a fixed point (a divot the tip sits in while the wrist turns):
    R_i tip + t_i = pivot for every pose, i.e. the linear system
-   ``[R_i  -I] [tip; pivot] = -t_i`` (DESIGN §10).
+   ``[R_i  -I] [tip; pivot] = -t_i`` (docs/design.md §10).
 
 2. Touch-offs on a rigid reference sphere of known radius (what the simulated cell
    offers, and what a real cell does with a CMM sphere): each touch stops where the
@@ -24,7 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from .common import (CalibrationError, FitReport, data_sha256, residual_stats, rotation_spread_deg,
+from elastoprobe.controller.core.errors import CalibrationError
+
+from .common import (FitReport, data_sha256, residual_stats, rotation_spread_deg,
                      scaled_condition_number)
 
 MIN_PIVOT_POSES = 6

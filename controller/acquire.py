@@ -24,27 +24,14 @@ from typing import Callable, Iterator
 import numpy as np
 import trimesh
 
-from .collision import ToolShape
+from .core.collision import ToolShape
 from .coverage import SEEN_WITHIN_MM, TopSurface, seen_mask, top_surface, unseen_patches
-from .errors import MotionRefused
-from .geometry import Pose, probe_tcp_pose, rotvec_to_matrix
+from .core.errors import MotionRefused
+from .core.geometry import Pose, probe_tcp_pose, rotvec_to_matrix, scan_points_base
 from .probe import ProbeExecutor
 
 UP = np.array([0.0, 0.0, 1.0])
 TOP_GRID_MM = 1.0              # grid of the top surface the coverage is measured on
-
-
-def scan_points_base(scans_xz_mm: np.ndarray, poses: np.ndarray, tcp_to_scanner: Pose) -> np.ndarray:
-    """Scanner-frame profiles (S, L, 2) at TCP poses (S, 6) -> base-frame points (M, 3), NaN dropped."""
-    out = []
-    for xz, pose6 in zip(scans_xz_mm, poses):
-        ok = np.isfinite(xz[:, 1]) & np.isfinite(xz[:, 0])
-        if not ok.any():
-            continue
-        local = np.column_stack([xz[ok, 0], np.zeros(int(ok.sum())), xz[ok, 1]])
-        base_scanner = Pose.from_list(pose6).compose(tcp_to_scanner)
-        out.append(base_scanner.apply(local))
-    return np.vstack(out) if out else np.zeros((0, 3))
 
 
 def line_footprint_mm(tcp_to_scanner: Pose, field_of_view_deg: float, max_range_mm: float, depth_mm: float,

@@ -1,9 +1,9 @@
-"""The one place the controller builds a cell from its YAML (DESIGN §1).
+"""The cell registry: the one place the controller builds a cell from its YAML (docs/design.md §1).
 
-``controller`` reaches ``sim`` (and later the real drivers' hardware process) only
-through here, imported lazily, so the CLI starts fast and the dependency points
-one way. A dry run of a real cell keeps that cell's limits, workspace, tool
-geometry and object placement, with simulated devices behind them.
+The controller reaches the simulator (``sim``) and the real drivers only through here, by
+cell kind; both backends are imported when a cell is built, so the CLI starts fast. A dry
+run of a real cell keeps that cell's limits, workspace, tool geometry and object placement,
+with simulated devices behind them.
 """
 from __future__ import annotations
 
@@ -13,9 +13,11 @@ from typing import Any
 
 import numpy as np
 
-from .config import SessionInputs
-from .devices import Cell
-from .errors import InputError
+from .core.calfile import believed_cell, check_calibration
+from .core.config import SessionInputs
+from .core.devices import Cell
+from .core.errors import InputError
+from .core.meshcheck import bounds_problem, mesh_findings, read_mesh
 
 
 @dataclass
@@ -35,11 +37,9 @@ def load_object_model(inputs: SessionInputs) -> ObjectModel:
     """Load the plan's object as the session will, and check it against the cell.
 
     Every problem is an InputError at the file and line that brought it in: a bad object
-    file or mesh (sim/objects.py, controller/meshcheck.py), an object that does not fit
+    file or mesh (sim/objects.py, controller/core/meshcheck.py), an object that does not fit
     the cell's workspace, or simulated physics that is not valid at the plan's largest force.
     """
-    from .meshcheck import bounds_problem, mesh_findings, read_mesh
-
     path = inputs.object_file()
     where = (inputs.plan_doc, ("simulated_object",)) if inputs.plan.simulated_object and inputs.cell.kind != "ur" \
         else (inputs.cell_doc, ("object", "file"))
@@ -118,7 +118,19 @@ def build_cell(inputs: SessionInputs, seed: int, dry_run: bool = False,
     # first starts the simulated servers that speak those protocols.
     from .drivers.real_cell import build_real_cell
 
-    return build_real_cell(inputs, seed, object_mesh=(model or load_object_model(inputs)).mesh)
+    model = model or load_object_model(inputs)
+    if kind != "loopback":
+        return BuiltCell(cell=build_real_cell(inputs, model.mesh), object_mesh=model.mesh)
+    from elastoprobe.sim.servers.loopback import LoopbackServers
+
+    servers = LoopbackServers(inputs.cell_path, inputs.object_file(), seed).start()
+    try:
+        real = build_real_cell(inputs, model.mesh, addresses=servers.addresses(),
+                               ground_truth=ground_truth_for(inputs, seed, model), servers=servers)
+    except BaseException:
+        servers.stop()
+        raise
+    return BuiltCell(cell=real, object_mesh=model.mesh)
 
 
 def _simulated(inputs: SessionInputs, seed: int, model: ObjectModel | None) -> BuiltCell:
@@ -143,21 +155,22 @@ def _simulated(inputs: SessionInputs, seed: int, model: ObjectModel | None) -> B
 def calibration_warnings(inputs: SessionInputs) -> list[str]:
     """Why the controller's believed geometry may be off (empty when the calibration is
     current, or when a simulated cell is calibrated by construction)."""
-    from elastoprobe.calibration.calfile import believed_cell
-
     cell_file = inputs.cell_file if inputs.cell_file is not None else inputs.cell
     _, state = believed_cell(cell_file, inputs.cell_path)
     return list(state.problems)
 
 
-def ground_truth_for(inputs: SessionInputs, seed: int) -> Any:
-    """The simulator's ground truth of a simulated session's object (object frame)."""
+def ground_truth_for(inputs: SessionInputs, seed: int, model: ObjectModel | None = None) -> Any:
+    """The simulator's ground truth of a simulated session's object (object frame); ``model``:
+    the object already loaded, if it was."""
     if inputs.cell.kind == "ur" and inputs.object_file().suffix.lower() not in (".yaml", ".yml"):
         raise InputError("ground truth exists only for simulated objects", path=str(inputs.cell_path))
     from elastoprobe.sim.cell import SimGroundTruth
     from elastoprobe.sim.objects import load_object
 
-    return SimGroundTruth(load_object(inputs.object_file()), inputs.cell.tool.tip_radius_mm)
+    sim_object = model.simulated if model is not None and model.simulated is not None \
+        else load_object(inputs.object_file())
+    return SimGroundTruth(sim_object, inputs.cell.tool.tip_radius_mm)
 
 
 def object_mesh_for(object_file: Path) -> Any:
@@ -171,10 +184,24 @@ def object_mesh_for(object_file: Path) -> Any:
 def check_real_cell_ready(inputs: SessionInputs, allow_stale_calibration: bool = False) -> None:
     """A real cell refuses to run without a current calibration (every section present, none
     older than the cell allows), unless the operator explicitly overrides it."""
-    from elastoprobe.calibration.calfile import check_calibration
-
     problems = check_calibration(inputs.cell, inputs.cell_path)
     if problems and not allow_stale_calibration:
         raise InputError("calibration is not current: " + "; ".join(problems)
                          + " (run elastoprobe calibrate ..., or pass --allow-stale-calibration)",
                          path=str(inputs.cell_path))
+
+
+def simulated_calibration_cell(cell_spec: Any, cell_path: str | Path, seed: int,
+                               reference_sphere_radius_mm: float | None) -> tuple[Cell, Any]:
+    """(simulated cell, obstacle mesh in the object frame) for a calibration routine: the cell
+    file's world with the rigid reference sphere of ``reference_sphere_radius_mm`` in the
+    object's place (ft, tcp, scanner routines), or with the cell's own object (None)."""
+    from elastoprobe.sim.cell import SimCell, params_from_cell
+    from elastoprobe.sim.objects import reference_sphere
+
+    obj_path = Path(cell_path).parent / cell_spec.object.file
+    params = params_from_cell(cell_spec, obj_path, seed=seed)
+    if reference_sphere_radius_mm is not None:
+        params.object = reference_sphere(reference_sphere_radius_mm)
+    cell = SimCell(params)
+    return cell, cell.world.obj.mesh

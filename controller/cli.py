@@ -1,4 +1,4 @@
-"""The ``elastoprobe`` command line (DESIGN §11).
+"""The ``elastoprobe`` command line (docs/design.md §11).
 
 Exit codes: 0 done; 1 ended in a fault or aborted; 2 bad input (``path:line:col:
 message``, never a traceback); 3 paused and resumable. Heavy modules (torch, the
@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 from typing import Callable, Sequence
 
-from .errors import ElastoprobeError, InputError
+from .core.errors import ElastoprobeError, InputError
 
 EXIT_DONE, EXIT_FAULT, EXIT_BAD_INPUT, EXIT_PAUSED = 0, 1, 2, 3
 
@@ -65,7 +65,7 @@ def _load_object(inputs):   # type: ignore[no-untyped-def]
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from .config import load_session_inputs
+    from .core.config import load_session_inputs
     from .estimate import estimate_plan
 
     inputs = load_session_inputs(args.plan, args.cell)
@@ -114,7 +114,7 @@ def _travel_saved(inputs) -> tuple[float, float] | None:   # type: ignore[no-unt
 
 
 def cmd_diagram(args: argparse.Namespace) -> int:
-    from .atomic import atomic_write_text
+    from .core.atomic import atomic_write_text
     from .machine import diagram_markdown
 
     out = Path(args.out)
@@ -169,7 +169,7 @@ def _run_session(inputs, out_dir: Path, seed: int, dry_run: bool, resume: bool, 
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from .config import load_session_inputs
+    from .core.config import load_session_inputs
 
     inputs = load_session_inputs(args.plan, args.cell)
     if inputs.cell.kind == "ur" and not args.dry_run:
@@ -181,7 +181,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
-    from .config import load_session_inputs
+    from .core.config import load_session_inputs
     from .journal import Journal
 
     j = Journal.open_readonly(args.dir, check="none")     # Journal.open checks it all before writing
@@ -297,7 +297,7 @@ def cmd_salvage(args: argparse.Namespace) -> int:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from elastoprobe.calibration.runner import run_calibration
 
-    from .config import DEFAULT_CELL
+    from .core.config import DEFAULT_CELL
 
     cell = Path(args.cell) if args.cell else DEFAULT_CELL
     summary = run_calibration(args.kind, cell, seed=args.seed, out_path=Path(args.out) if args.out else None)
@@ -310,7 +310,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
         return cmd_sim_object(args)
     from elastoprobe.sim.servers.serve import main_serve
 
-    from .config import DEFAULT_CELL
+    from .core.config import DEFAULT_CELL
 
     return main_serve(Path(args.cell) if args.cell else DEFAULT_CELL, args.seed, run_dir=args.run_dir)
 
@@ -319,8 +319,8 @@ def cmd_sim_object(args: argparse.Namespace) -> int:
     """Generate a painted object (sim/generate.py) and a plan for it by the plan rule (planrule.py)."""
     from elastoprobe.sim import generate as gen
 
-    from .atomic import atomic_write_text
-    from .config import DEFAULT_CELL, load_cell, load_session_inputs
+    from .core.atomic import atomic_write_text
+    from .core.config import DEFAULT_CELL, load_cell, load_session_inputs
     from .planrule import fit_problems, forces_for_height, outline_of, plan_for_object, plan_yaml_text
 
     cell_path = Path(args.cell) if args.cell else DEFAULT_CELL

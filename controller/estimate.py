@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import SessionInputs, effective_motion_limits
+from .core.config import SessionInputs, effective_motion_limits
 
 
 def trapezoid_s(distance_mm: float, speed_mm_s: float, accel_mm_s2: float) -> float:

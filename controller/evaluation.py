@@ -17,22 +17,22 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError
-from .geometry import INTERIOR_ANGLES_DEG, scan_direction
+from .core.errors import InputError
+from .core.geometry import INTERIOR_ANGLES_DEG, scan_direction
 from .journal import Journal
-from .kinematics import inverse
+from .core.kinematics import inverse
 from .learning import evaluate as ev
 from .learning.models import OutOfRange, RegionModel, ServedProfile
 from .learning.support import SUPPORT_NAMES
 from .predict import served_models
 from .probe import standoff_pose
-from .validation import arm_model_for
+from .core.validation import arm_model_for
 
 REACH_CELL_MM = 10.0
 
 
 def _inputs_of(j: Journal) -> Any:
-    from .config import load_session_inputs
+    from .core.config import load_session_inputs
 
     prov = j.provenance()
     return load_session_inputs(prov["plan"]["path"], prov["cell"]["path"])

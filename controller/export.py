@@ -27,8 +27,8 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from .atomic import ensure_dir, fsync_dir
-from .errors import DiskError
+from .core.atomic import ensure_dir, fsync_dir
+from .core.errors import DiskError
 from .journal import STEP_ARRAYS_OPTIONAL, STEP_ARRAYS_REQUIRED, Journal, StepRecord, to_json
 from .predict import read_manifest
 

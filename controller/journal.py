@@ -1,4 +1,4 @@
-"""The session journal (DESIGN §6): one SQLite file, nothing lost, resumable, reproducible.
+"""The session journal (docs/design.md §6): one SQLite file, nothing lost, resumable, reproducible.
 
 ``DIR/journal.sqlite`` holds everything a session did: provenance, the outputs of each
 phase together with the force steps it planned, every step's raw data, state machine
@@ -35,8 +35,8 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
-from .atomic import ensure_dir, json_default
-from .errors import DiskError, ElastoprobeError, InputError
+from .core.atomic import ensure_dir, json_default
+from .core.errors import DiskError, ElastoprobeError, InputError
 from .locking import SessionLock
 from .signals import deferred_interrupts
 

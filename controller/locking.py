@@ -25,7 +25,7 @@ import weakref
 from pathlib import Path
 from typing import Any
 
-from .errors import InputError
+from .core.errors import InputError
 
 SESSION_LOCK_NAME = "session.lock"
 

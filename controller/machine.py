@@ -1,4 +1,4 @@
-"""The session state machine (DESIGN §4): one declarative table, readable at a glance.
+"""The session state machine (docs/design.md §4): one declarative table, readable at a glance.
 
 The machine records *where* the session is; the probing executor does the work
 and fires the triggers. Every transition is handed to ``on_transition`` (the

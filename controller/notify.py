@@ -1,4 +1,4 @@
-"""Telling the operator, and watching the disk, during an unattended session (DESIGN §6, §11).
+"""Telling the operator, and watching the disk, during an unattended session (docs/design.md §6, §11).
 
 :class:`Notifier` runs the user's command (``notify.command`` in the cell file, an argv
 list — never through a shell) with a JSON payload on stdin when the session pauses,
@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Any, Callable, Literal, Mapping
 from .journal import DEFAULT_MIN_FREE_BYTES
 
 if TYPE_CHECKING:
-    from .config import NotifySpec
+    from .core.config import NotifySpec
 
 EVENTS = ("pause", "fault", "finish", "finish_by")
 STDERR_TAIL_BYTES = 2000

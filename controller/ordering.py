@@ -1,4 +1,4 @@
-"""Visiting order of probe targets: nearest neighbour, then 2-opt (DESIGN §2, issue 4).
+"""Visiting order of probe targets: nearest neighbour, then 2-opt (docs/design.md §2, issue 4).
 
 Targets are points on the object (mm). Travel between two targets goes up to the
 travel height, across and down, so the cost used here is the horizontal distance

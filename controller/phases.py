@@ -1,4 +1,4 @@
-"""The session's phases (DESIGN §2): cloud, sampling, survey, regions, characterize, models,
+"""The session's phases (docs/design.md §2): cloud, sampling, survey, regions, characterize, models,
 densify rounds, final map.
 
 Each ``phase_*`` either reads its committed outputs back from the journal (a resumed
@@ -17,13 +17,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .geometry import INTERIOR_ANGLES_DEG, scan_direction
+from .core.errors import BudgetSpent, SessionAborted
+from .core.geometry import INTERIOR_ANGLES_DEG, scan_direction
 from .journal import StepPlan
 from .learning import profiles as prof
 from .learning.models import RegionModel, ServingLimits, TrainConfig, fit_region_model
 from .learning.support import UNSUPPORTED, CompletedTargets, RegionSteps, complete_targets, support_table
 from .probe import ProbeTarget, StepData
-from .session import SessionAborted
 
 if TYPE_CHECKING:
     from .session import Session
@@ -871,8 +871,6 @@ def phase_final(ctx: PhaseContext) -> None:
 
 
 def run_all(ctx: PhaseContext) -> None:
-    from .session import BudgetSpent
-
     s = ctx.session
     plan = s.inputs.plan
     phase_cloud(ctx)

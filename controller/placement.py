@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import Pose
+from .core.geometry import Pose
 
 UP = np.array([0.0, 0.0, 1.0])
 

@@ -61,9 +61,9 @@ from typing import Any
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from .config import CellSpec
-from .geometry import NINE_ANGLES_DEG, Pose
-from .kinematics import inverse, ur5e
+from .core.config import CellSpec
+from .core.geometry import NINE_ANGLES_DEG, Pose
+from .core.kinematics import inverse, ur5e
 from .probe import standoff_pose
 
 REFERENCE_HEIGHT_MM = 40.0

@@ -11,7 +11,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from .errors import InputError
+from .core.errors import InputError
 from .journal import Journal
 from .learning.models import OutOfRange, RegionModel, ServedProfile
 

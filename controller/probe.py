@@ -1,6 +1,6 @@
 """One probe: standoff, reference scan, contact, force levels with scan bursts, unload, retract.
 
-The executor drives a :class:`~elastoprobe.controller.devices.Cell` through the
+The executor drives a :class:`~elastoprobe.controller.core.devices.Cell` through the
 session state machine. Every motion is validated before it is sent
 (:class:`MotionValidator`), every wait polls the arm's trip and status bits, and
 each force level ends in one callback (the journal's one transaction per step).
@@ -13,9 +13,9 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from .devices import ArmStatus, Cell, Motion, MotionState, Scan, Trip, WrenchBlock
-from .errors import DeviceError, DeviceTimeout, MotionRefused
-from .geometry import Pose, probe_tcp_pose, rotvec_to_matrix
+from .core.devices import ArmStatus, Cell, Motion, MotionState, Scan, Trip, WrenchBlock
+from .core.errors import DeviceError, DeviceTimeout, MotionRefused
+from .core.geometry import Pose, matrix_to_rotvec, probe_tcp_pose, rotvec_to_matrix, scan_points_base
 from .machine import SessionMachine
 from .placement import PlacementMonitor
 
@@ -107,7 +107,7 @@ class ProbeSettings:
     # While the arm holds still or holds a regulated force and the controller only records
     # F/T and poses (the settle wait, tare waits, scan bursts), it polls this often. The
     # safety check-and-stop runs where the data arrives on every sample whatever the poll
-    # (controller/forceloop.py): a crossing stops the arm at the same sample; the controller sees the
+    # (controller/core/forceloop.py): a crossing stops the arm at the same sample; the controller sees the
     # same F/T blocks in bigger pieces. Motion and contact search keep poll_period_s.
     hold_poll_period_s: float = 0.1
     reference_scans: int = 10
@@ -484,8 +484,6 @@ class ProbeExecutor:
         """
         if self.placement is None:
             return
-        from .acquire import scan_points_base
-
         # Every profile, not the burst's mean: beside a loaded dent only a few samples per
         # profile are left, and the mean profile would keep only those seen in all of them.
         pts = scan_points_base(_stack_scans(scans), poses, self.cell.tcp_to_scanner)
@@ -585,8 +583,6 @@ class ProbeExecutor:
 
     def _poses_at(self, times_s: list[float]) -> np.ndarray:
         """TCP poses (mm + rotation vector) at the given times, from the poses logged while waiting."""
-        from .geometry import matrix_to_rotvec
-
         t = np.asarray(self._rec.pose_t_s)
         out = np.zeros((len(times_s), 6))
         if len(t) == 0:

@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from .errors import InputError
+from .core.errors import InputError
 
 # Distributions whose versions change results (numerics, training, robot protocol, machine).
 TRACKED_PACKAGES: tuple[str, ...] = (
@@ -114,9 +114,9 @@ def calibration_entry(cell_path: str | os.PathLike[str],
     stale or unreadable file; a miscalibrated simulated cell without one). Never raises."""
     entry = _optional_file(calibration_path)
     try:
-        from elastoprobe.calibration.calfile import believed_cell
+        from elastoprobe.controller.core.calfile import believed_cell
 
-        from .config import load_cell
+        from .core.config import load_cell
 
         spec, _ = load_cell(cell_path)
         _, state = believed_cell(spec, cell_path)

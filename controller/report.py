@@ -33,7 +33,7 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from .atomic import atomic_write_text, ensure_dir
+from .core.atomic import atomic_write_text, ensure_dir
 from .coverage import cloud_summary, describe_cloud
 from .journal import FaultRecord, Journal, StepRecord
 from .learning.support import INFERRED, MEASURED, SUPPORT_NAMES, UNSUPPORTED

@@ -12,10 +12,10 @@ import datetime as _dt
 from pathlib import Path
 from typing import Any
 
-from .atomic import atomic_write_json
-from .config import load_session_inputs
-from .errors import InputError
-from .geometry import Pose
+from .core.atomic import atomic_write_json
+from .core.config import load_session_inputs
+from .core.errors import InputError
+from .core.geometry import Pose
 from .journal import Journal
 from .learning.profiles import ProfileGrid
 from .phases import ScanGeometry, collect_region_steps, fit_region, region_train_config

@@ -27,8 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
-from .atomic import ensure_dir
-from .errors import InputError
+from .core.atomic import ensure_dir
+from .core.errors import InputError
 from .journal import (JOURNAL_NAME, STEP_ARRAYS_REQUIRED, Journal, SessionMeta, _array_digest, _phase_digest,
                       _plan_from_row, _STEP_PLAN_COLS)
 from .locking import SessionLock, session_lock_holder

@@ -1,4 +1,4 @@
-"""One probing session: lock, journal, phases, fault policy, pause and resume (DESIGN §2, §5, §6).
+"""One probing session: lock, journal, phases, fault policy, pause and resume (docs/design.md §2, §5, §6).
 
 The session is a sequence of phases. Each phase either is already committed in
 the journal (a resumed session reads its outputs back: same cloud, same targets,
@@ -20,12 +20,12 @@ from typing import Any, Callable
 import numpy as np
 
 from .acquire import SweepResult, SweepSettings, acquire_cloud, line_footprint_mm
-from .atomic import json_default
-from .collision import shapes_from_cell
-from .config import SessionInputs, effective_motion_limits
-from .devices import Cell
-from .errors import DeviceError, DiskError, ElastoprobeError, MotionRefused
-from .geometry import Pose
+from .core.atomic import json_default
+from .core.collision import shapes_from_cell
+from .core.config import SessionInputs, effective_motion_limits
+from .core.devices import Cell
+from .core.errors import BudgetSpent, DeviceError, DiskError, ElastoprobeError, MotionRefused, SessionAborted
+from .core.geometry import Pose
 from .journal import Journal, JournalCorruption, JournalError, SessionMeta, StepRecord, StepResult
 from .locking import CellLock
 from .machine import SessionMachine
@@ -42,10 +42,6 @@ class InternalError(ElastoprobeError):
 
 class SessionPaused(Exception):
     """The session stopped cleanly with work left (exit 3)."""
-
-
-class SessionAborted(Exception):
-    """The fault policy said abort (exit 1)."""
 
 
 @dataclass
@@ -231,7 +227,7 @@ class Session:
         """
         from .phases import SWEEP_STEP_KEY, remove_table_below
         from .placement import reregister
-        from .validation import build_validator
+        from .core.validation import build_validator
 
         assert self.journal is not None and self.cell is not None
         j, cell, plan = self.journal, self.cell, self.inputs.plan
@@ -427,7 +423,7 @@ class Session:
                                 f"the session can be resumed)") from exc
 
     def _make_executor(self, machine: SessionMachine) -> ProbeExecutor:
-        from .validation import build_validator
+        from .core.validation import build_validator
 
         inputs = self.inputs
         m = effective_motion_limits(inputs)
@@ -842,5 +838,3 @@ def _release_freed_memory() -> None:
         pass
 
 
-class BudgetSpent(Exception):
-    """The plan's step or robot-time budget is used up: the session wraps up what it has."""

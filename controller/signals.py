@@ -1,4 +1,4 @@
-"""Operator requests by signal (DESIGN §11), honoured in every phase.
+"""Operator requests by signal (docs/design.md §11), honoured in every phase.
 
 SIGINT once or SIGTERM: pause — finish the step in flight, unload, retract, save,
 exit 3. SIGINT a second time: safe stop now — stop the arm, unload, retract, save,
@@ -35,7 +35,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Iterator
 
-from .errors import InputError
+from .core.errors import InputError
 from .locking import session_lock_holder
 
 # The active flags of this process (the handlers are process-wide): what

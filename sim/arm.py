@@ -1,6 +1,6 @@
 """Simulated UR5e-like arm: device primitives in virtual time, supervised by the controller's force loop.
 
-Kinematics come from :mod:`elastoprobe.controller.kinematics`. Every command is a
+Kinematics come from :mod:`elastoprobe.controller.core.kinematics`. Every command is a
 straight TCP path ``p(u) = p0 + u v``, ``R(u) = R0 exp(u w)`` and a motion law u(t)
 evaluated in closed form over a sub-chunk of sample instants (no per-sample Python).
 
@@ -15,7 +15,7 @@ The primitives (what a UR controller offers):
 - ``stop``: decelerates along the current path at ``stop_decel_mm_s2``.
 
 Contact search and force regulation are not this arm's: they are
-:class:`~elastoprobe.controller.forceloop.ForceSupervisor`'s, the same code and gains (the
+:class:`~elastoprobe.controller.core.forceloop.ForceSupervisor`'s, the same code and gains (the
 cell file's ``force_loop:``) that run in the real cell's hardware process. ``seek_contact``
 and ``regulate_force`` hand the supervisor its skill and run its speed commands on the
 primitives; the world calls the supervisor where the data arrives, in virtual time: every
@@ -42,13 +42,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from elastoprobe.controller.devices import ArmStatus, DeviceIdentity, MotionState, Trip
-from elastoprobe.controller.errors import MotionRefused
-from elastoprobe.controller.forceloop import (ForceLoopGains, ForceSupervisor, Regulation, SupervisedMotion, Verdict,
+from elastoprobe.controller.core.devices import ArmStatus, DeviceIdentity, MotionState, Trip
+from elastoprobe.controller.core.errors import MotionRefused
+from elastoprobe.controller.core.forceloop import (ForceLoopGains, ForceSupervisor, Regulation, SupervisedMotion, Verdict,
                                               measured_force_n)
-from elastoprobe.controller.geometry import Pose, matrix_to_rotvec, rotvec_to_matrix
-from elastoprobe.controller.kinematics import ArmModel, forward, inverse, linear_path_joints
-from elastoprobe.controller.safety import SafetyLimits
+from elastoprobe.controller.core.geometry import Pose, matrix_to_rotvec, rotvec_to_matrix
+from elastoprobe.controller.core.kinematics import ArmModel, forward, inverse, linear_path_joints
+from elastoprobe.controller.core.safety import SafetyLimits
 
 from .world import US_PER_S, ArmPlan
 

@@ -1,4 +1,4 @@
-"""The simulated probing cell (implements :class:`~elastoprobe.controller.devices.Cell`).
+"""The simulated probing cell (implements :class:`~elastoprobe.controller.core.devices.Cell`).
 
 :class:`SimCellParams` carries what a cell file describes (tool geometry, scanner
 mount, payload, limits, the simulation section: noise, miscalibration, faults) as
@@ -32,11 +32,11 @@ from pathlib import Path
 
 import numpy as np
 
-from elastoprobe.controller.clock import VirtualClock
-from elastoprobe.controller.forceloop import ForceLoopGains
-from elastoprobe.controller.geometry import Pose, rotvec_to_matrix
-from elastoprobe.controller.kinematics import forward, ur5e
-from elastoprobe.controller.safety import SafetyLimits
+from elastoprobe.controller.core.clock import VirtualClock
+from elastoprobe.controller.core.forceloop import ForceLoopGains
+from elastoprobe.controller.core.geometry import Pose, rotvec_to_matrix
+from elastoprobe.controller.core.kinematics import forward, ur5e
+from elastoprobe.controller.core.safety import SafetyLimits
 
 from .arm import ArmSettings, SimArm
 from .faults import FaultInjector, FaultPlan

@@ -1,4 +1,4 @@
-"""Fault injection for the simulated cell (DESIGN §8 "Faults on demand").
+"""Fault injection for the simulated cell (docs/design.md §8 "Faults on demand").
 
 A :class:`FaultPlan` says what and when: at a step index (first attempt only, so a
 retry can succeed), at a virtual time, at a rate per 100 steps drawn from the
@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from elastoprobe.controller.errors import DeviceError
+from elastoprobe.controller.core.errors import DeviceError
 
 from .world import PRE_STEP, US_PER_S, Stream, keyed_rng
 

@@ -23,8 +23,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from elastoprobe.controller.devices import DeviceIdentity, WrenchBlock
-from elastoprobe.controller.geometry import Pose
+from elastoprobe.controller.core.devices import DeviceIdentity, WrenchBlock
+from elastoprobe.controller.core.geometry import Pose
 
 from .world import US_PER_S, PagedNormal, Stream
 

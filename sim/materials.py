@@ -5,7 +5,7 @@ tables per material). Units are in the field names: MPa (= N/mm^2), mm, N, s,
 degrees. The YAML form (``materials:`` in ``config/objects/*.yaml``) is
 :class:`MaterialSpec`; :func:`material_from_spec` turns one into the other.
 
-Kinds (DESIGN §8, physics in :mod:`elastoprobe.sim.physics`):
+Kinds (docs/design.md §8, physics in :mod:`elastoprobe.sim.physics`):
 
 - ``elastic``: a linear elastic body (rubber): Hertz + Cerruti + Mindlin.
   ``E_mpa``, ``nu``, ``friction_mu``; ``body_radius_mm`` is the body's own curvature
@@ -35,7 +35,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from elastoprobe.controller.yamlio import Spec
+from elastoprobe.controller.core.yamlio import Spec
 
 KINDS = ("elastic", "foam", "plate_on_foam")
 

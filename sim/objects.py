@@ -1,4 +1,4 @@
-"""Simulated objects: geometry, regions, materials, and their ground truth (DESIGN §8).
+"""Simulated objects: geometry, regions, materials, and their ground truth (docs/design.md §8).
 
 Object frame: mm, z up, the table is the plane z = 0 and the object rests on it
 (z >= 0); the mesh is the undeformed outer surface without the table.
@@ -30,10 +30,10 @@ import numpy as np
 import trimesh
 from pydantic import Field, StringConstraints
 
-from elastoprobe.controller.errors import InputError, InputErrors
-from elastoprobe.controller.geometry import push_direction, unit
-from elastoprobe.controller.meshcheck import drop_degenerate_faces, mesh_findings, read_mesh
-from elastoprobe.controller.yamlio import Spec, YamlDoc, load_validated
+from elastoprobe.controller.core.errors import InputError, InputErrors
+from elastoprobe.controller.core.geometry import push_direction, unit
+from elastoprobe.controller.core.meshcheck import drop_degenerate_faces, mesh_findings, read_mesh
+from elastoprobe.controller.core.yamlio import Spec, YamlDoc, load_validated
 
 from .materials import Material, MaterialSpec, material_from_spec
 from .physics import (Component, ContactModel, FoamResponse, HertzResponse, LocalResponse, PlateResponse,
@@ -460,6 +460,14 @@ class BallObject(SimObject):
         return SupportSink(sink, max(0.0, float(d @ e)), float(d @ e), float(-(normal @ e)))
 
 
+def reference_sphere(radius_mm: float) -> BallObject:
+    """The calibration's reference sphere: acetal, rigid enough that a 0.4 N touch dents it by
+    ~1 um, so the touches and scans see its nominal radius (mm)."""
+    acetal = Material(name="acetal", kind="elastic", E_mpa=3000.0, nu=0.35, friction_mu=0.2,
+                      scanner_noise_mm=0.01, noise_corr_floor_mm=0.002, dropout_prob=0.01, steep_incidence_deg=80.0)
+    return BallObject("reference-sphere", radius_mm, acetal)
+
+
 class CompositeObject(SimObject):
     """A cardboard box (plate_on_foam) centred on a foam pillow with rounded edges."""
 
@@ -581,7 +589,7 @@ def _check_refs(spec: ObjectSpec, doc: YamlDoc) -> None:
 
 
 def _load_mesh_object(spec: ObjectSpec, doc: YamlDoc, path: Path) -> MeshObject:
-    """A painted user mesh, checked (controller/meshcheck.py) before anything is computed from it."""
+    """A painted user mesh, checked (controller/core/meshcheck.py) before anything is computed from it."""
     ms = spec.mesh
     assert ms is not None
     file = (path.parent / ms.file).resolve()

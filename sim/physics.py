@@ -1,4 +1,4 @@
-"""Contact physics along one scanline (DESIGN §8): what the probe feels and the dent it makes.
+"""Contact physics along one scanline (docs/design.md §8): what the probe feels and the dent it makes.
 
 Local frame at a target point p: outward unit normal n, scan direction t in the
 tangent plane, x (mm) the coordinate along t, depth w (mm) along -n, positive into
@@ -37,7 +37,7 @@ from scipy.linalg import solve_banded
 
 from .materials import Material
 
-# Validity thresholds of the models (the simulator's self-check, DESIGN §8).
+# Validity thresholds of the models (the simulator's self-check, docs/design.md §8).
 HERTZ_MAX_A_OVER_R = 0.5          # Hertz assumes a small contact: a/R beyond ~0.5 errs by > ~10 %
 FOAM_MAX_DEPTH_OVER_DENSIFICATION = 0.6   # beyond, the densification law is only a curve fit
 PLATE_MAX_DEFLECTION_OVER_THICKNESS = 0.5  # small-deflection plate theory (membrane effects beyond)
@@ -85,8 +85,8 @@ def cerruti_depth_mm(x_mm: np.ndarray, tangential_force_n: float, E_mpa: float, 
     The surface sinks ahead of the load and rises behind it:
     (1+nu)(1-2nu) Q x / (2 pi E (x^2 + c^2)). Far from the contact (|x| >> c) this is
     Cerruti's point-load solution (1+nu)(1-2nu) Q sign(x) / (2 pi E |x|); the core c
-    (the contact radius) regularises it smoothly through x = 0 (DESIGN's
-    sign(x)/sqrt(x^2 + c^2) has a step there that a distributed traction does not make).
+    (the contact radius) regularises it smoothly through x = 0 (the form
+    Q sign(x) / sqrt(x^2 + c^2) would have a step there that a distributed traction does not make).
     """
     x = np.asarray(x_mm, dtype=float)
     c2 = max(core_mm, 1e-6) ** 2

@@ -39,8 +39,8 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from elastoprobe.controller.devices import DeviceIdentity, Scan
-from elastoprobe.controller.geometry import Pose
+from elastoprobe.controller.core.devices import DeviceIdentity, Scan
+from elastoprobe.controller.core.geometry import Pose
 
 from .raycast import PlaneCut, PlaneSlicer, cast_fan, plane_hits, segments_blocked
 from .world import US_PER_S, Stream, WorldSnapshot

@@ -1,6 +1,6 @@
-"""The simulated cell's world: single-threaded, event-driven, in virtual time (DESIGN §8).
+"""The simulated cell's world: single-threaded, event-driven, in virtual time (docs/design.md §8).
 
-:class:`SimWorld` is a listener of :class:`~elastoprobe.controller.clock.VirtualClock`.
+:class:`SimWorld` is a listener of :class:`~elastoprobe.controller.core.clock.VirtualClock`.
 When the controller sleeps, ``advance_to(t)`` integrates the arm, the contact, the
 F/T stream, the scanner and the safety path up to ``t`` — nothing sleeps, no threads.
 
@@ -14,7 +14,7 @@ and scheduled faults cut them too). A sub-chunk is first computed "dry" as pure
 functions of the state at its start (trajectory, contact force, F/T samples); then
 the first event in it (contact begins or ends, the seek threshold, the UR's own
 force limit, slip) shortens it; then the F/T block is checked by the controller's
-:class:`~elastoprobe.controller.safety.SafetyGuard` — the same vectorised function a
+:class:`~elastoprobe.controller.core.safety.SafetyGuard` — the same vectorised function a
 real driver runs where the data arrives — and on a crossing the arm is stopped at
 the crossing sample's virtual time; then the state is committed.
 
@@ -31,7 +31,7 @@ random processes (F/T drift) restart at the begin_step instant, so the same comm
 after the same ``begin_step`` from the same state give the same bytes, whatever the
 absolute virtual time.
 
-Contact (DESIGN §3, §8): the tip is a sphere of radius R at the TCP. It touches
+Contact (docs/design.md §3, §8): the tip is a sphere of radius R at the TCP. It touches
 when the tip centre comes within R of the object (``closest_surface``) or of the
 table plane z = 0 (object frame). At first touch the world records the contact point
 p and normal n and derives the physical approach from the push direction
@@ -54,10 +54,10 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from elastoprobe.controller.clock import VirtualClock
-from elastoprobe.controller.devices import Trip, WrenchBlock
-from elastoprobe.controller.geometry import Pose
-from elastoprobe.controller.safety import SafetyGuard, SafetyLimits
+from elastoprobe.controller.core.clock import VirtualClock
+from elastoprobe.controller.core.devices import Trip, WrenchBlock
+from elastoprobe.controller.core.geometry import Pose
+from elastoprobe.controller.core.safety import SafetyGuard, SafetyLimits
 
 if TYPE_CHECKING:   # pragma: no cover
     from .arm import SimArm
@@ -824,7 +824,7 @@ class SimWorld:
 
     def _halts_recovery(self, trip: Trip, samples, cut: int) -> bool:
         """While a trip is latched, the controller unloads and retracts: the arm's force-loop
-        supervisor (controller/forceloop.py) lets a crossing through for a motion that unloads
+        supervisor (controller/core/forceloop.py) lets a crossing through for a motion that unloads
         the contact (away from it, the force not rising); anything else is stopped again
         (the UR's own force limit still applies)."""
         if self.trip is None:

@@ -15,18 +15,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from elastoprobe.controller import atomic
-from elastoprobe.controller.atomic import (
+from elastoprobe.controller.core import atomic
+from elastoprobe.controller.core.atomic import (
     atomic_dir_replace, atomic_write_bytes, atomic_write_json, atomic_write_text, make_staging_dir,
     remove_stale_temps,
 )
-from elastoprobe.controller.errors import DiskError
+from elastoprobe.controller.core.errors import DiskError
 
 # Writes self-checking versions of one file forever (until killed); with KILL_BEFORE_REPLACE
 # it kills itself after the temporary is complete but before the rename.
 WRITER = textwrap.dedent("""
     import hashlib, json, os, signal, sys
-    from elastoprobe.controller import atomic
+    from elastoprobe.controller.core import atomic
     target, start = sys.argv[1], int(sys.argv[2])
     if os.environ.get("KILL_BEFORE_REPLACE"):
         def replace(src, dst):

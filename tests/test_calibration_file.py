@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from elastoprobe.calibration.calfile import (Corrections, check_calibration, load_calibration, matrix_to_rpy_deg,
+from elastoprobe.controller.core.calfile import (Corrections, check_calibration, load_calibration, matrix_to_rpy_deg,
                                              pose_list, read_document, write_section)
-from elastoprobe.calibration.common import CalibrationError
-from elastoprobe.controller.config import load_cell, rpy_deg_to_matrix
-from elastoprobe.controller.geometry import Pose, rotvec_to_matrix
+from elastoprobe.controller.core.errors import CalibrationError
+from elastoprobe.controller.core.config import load_cell, rpy_deg_to_matrix
+from elastoprobe.controller.core.geometry import Pose, rotvec_to_matrix
 
 ROOT = Path(__file__).resolve().parent.parent
 SIM = ROOT / "config" / "cells" / "sim.yaml"

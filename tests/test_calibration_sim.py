@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from elastoprobe.calibration.runner import run_on_cell, simulated_cell
-from elastoprobe.controller.config import load_cell
+from elastoprobe.controller.core.config import load_cell
 
 MIS = Path(__file__).resolve().parent.parent / "config" / "cells" / "sim_miscalibrated.yaml"
 

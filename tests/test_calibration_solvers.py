@@ -4,12 +4,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from elastoprobe.calibration.common import CalibrationError
+from elastoprobe.controller.core.errors import CalibrationError
 from elastoprobe.calibration.ft_payload import GravityCompensator, PayloadModel, gravity_in_sensor, solve_payload
 from elastoprobe.calibration.scanner_sphere import SphereProfile, fit_circle, solve_scanner_sphere
 from elastoprobe.calibration.tcp_pivot import solve_pivot, solve_sphere_touches
-from elastoprobe.controller.devices import WrenchBlock
-from elastoprobe.controller.geometry import Pose, rotvec_to_matrix
+from elastoprobe.controller.core.devices import WrenchBlock
+from elastoprobe.controller.core.geometry import Pose, rotvec_to_matrix
 
 
 def random_rotation(rng: np.random.Generator, max_deg: float = 180.0) -> np.ndarray:

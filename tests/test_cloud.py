@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from elastoprobe.controller.errors import InputError
-from elastoprobe.controller.geometry import Pose, rotvec_to_matrix
+from elastoprobe.controller.core.errors import InputError
+from elastoprobe.controller.core.geometry import Pose, rotvec_to_matrix
 from elastoprobe.controller.learning.cloud import (
     box_on_pillow_mesh, cloud_hash, curvature, estimate_normals, icp, load_cloud, local_geometry,
     register_mesh_to_cloud, remove_table, sample_mesh,

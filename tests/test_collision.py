@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from elastoprobe.controller.collision import (
+from elastoprobe.controller.core.collision import (
     Box, SceneChecker, ToolShape, boxes_from_cell, sample_mesh_surface, shapes_from_cell,
 )
-from elastoprobe.controller.geometry import Pose, probe_tcp_pose, rotvec_to_matrix
+from elastoprobe.controller.core.geometry import Pose, probe_tcp_pose, rotvec_to_matrix
 
 DOWN = np.diag([1.0, -1.0, -1.0])           # tool z pointing down (-z of the base)
 WORKSPACE = Box("workspace", np.array([-1000.0, -1000.0, -50.0]), np.array([1000.0, 1000.0, 1000.0]))
@@ -213,7 +213,7 @@ def test_rotation_sweeps_a_far_shape_through_an_obstacle():
 
 
 def test_sim_cell_shapes_and_boxes():
-    from elastoprobe.controller.config import load_cell
+    from elastoprobe.controller.core.config import load_cell
     cell, _ = load_cell(Path(__file__).resolve().parents[1] / "config" / "cells" / "sim.yaml")
     shapes = shapes_from_cell(cell.tool)
     ws, keep_out = boxes_from_cell(cell.limits)

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from elastoprobe.controller.cli import main
-from elastoprobe.controller.config import load_session_inputs
+from elastoprobe.controller.core.config import load_session_inputs
 from elastoprobe.controller.journal import Journal
 
 ROOT = Path(__file__).resolve().parent.parent

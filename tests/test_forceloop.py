@@ -1,4 +1,4 @@
-"""The force loop (controller/forceloop.py) on the scripted arm, without the physics simulator:
+"""The force loop (controller/core/forceloop.py) on the scripted arm, without the physics simulator:
 contact search, force regulation on springs from foam-soft to rubber-stiff with a robot's
 command delay, the first crossing stopping the arm, and a latched trip that lets an unloading
 motion through and stops anything else. Plus the gains' home, the cell file (validated with
@@ -10,15 +10,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from elastoprobe.controller.clock import VirtualClock
-from elastoprobe.controller.config import load_cell
-from elastoprobe.controller.devices import MotionState, Trip
+from elastoprobe.controller.core.clock import VirtualClock
+from elastoprobe.controller.core.config import load_cell
+from elastoprobe.controller.core.devices import MotionState, Trip
 from elastoprobe.controller.drivers.real_cell import hardware_config
 from elastoprobe.controller.drivers.scripted import ScriptedArm
-from elastoprobe.controller.errors import InputError
-from elastoprobe.controller.forceloop import ForceLoopGains, ForceSupervisor, SupervisedMotion, Verdict
-from elastoprobe.controller.geometry import Pose
-from elastoprobe.controller.safety import SafetyLimits
+from elastoprobe.controller.core.errors import InputError
+from elastoprobe.controller.core.forceloop import ForceLoopGains, ForceSupervisor, SupervisedMotion, Verdict
+from elastoprobe.controller.core.geometry import Pose
+from elastoprobe.controller.core.safety import SafetyLimits
 
 from test_sim_helpers import make_cell, press
 

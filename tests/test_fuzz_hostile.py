@@ -72,7 +72,7 @@ def _mesh_case(tmp: Path, ply: bytes) -> Path:
 
 
 def _assert_check_keeps_the_contract(tmp: Path, ply: bytes, capsys: pytest.CaptureFixture[str]) -> None:
-    from elastoprobe.controller.config import load_session_inputs
+    from elastoprobe.controller.core.config import load_session_inputs
     from elastoprobe.sim.objects import load_object
 
     plan = _mesh_case(tmp, ply)

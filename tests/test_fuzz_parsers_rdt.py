@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from elastoprobe.controller.drivers.ati_netft import (
     CALINFO_REPLY, RDT_RECORD, parse_calinfo, parse_rdt_datagram)
-from elastoprobe.controller.errors import ProtocolError
+from elastoprobe.controller.core.errors import ProtocolError
 
 pytestmark = pytest.mark.timeout(240)
 # Hypothesis itself costs ~1 ms per example: one property per file keeps each file fast.

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from elastoprobe.controller.config import DEFAULT_CELL, load_cell
+from elastoprobe.controller.core.config import DEFAULT_CELL, load_cell
 from elastoprobe.controller.planrule import fit_problems, forces_for_height, outline_of
 from elastoprobe.sim import generate as gen
 from elastoprobe.sim.objects import load_object

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from elastoprobe.controller.geometry import (
+from elastoprobe.controller.core.geometry import (
     NINE_ANGLES_DEG, Pose, interpolate_pose, matrix_to_rotvec, probe_axis, probe_tcp_pose,
     push_direction, rotvec_to_matrix, scan_direction,
 )

@@ -200,11 +200,11 @@ def test_case3_run_of_an_oversized_object_ends_with_a_reason(tmp_path: Path) -> 
 def test_case3_motion_validation_is_bounded_for_any_path(monkeypatch: pytest.MonkeyPatch) -> None:
     """A straight move 100 m long is refused by the workspace before any inverse kinematics,
     and the joint path of a move no arm can make is never sampled point by point."""
-    from elastoprobe.controller import kinematics, validation
-    from elastoprobe.controller.collision import SceneChecker, boxes_from_cell
-    from elastoprobe.controller.config import load_session_inputs
-    from elastoprobe.controller.errors import MotionRefused
-    from elastoprobe.controller.geometry import probe_tcp_pose
+    from elastoprobe.controller.core import kinematics, validation
+    from elastoprobe.controller.core.collision import SceneChecker, boxes_from_cell
+    from elastoprobe.controller.core.config import load_session_inputs
+    from elastoprobe.controller.core.errors import MotionRefused
+    from elastoprobe.controller.core.geometry import probe_tcp_pose
 
     inputs = load_session_inputs(REPO / "config" / "plans" / "demo.yaml")
     model = validation.arm_model_for(inputs)

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from elastoprobe.controller.errors import InputError
+from elastoprobe.controller.core.errors import InputError
 from elastoprobe.controller.journal import (
     InputsChanged, Journal, JournalCorruption, JournalError, SessionMeta, StepPlan, StepResult,
     StepStateError, check_local_filesystem, decode_array, encode_array, filesystem_type,

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from elastoprobe.controller import provenance
-from elastoprobe.controller.errors import InputError
+from elastoprobe.controller.core.errors import InputError
 from elastoprobe.controller.provenance import (
     collect_provenance, git_revision, package_versions, sha256_file, sha256_text,
 )

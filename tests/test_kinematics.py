@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from elastoprobe.controller import kinematics as kin
-from elastoprobe.controller.geometry import Pose, interpolate_pose, rotvec_to_matrix
+from elastoprobe.controller.core import kinematics as kin
+from elastoprobe.controller.core.geometry import Pose, interpolate_pose, rotvec_to_matrix
 
 TOOL = Pose(np.array([0.0, 0.0, 160.0]), np.eye(3))   # the sim cell's probe: 160 mm along flange z
 

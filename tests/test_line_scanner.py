@@ -10,11 +10,11 @@ from typing import Callable
 import numpy as np
 import pytest
 
-from elastoprobe.controller.clock import RealClock
-from elastoprobe.controller.devices import LineScanner, Scan
+from elastoprobe.controller.core.clock import RealClock
+from elastoprobe.controller.core.devices import LineScanner, Scan
 from elastoprobe.controller.drivers.line_scanner import (
     BurstTimeout, SerialLineScanner, ShortBurst)
-from elastoprobe.controller.errors import DeviceError, DeviceTimeout
+from elastoprobe.controller.core.errors import DeviceError, DeviceTimeout
 from elastoprobe.sim.servers.scanner_serial import ScannerFaults, ScannerPtyServer
 
 pytestmark = pytest.mark.timeout(60)

@@ -23,11 +23,11 @@ import time
 import numpy as np
 import pytest
 
-from elastoprobe.controller.config import load_cell
-from elastoprobe.controller.devices import MotionState
+from elastoprobe.controller.core.config import load_cell
+from elastoprobe.controller.core.devices import MotionState
 from elastoprobe.controller.drivers.ur_link import URLink, URLinkConfig
-from elastoprobe.controller.errors import DeviceError
-from elastoprobe.controller.geometry import Pose
+from elastoprobe.controller.core.errors import DeviceError
+from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.sim.cell import SimCell, params_from_cell
 from elastoprobe.sim.servers.ur_backend import KinematicBackend
 from elastoprobe.sim.servers.ur_emulator import Cmd, UREmulator
@@ -250,7 +250,7 @@ def test_the_hardware_process_runs_the_in_process_cell_s_supervisor() -> None:
     try:
         loop = rig.hw.arm.identity().extra["force_loop"]
         assert loop == in_process.arm.identity().extra["force_loop"]
-        assert loop["module"] == "elastoprobe.controller.forceloop" and loop["class"] == "ForceSupervisor"
+        assert loop["module"] == "elastoprobe.controller.core.forceloop" and loop["class"] == "ForceSupervisor"
         _pressing(rig)
         counts = rig.hw.stats()["supervisor"]["counts"]
         assert counts["contacts"] == 1 and counts["settled"] == 1 and counts["updates"] >= 20

@@ -1,10 +1,7 @@
 """The "Done when" run: `elastoprobe run config/plans/loopback.yaml --cell config/cells/loopback.yaml`
 with nothing else running — the cell starts the served world itself and the real drivers
 connect to it. Real time (about a minute), so marked slow. The cell is copied onto its own
-127.0.0.x so the test never collides with someone serving the shipped cell.
-
-Until controller/cellfactory.py routes kinds 'ur'/'loopback' to build_real_cell, the test
-routes them itself (the same two lines the factory needs)."""
+127.0.0.x so the test never collides with someone serving the shipped cell."""
 from __future__ import annotations
 
 import json
@@ -12,25 +9,14 @@ from pathlib import Path
 
 import pytest
 
-from elastoprobe.controller import cellfactory
-from elastoprobe.controller.drivers.real_cell import build_real_cell
+from elastoprobe.controller.cli import main
 from test_loopback_rig import copy_loopback_configs
 
 
 @pytest.mark.slow
 @pytest.mark.loopback
 @pytest.mark.timeout(600)
-def test_loopback_plan_runs_end_to_end_on_the_real_drivers(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    original = cellfactory.build_cell
-
-    def build(inputs, seed, dry_run=False):
-        if inputs.cell.kind in ("ur", "loopback") and not dry_run:
-            return build_real_cell(inputs, seed)
-        return original(inputs, seed, dry_run)
-
-    monkeypatch.setattr(cellfactory, "build_cell", build)
-    from elastoprobe.controller.cli import main
-
+def test_loopback_plan_runs_end_to_end_on_the_real_drivers(tmp_path: Path) -> None:
     plan, cell = copy_loopback_configs(tmp_path, "127.0.0.191")
     out = tmp_path / "session"
     code = main(["run", str(plan), "--cell", str(cell), "--seed", "1", "--out", str(out), "--quiet"])

@@ -1,4 +1,4 @@
-"""Checks of a user's mesh (controller/meshcheck.py): what cannot be used is refused with a
+"""Checks of a user's mesh (controller/core/meshcheck.py): what cannot be used is refused with a
 reason, what can be used but should be known is a warning that says where (mm)."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from elastoprobe.controller.meshcheck import (bounds_problem, degenerate_faces, drop_degenerate_faces,
+from elastoprobe.controller.core.meshcheck import (bounds_problem, degenerate_faces, drop_degenerate_faces,
                                               mesh_findings, read_mesh)
 
 

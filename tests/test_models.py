@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from elastoprobe.controller.geometry import NINE_ANGLES_DEG
+from elastoprobe.controller.core.geometry import NINE_ANGLES_DEG
 from elastoprobe.controller.learning.models import (
     RegionModel, TrainConfig, bootstrap_point_weights, fit_region_model,
 )

@@ -16,8 +16,8 @@ import pytest
 from elastoprobe.controller.drivers.ati_netft import (
     CalInfo, NetFTClient, NetFTCounters, RDT_RECORD, SequenceTracker, build_rdt_request,
     parse_calinfo, parse_rdt_datagram, read_calinfo)
-from elastoprobe.controller.devices import ForceTorqueSensor
-from elastoprobe.controller.errors import DeviceTimeout, ProtocolError
+from elastoprobe.controller.core.devices import ForceTorqueSensor
+from elastoprobe.controller.core.errors import DeviceTimeout, ProtocolError
 from elastoprobe.sim.servers.netft_server import (
     NetFTFaults, NetFTServer, constant_source, ramp_source)
 

@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from elastoprobe.controller.config import NotifySpec
+from elastoprobe.controller.core.config import NotifySpec
 from elastoprobe.controller.notify import DiskWatch, Notifier, run_command
 
 PY = sys.executable

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from elastoprobe.calibration.common import CalibrationError
+from elastoprobe.controller.core.errors import CalibrationError
 from elastoprobe.calibration.object_registration import register_object
-from elastoprobe.controller.geometry import Pose
+from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.sim.objects import load_object
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from elastoprobe.controller.errors import InputError
+from elastoprobe.controller.core.errors import InputError
 from elastoprobe.sim.objects import load_object
 
 OBJECTS = Path(__file__).resolve().parents[1] / "config" / "objects"

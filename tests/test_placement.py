@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from elastoprobe.controller.geometry import Pose
+from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.controller.learning.cloud import box_on_pillow_mesh
 from elastoprobe.controller.placement import PlacementMonitor, reregister
 

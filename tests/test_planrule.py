@@ -10,7 +10,7 @@ import pytest
 
 from elastoprobe.controller.cellfactory import object_mesh_for
 from elastoprobe.controller.cli import main
-from elastoprobe.controller.config import DEFAULT_CELL, PlanSpec, load_cell, load_plan, load_session_inputs
+from elastoprobe.controller.core.config import DEFAULT_CELL, PlanSpec, load_cell, load_plan, load_session_inputs
 from elastoprobe.controller.planrule import (ObjectOutline, fit_problems, largest_force_n, outline_of, plan_for_object,
                                              plan_yaml_text)
 from elastoprobe.sim.objects import load_object

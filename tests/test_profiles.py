@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from elastoprobe.controller.geometry import Pose, probe_tcp_pose, rotvec_to_matrix, scan_direction
+from elastoprobe.controller.core.geometry import Pose, probe_tcp_pose, rotvec_to_matrix, scan_direction
 from elastoprobe.controller.learning.profiles import (
     ProfileGrid, average_profiles, denormalize, depth_scale_mm, mirror, mirror_angle_deg, normalize,
     profile_from_scans, resample_on_grid, scan_depths, scan_to_object_points, step_scan_points,

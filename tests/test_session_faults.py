@@ -1,5 +1,5 @@
 """Every fault the simulated cell can inject, in a session: the arm stops, the plan's fault
-policy is followed, and no step is committed done with incomplete data (DESIGN §5, §6).
+policy is followed, and no step is committed done with incomplete data (docs/design.md §5, §6).
 
 Sessions run in this process (``Session.run`` returns the CLI's exit codes) on a tiny plan
 whose survey has eleven contacts (two angles per target), with faults placed at contacts'
@@ -21,8 +21,8 @@ import pytest
 
 from test_session_util import copy_cell, done_step_facts, outcome, plan_for
 
-from elastoprobe.controller.config import load_session_inputs
-from elastoprobe.controller.geometry import Pose
+from elastoprobe.controller.core.config import load_session_inputs
+from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.controller.journal import Journal
 from elastoprobe.controller.session import EXIT_DONE, EXIT_FAULT, EXIT_PAUSED, Session
 
@@ -263,7 +263,7 @@ def test_a_device_error_while_planning_the_travel_is_a_retried_fault_not_an_inte
     # the travel to a standoff (it was restarted with the arm stopped); the DeviceError
     # escaped the contact and the session ended in an internal error (exit 1).
     from elastoprobe.controller import probe
-    from elastoprobe.controller.errors import DeviceError
+    from elastoprobe.controller.core.errors import DeviceError
 
     original_sync, original_probe = probe.ProbeExecutor._sync_validator, probe.ProbeExecutor.probe
     state = {"calls": 0, "in_contact": False, "died_in_contact": False}

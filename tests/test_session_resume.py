@@ -1,5 +1,5 @@
 """kill -9 the controller at random and chosen moments, resume until done: the session
-equals an uninterrupted one (DESIGN §6; issue "The probing controller", Done when).
+equals an uninterrupted one (docs/design.md §6; issue "The probing controller", Done when).
 
 Each session runs the real CLI in a child process on the tiny plan (tests/data/session/
 tiny.yaml) and a private copy of the simulated cell. Kills land after random delays and

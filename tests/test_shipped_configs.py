@@ -1,11 +1,11 @@
-"""Every shipped plan, cell and object file is valid (DESIGN §1: shipped examples, all valid)."""
+"""Every shipped plan, cell and object file is valid (docs/design.md §1: shipped examples, all valid)."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import pytest
 
-from elastoprobe.controller.config import load_cell, load_session_inputs
+from elastoprobe.controller.core.config import load_cell, load_session_inputs
 from elastoprobe.sim.objects import load_object
 
 CONFIG = Path(__file__).resolve().parent.parent / "config"

@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from elastoprobe.controller.devices import MotionState
-from elastoprobe.controller.errors import MotionRefused
-from elastoprobe.controller.geometry import Pose
-from elastoprobe.controller.kinematics import trapezoid_state
+from elastoprobe.controller.core.devices import MotionState
+from elastoprobe.controller.core.errors import MotionRefused
+from elastoprobe.controller.core.geometry import Pose
+from elastoprobe.controller.core.kinematics import trapezoid_state
 from elastoprobe.sim.arm import trapezoid_u
 
 from test_sim_helpers import Log, hold, make_cell, move, press, tick, wait

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from elastoprobe.controller.geometry import Pose, probe_tcp_pose
+from elastoprobe.controller.core.geometry import Pose, probe_tcp_pose
 from elastoprobe.controller.machine import SessionMachine
 from elastoprobe.controller.probe import ForceLevel, ProbeExecutor, ProbeSettings, ProbeTarget
 

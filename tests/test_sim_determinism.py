@@ -5,8 +5,8 @@ import hashlib
 
 import numpy as np
 
-from elastoprobe.controller.devices import MotionState
-from elastoprobe.controller.geometry import Pose
+from elastoprobe.controller.core.devices import MotionState
+from elastoprobe.controller.core.geometry import Pose
 
 from test_sim_helpers import Log, burst, go_to, hold, make_cell, move, press, standoff_pose, wait
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from elastoprobe.controller.devices import MotionState
-from elastoprobe.controller.errors import DeviceError
+from elastoprobe.controller.core.devices import MotionState
+from elastoprobe.controller.core.errors import DeviceError
 from elastoprobe.sim.faults import FaultPlan
 
 from test_sim_helpers import Log, burst, hold, make_cell, press, standoff_pose, go_to, tick, wait
@@ -60,7 +60,7 @@ def test_force_limit_trip_overshoot_is_physical_and_small():
     assert not cell.arm.rearm()
     # Unloading along the normal is not stopped again by the same, still-latched crossing.
     pose = cell.arm.status().tcp_pose
-    from elastoprobe.controller.geometry import Pose
+    from elastoprobe.controller.core.geometry import Pose
     assert wait(cell, cell.arm.move_linear(Pose(pose.position_mm + n * 20.0, pose.rotation), 10.0, 500.0)) \
         == MotionState.DONE
     assert cell.world.contact is None and cell.arm.rearm()

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from elastoprobe.controller.devices import MotionState
+from elastoprobe.controller.core.devices import MotionState
 
 from test_sim_helpers import Log, burst, digest, hold, make_cell, press, wait
 

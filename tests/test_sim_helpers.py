@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from elastoprobe.controller.config import load_cell
-from elastoprobe.controller.devices import MotionState
-from elastoprobe.controller.geometry import Pose, probe_tcp_pose, scan_direction
+from elastoprobe.controller.core.config import load_cell
+from elastoprobe.controller.core.devices import MotionState
+from elastoprobe.controller.core.geometry import Pose, probe_tcp_pose, scan_direction
 from elastoprobe.sim.cell import SimCell, params_from_cell
 from elastoprobe.sim.world import PagedNormal, keyed_rng
 

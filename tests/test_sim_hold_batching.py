@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from elastoprobe.controller.devices import MotionState
+from elastoprobe.controller.core.devices import MotionState
 
 from test_sim_helpers import Log, digest, make_cell, press, tick, wait
 

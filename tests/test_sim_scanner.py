@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from elastoprobe.controller.geometry import Pose
+from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.sim.materials import Material
 from elastoprobe.sim.objects import SimObject
 from elastoprobe.sim.raycast import PlaneSlicer, cast_fan, plane_hits

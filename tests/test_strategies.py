@@ -119,7 +119,7 @@ def test_measured_survey_maps_the_composite_within_the_goal():
     """Scanner-imaged survey on one seed, neural-gas targets: two regions, and the map on the
     object's true top (inside reach) within issue 3's goals against the simulator's true labels. A single
     probe cannot find two materials: the error there is the smaller region's area."""
-    from elastoprobe.controller.config import load_session_inputs
+    from elastoprobe.controller.core.config import load_session_inputs
 
     se = _bench_module()
     inputs = load_session_inputs(ROOT / "config" / "plans" / "demo.yaml")

@@ -108,7 +108,7 @@ def test_a_target_on_a_line_raster_gets_the_surface_normal_not_one_across_the_li
     every line scanned in both headings (at the same place). The ``plane_k`` nearest neighbours of any point lie on
     its own profile: a plane fit to them alone gave a normal across the line (the loopback
     plan's ball target got (0, -1, 0), a horizontal 90 deg probe, refused)."""
-    from elastoprobe.controller.geometry import rotvec_to_matrix
+    from elastoprobe.controller.core.geometry import rotvec_to_matrix
     from elastoprobe.controller.learning.cloud import curvature, estimate_normals
 
     rng = np.random.default_rng(11)

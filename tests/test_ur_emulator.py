@@ -328,7 +328,7 @@ def test_poses_are_the_active_tcp_s_and_a_new_script_starts_with_the_installatio
     """As on a real UR: actual_TCP_pose = flange pose ∘ TCP offset, a moveL target is where the
     TCP goes, and setTcp lasts until the program ends (a re-uploaded script starts with the
     installation's TCP, here the flange's)."""
-    from elastoprobe.controller.geometry import Pose
+    from elastoprobe.controller.core.geometry import Pose
 
     emulator = emulator_at(29)
     out = _run_client(_TCP_CLIENT, emulator.host)
@@ -353,8 +353,8 @@ def test_poses_are_the_active_tcp_s_and_a_new_script_starts_with_the_installatio
 
 
 def test_kinematic_backend_joint_move_and_joints_follow_the_pose() -> None:
-    kin = pytest.importorskip("elastoprobe.controller.kinematics")
-    from elastoprobe.controller.geometry import Pose
+    kin = pytest.importorskip("elastoprobe.controller.core.kinematics")
+    from elastoprobe.controller.core.geometry import Pose
     model = kin.ur5e()
     arm = KinematicBackend(START_POSE, t0_s=0.0)
     if not arm.has_kinematics:

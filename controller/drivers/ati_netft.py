@@ -39,9 +39,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..clock import Clock, RealClock
-from ..devices import DeviceIdentity, WrenchBlock
-from ..errors import DeviceError, DeviceTimeout, ProtocolError
+from ..core.clock import Clock, RealClock
+from ..core.devices import DeviceIdentity, WrenchBlock
+from ..core.errors import DeviceError, DeviceTimeout, ProtocolError
 
 RDT_HEADER = 0x1234
 CMD_STOP = 0x0000

@@ -9,7 +9,7 @@ hardware process — owns :class:`~.ati_netft.NetFTClient` and :class:`~.ur_link
 - **safety** (:class:`SafetyLoop`): wakes on every RDT datagram (the client's receive
   thread signals it), reads the new samples, runs ``SafetyGuard.check_block`` (vectorised,
   first crossing) and hands the block to the force loop's supervisor
-  (:class:`~elastoprobe.controller.forceloop.ForceSupervisor`, the same code the simulated
+  (:class:`~elastoprobe.controller.core.forceloop.ForceSupervisor`, the same code the simulated
   cell runs): a crossing (unless it belongs to a motion that unloads a latched trip) or a
   contact during a contact search stops the arm AT ONCE (speedStop / stopL), and only
   then is the trip recorded. It also checks for a stale stream. It is the only caller of
@@ -35,8 +35,8 @@ promptly. ur_rtde's own crashes and hangs stay in URLink's grandchild: a crash o
 program, so the arm stops — and the controller sees a DeviceError once, from ``status()``
 or the next command.
 
-The controller side (:class:`HardwareProcess`) gives an :class:`~elastoprobe.controller.devices.Arm`
-(:class:`HardwareArm`) and a :class:`~elastoprobe.controller.devices.ForceTorqueSensor`
+The controller side (:class:`HardwareProcess`) gives an :class:`~elastoprobe.controller.core.devices.Arm`
+(:class:`HardwareArm`) and a :class:`~elastoprobe.controller.core.devices.ForceTorqueSensor`
 (:class:`HardwareFT`: the same blocks the guard checked, forwarded). Every request has a
 deadline; if the hardware process dies or hangs it is killed and restarted (bounded) and
 the call raises DeviceError.
@@ -49,10 +49,8 @@ from __future__ import annotations
 
 import atexit
 import collections
-import ctypes
 import multiprocessing as mp
 import os
-import signal
 import sys
 import threading
 import time
@@ -62,17 +60,17 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..clock import Clock, RealClock
-from ..devices import ArmStatus, DeviceIdentity, MotionState, Trip, WrenchBlock
-from ..errors import DeviceError, DeviceTimeout, MotionRefused, ProgramNotRunning
+from ..core.clock import Clock, RealClock
+from ..core.devices import ArmStatus, DeviceIdentity, MotionState, Trip, WrenchBlock
+from ..core.errors import DeviceError, DeviceTimeout, MotionRefused, ProgramNotRunning
 from .supervised import await_ready, kill_child
-from ..forceloop import BlockVerdict, ForceLoopGains, ForceSupervisor, SupervisedMotion
-from ..geometry import Pose
-from ..safety import SafetyGuard, SafetyLimits
+from ..core.forceloop import BlockVerdict, ForceLoopGains, ForceSupervisor, SupervisedMotion
+from ..core.geometry import Pose
+from ..core.process import set_parent_death_signal
+from ..core.safety import SafetyGuard, SafetyLimits
 from .ur_link import LinkMove, URLinkConfig, URState
 from .ur_primitives import URPrimitives
 
-PR_SET_PDEATHSIG = 1
 _ACTIVE = (MotionState.RUNNING,)
 
 
@@ -278,13 +276,6 @@ class SafetyLoop:
 
 
 # ====================================================================== hardware-process side
-def _set_parent_death_signal() -> None:
-    if sys.platform.startswith("linux"):
-        libc = ctypes.CDLL(None, use_errno=True)
-        if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
-            raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
-
-
 class _HardwareServer:
     """Everything that runs inside the hardware process."""
 
@@ -670,7 +661,7 @@ class _HardwareServer:
 
 def _hardware_main(conn: Any, cfg: HardwareConfig, parent_pid: int) -> None:
     """Entry point of the hardware process (spawned)."""
-    _set_parent_death_signal()
+    set_parent_death_signal()
     if os.getppid() != parent_pid:        # the parent died before prctl took effect
         os._exit(0)
     sys.setswitchinterval(0.0005)          # a woken safety thread gets the GIL promptly
@@ -887,7 +878,7 @@ class HardwareArm:
                          stop_reason=str(d["stop_reason"]))
 
     def inverse_kinematics(self, tcp_pose: Pose, seed_joints_rad: np.ndarray | None = None) -> np.ndarray | None:
-        from ..kinematics import inverse, ur5e
+        from ..core.kinematics import inverse, ur5e
 
         if self._model is None:
             self._model = ur5e(self._proc.cfg.flange_to_tcp, self._proc.cfg.joint_limits_rad)

@@ -30,9 +30,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..clock import Clock, RealClock
-from ..devices import DeviceIdentity, Scan
-from ..errors import DeviceError, DeviceTimeout, ProtocolError
+from ..core.clock import Clock, RealClock
+from ..core.devices import DeviceIdentity, Scan
+from ..core.errors import DeviceError, DeviceTimeout, ProtocolError
 
 SYNC = b"\xa5\x5a"
 LENGTH = struct.Struct("<I")

@@ -1,35 +1,34 @@
 """A Cell on the real drivers: the hardware process (arm + F/T + safety path) and the scanner.
 
-``build_real_cell(inputs, seed)`` is what ``controller.cellfactory.build_cell`` calls for
-cell kinds ``ur`` and ``loopback``:
+``build_real_cell`` is what the cell registry (``controller/cellfactory.py``) calls for cell
+kinds ``ur`` and ``loopback``:
 
 - ``ur``: connect to the robot at ``robot.host``, the Net F/T at ``ft.host`` and the
   scanner at ``scanner.url``.
-- ``loopback``: first start ``sim serve`` for this cell in a child process (it dies with
-  the controller), wait for its state file, then connect the same real drivers to it. The
-  plan's ``simulated_object`` (or the cell's object) is the world served, and the cell
-  can report its ground truth (the world is simulated even if the devices speak the
-  real protocols).
+- ``loopback``: the registry first starts the simulated servers for this cell
+  (``sim/servers/loopback.py``) and passes their addresses, their ground truth and a handle
+  that stops them; the same real drivers then connect to them.
 
 The scanner driver runs in the controller's process: it is not on the safety path.
 """
 from __future__ import annotations
 
-import os
-import shutil
-import tempfile
-import time
-from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from ..clock import RealClock
-from ..devices import GroundTruth
-from ..errors import DeviceError
-from ..geometry import Pose
+from ..core.clock import RealClock
+from ..core.devices import GroundTruth
+from ..core.geometry import Pose
 from .hardware import HardwareConfig, HardwareProcess
+from .line_scanner import SerialLineScanner
 from .ur_link import URLinkConfig
+
+
+class Stoppable(Protocol):
+    """What a loopback cell's served world offers its cell: stop it when the cell closes."""
+
+    def stop(self) -> None: ...
 
 
 class RealCell:
@@ -39,7 +38,7 @@ class RealCell:
 
     def __init__(self, hardware: HardwareProcess, scanner: Any, tcp_to_scanner: Pose, tcp_to_sensor: Pose,
                  base_to_object: Pose, ground_truth: GroundTruth | None = None,
-                 servers: "LoopbackServers | None" = None) -> None:
+                 servers: Stoppable | None = None) -> None:
         self.clock = RealClock()
         self.hardware = hardware
         self.arm = hardware.arm
@@ -68,54 +67,6 @@ class RealCell:
             self.servers.stop()
 
 
-class LoopbackServers:
-    """``sim serve`` in a spawned child process that dies with this one (PR_SET_PDEATHSIG)."""
-
-    def __init__(self, cell_path: Path, object_path: Path | None, seed: int, lifetime_s: float = 4 * 3600.0) -> None:
-        self.cell_path = Path(cell_path)
-        self.object_path = object_path
-        self.seed = int(seed)
-        self.lifetime_s = lifetime_s
-        self.run_dir = Path(tempfile.mkdtemp(prefix="elastoprobe-serve-"))
-        self.proc: Any = None
-        self.state: dict[str, Any] = {}
-
-    def start(self, timeout_s: float = 60.0) -> "LoopbackServers":
-        import multiprocessing as mp
-
-        from elastoprobe.sim.servers.serve import read_state, serve_child_main
-
-        ctx = mp.get_context("spawn")
-        self.proc = ctx.Process(target=serve_child_main, name="elastoprobe-sim-serve", daemon=True,
-                                args=(str(self.cell_path), None if self.object_path is None else str(self.object_path),
-                                      self.seed, str(self.run_dir), self.lifetime_s, os.getpid()))
-        self.proc.start()
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            state = read_state(self.run_dir)
-            if state is not None:
-                self.state = state
-                return self
-            if not self.proc.is_alive():
-                break
-            time.sleep(0.05)
-        why = ""
-        err = self.run_dir / "serve.error"
-        if err.exists():
-            why = ": " + err.read_text()
-        self.stop()
-        raise DeviceError(f"the loopback servers for {self.cell_path} did not start{why}")
-
-    def stop(self, timeout_s: float = 5.0) -> None:
-        if self.proc is not None and self.proc.is_alive():
-            self.proc.terminate()
-            self.proc.join(timeout_s)
-            if self.proc.is_alive():
-                self.proc.kill()
-                self.proc.join(2.0)
-        shutil.rmtree(self.run_dir, ignore_errors=True)
-
-
 def hardware_config(cell: Any, limits: Any, *, robot_host: str | None = None, ft_host: str | None = None,
                     rdt_port: int | None = None, calinfo_port: int | None = None,
                     link: URLinkConfig | None = None) -> HardwareConfig:
@@ -137,51 +88,26 @@ def hardware_config(cell: Any, limits: Any, *, robot_host: str | None = None, ft
                           joint_limits_rad=joint_limits, link=link, force_loop=cell.force_loop.gains())
 
 
-def _object_mesh(path: Path) -> Any:
-    if path.suffix.lower() in (".yaml", ".yml"):
-        from elastoprobe.sim.objects import load_object   # a described object: its mesh
+def build_real_cell(inputs: Any, object_mesh: Any, *, addresses: dict[str, Any] | None = None,
+                    ground_truth: GroundTruth | None = None, servers: Any = None) -> RealCell:
+    """A ``RealCell`` for a ``ur`` or ``loopback`` cell (see the module docstring).
 
-        return load_object(path).mesh
-    import trimesh
-
-    return trimesh.load(str(path), force="mesh")
-
-
-def build_real_cell(inputs: Any, seed: int, object_mesh: Any = None) -> Any:
-    """A ``BuiltCell`` for a ``ur`` or ``loopback`` cell (see the module docstring); ``object_mesh``:
-    the object's checked mesh (cellfactory.load_object_model), read from the cell's file when None."""
-    from ..cellfactory import BuiltCell
-    from .line_scanner import SerialLineScanner
-
+    ``object_mesh``: the object's checked mesh (cellfactory.load_object_model); ``addresses``:
+    a served world's ``robot_host``, ``ft_host``, ``rdt_port``, ``calinfo_port`` and
+    ``scanner_url`` in place of the cell file's; ``servers``: what to ``stop()`` when the cell
+    closes. On failure nothing started here is left running (the caller stops ``servers``)."""
     cell = inputs.cell
-    obj_path = inputs.object_file()
-    servers: LoopbackServers | None = None
-    overrides: dict[str, Any] = {}
-    scanner_url = cell.scanner.url
-    ground_truth = None
-    if cell.kind == "loopback":
-        servers = LoopbackServers(inputs.cell_path, obj_path, seed).start()
-        st = servers.state
-        overrides = {"robot_host": st["robot_host"], "ft_host": st["ft_host"], "rdt_port": st["rdt_port"],
-                     "calinfo_port": st["calinfo_port"]}
-        scanner_url = st["scanner_url"]
-        from elastoprobe.sim.cell import SimGroundTruth
-        from elastoprobe.sim.objects import load_object
-
-        ground_truth = SimGroundTruth(load_object(obj_path), cell.tool.tip_radius_mm)
-    elif cell.kind != "ur":
+    if cell.kind not in ("ur", "loopback"):
         raise ValueError(f"build_real_cell handles kinds 'ur' and 'loopback', not {cell.kind!r}")
+    addresses = dict(addresses or {})
+    scanner_url = addresses.pop("scanner_url", cell.scanner.url)
     hardware = None
     try:
-        hardware = HardwareProcess(hardware_config(cell, inputs.limits, **overrides)).start()
+        hardware = HardwareProcess(hardware_config(cell, inputs.limits, **addresses)).start()
         scanner = SerialLineScanner(scanner_url, RealClock(), timeout_s=2.0)
-        mesh = object_mesh if object_mesh is not None else _object_mesh(obj_path)
     except BaseException:
         if hardware is not None:
             hardware.close()
-        if servers is not None:
-            servers.stop()
         raise
-    real = RealCell(hardware, scanner, cell.tool.tcp_to_scanner.pose(), cell.tool.tcp_to_sensor.pose(),
+    return RealCell(hardware, scanner, cell.tool.tcp_to_scanner.pose(), cell.tool.tcp_to_sensor.pose(),
                     cell.object.base_to_object.pose(), ground_truth, servers)
-    return BuiltCell(cell=real, object_mesh=mesh)

@@ -8,7 +8,7 @@ reached at the commanded acceleration, a stop at ``stop_decel_mm_s2`` — each t
 ``command_delay_s`` after it was sent, as a real robot's does.
 
 It is driven like the real cell's hardware process drives the supervisor: every F/T sample
-block goes through :class:`~elastoprobe.controller.safety.SafetyGuard` and
+block goes through :class:`~elastoprobe.controller.core.safety.SafetyGuard` and
 :meth:`ForceSupervisor.on_block` (a stop acts at that sample), and the control path
 (:meth:`ForceSupervisor.on_tick`) runs every ``tick_s``; time is the given VirtualClock's.
 
@@ -23,12 +23,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..clock import VirtualClock
-from ..devices import ArmStatus, DeviceIdentity, Motion, MotionState, Trip, WrenchBlock
-from ..errors import MotionRefused
-from ..forceloop import ForceLoopGains, ForceSupervisor, SupervisedMotion
-from ..geometry import Pose
-from ..safety import SafetyGuard, SafetyLimits
+from ..core.clock import VirtualClock
+from ..core.devices import ArmStatus, DeviceIdentity, Motion, MotionState, Trip, WrenchBlock
+from ..core.errors import MotionRefused
+from ..core.forceloop import ForceLoopGains, ForceSupervisor, SupervisedMotion
+from ..core.geometry import Pose
+from ..core.safety import SafetyGuard, SafetyLimits
 
 
 @dataclass

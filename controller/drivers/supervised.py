@@ -8,7 +8,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from ..errors import DeviceError
+from ..core.errors import DeviceError
 
 
 def await_ready(proc: Any, conn: Any, timeout_s: float, what: str) -> dict[str, Any]:

@@ -29,16 +29,13 @@ speeds m/s, accelerations m/s^2, base frame. Convert with ``Pose.from_ur``/``to_
 from __future__ import annotations
 
 import collections
-import ctypes
 import importlib.metadata
 import math
 import multiprocessing as mp
 import multiprocessing.connection
 import os
 import re
-import signal
 import struct
-import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -46,11 +43,11 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import DeviceError, DeviceTimeout, ProgramNotRunning
+from ..core.errors import DeviceError, DeviceTimeout, ProgramNotRunning
+from ..core.process import set_parent_death_signal
 from .supervised import await_ready, kill_child
 
 UR_RTDE_VERSION = "1.6.5"
-PR_SET_PDEATHSIG = 1
 
 # Safety status bits (RTDE safety_status_bits).
 SAFETY_BIT_PROTECTIVE_STOPPED = 2
@@ -266,15 +263,6 @@ def parse_program_state(reply: str) -> str:
 
 
 # ====================================================================== child side
-def _set_parent_death_signal() -> None:
-    """Linux: have the kernel SIGKILL this process when its parent dies."""
-    if not sys.platform.startswith("linux"):
-        return
-    libc = ctypes.CDLL(None, use_errno=True)
-    if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
-        raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
-
-
 def check_ur_rtde_version() -> str:
     """The installed ur_rtde version; raises DeviceError unless it is exactly 1.6.5."""
     try:
@@ -654,7 +642,7 @@ class _ChildLink:
 def _child_main(conn: Any, host: str, cfg: URLinkConfig, heartbeat: Any, parent_pid: int,
                 stop_conn: Any = None) -> None:
     """Entry point of the child process (spawned)."""
-    _set_parent_death_signal()
+    set_parent_death_signal()
     if os.getppid() != parent_pid:     # the parent died before prctl took effect
         os._exit(0)
     link: _ChildLink | None = None

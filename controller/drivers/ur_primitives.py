@@ -1,6 +1,6 @@
 """The UR arm's motion primitives over the link, in the controller's units, with ur_rtde's thread rule.
 
-What the force loop's supervisor (controller/forceloop.py) commands a UR with: a straight move
+What the force loop's supervisor (controller/core/forceloop.py) commands a UR with: a straight move
 (moveL, asynchronous), a speed command (speedL) and a stop. ur_rtde 1.6.5's control script runs
 speedL in a thread of its own, which a moveL does not stop and a stopL does not reach: a moveL
 or a stopL while it runs makes a second thread command the robot, and URScript halts the

@@ -1,8 +1,8 @@
-"""Point clouds of the object: loading, table removal, normals, curvature, registration (DESIGN §7).
+"""Point clouds of the object: loading, table removal, normals, curvature, registration (docs/design.md §7).
 
 Units and frames: points in mm (N,3) float arrays in whatever frame they were given
 (base or object frame); normals are unit vectors in the same frame. Curvature is the
-dimensionless PCA surface variation. Poses are ``elastoprobe.controller.geometry.Pose``
+dimensionless PCA surface variation. Poses are ``elastoprobe.controller.core.geometry.Pose``
 (``parent <- child``, mm).
 
 Everything random takes a seed, so the same input gives the same bytes.
@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..errors import InputError
-from ..geometry import Pose, rotvec_to_matrix
+from ..core.errors import InputError
+from ..core.geometry import Pose, rotvec_to_matrix
 
 _PCA_CHUNK = 131_072  # neighbourhoods per chunk: bounds memory at ~chunk*k*3 doubles
 # A neighbourhood whose second PCA eigenvalue is under this fraction of its largest is a

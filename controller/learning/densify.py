@@ -1,4 +1,4 @@
-"""Densification: probe again where adjacent region models disagree (DESIGN §2, §7).
+"""Densification: probe again where adjacent region models disagree (docs/design.md §2, §7).
 
 Score of a surface-graph edge whose ends carry different region labels: how far apart
 the two regions' models put the profile at the survey probe settings, relative to what

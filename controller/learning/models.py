@@ -52,7 +52,7 @@ from typing import Any
 
 import numpy as np
 
-from ..atomic import atomic_write_bytes, atomic_write_json
+from ..core.atomic import atomic_write_bytes, atomic_write_json
 from .profiles import depth_scale_mm
 
 FORMAT = "elastoprobe.region_model/1"

@@ -1,4 +1,4 @@
-"""Neural gas (Martinetz, Berkovich, Schulten 1993) over a point cloud: where to probe (DESIGN §7).
+"""Neural gas (Martinetz, Berkovich, Schulten 1993) over a point cloud: where to probe (docs/design.md §7).
 
 Online NG moves every unit j toward a sample x by
 ``dw_j = eps(t) * exp(-k_j / lam(t)) * (x - w_j)``, k_j the rank of unit j by distance

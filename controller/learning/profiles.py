@@ -18,7 +18,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..geometry import Pose
+from ..core.geometry import Pose
 
 # A gap between two valid samples wider than this many sample spacings is not
 # bridged by interpolation: the surface there was not seen (shadow, dark texture).

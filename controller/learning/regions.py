@@ -1,4 +1,4 @@
-"""Regions of similar elasticity from the survey (DESIGN §2, §7; the paper's clusters).
+"""Regions of similar elasticity from the survey (docs/design.md §2, §7; the paper's clusters).
 
 Input: per surveyed point a feature vector from the cheap probes (see
 :func:`survey_features`: peak depth and dent width at each survey force, compliance
@@ -37,15 +37,9 @@ from typing import Any
 
 import numpy as np
 
+from ..core.config import MIN_CONTRAST
+
 _MAX_ICM_PASSES = 20
-# Regions of different elasticity differ in survey depth by at least this factor (the
-# composite's box and foam: ~10x; the user object's halves: ~25x). Within one material
-# the dent varies by more than geometry's ~1.3x: how the material is supported matters.
-# The composite's box top, clamped by its walls, dents 2.3x deeper at its centre than
-# 15 mm from a wall; neural-gas units gather by the walls, so the mixture often cuts the
-# top into a centre and a rim with medians ~1.9x apart. A plan probing materials that
-# differ by less sets phases.survey.min_contrast lower.
-MIN_CONTRAST = 2.5
 # The floor under log peak depths when the plan's noise is not known (mm): a dent this
 # shallow is about the standard error of an averaged survey profile.
 DEFAULT_LOG_FLOOR_MM = 0.005

@@ -1,4 +1,4 @@
-"""Distances along the scanned surface, and the region map they give (DESIGN §2 "region map
+"""Distances along the scanned surface, and the region map they give (docs/design.md §2 "region map
 over the cloud", §7).
 
 A probe labels one point; the rest of the cloud takes the label of the probed point it is

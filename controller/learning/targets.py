@@ -1,4 +1,4 @@
-"""From neural gas units to probe targets on the surface (DESIGN §2, §3, §7).
+"""From neural gas units to probe targets on the surface (docs/design.md §2, §3, §7).
 
 A unit is a point in space near the cloud. Its target is a point ON the surface with
 an outward normal and a scan direction t. Units on a sharp edge mark where to look,
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..geometry import scan_direction
+from ..core.geometry import scan_direction
 
 
 @dataclass(frozen=True)
@@ -215,7 +215,7 @@ def _clear_point_nearby(surf: _Surface, unit_mm: np.ndarray) -> int | None:
 
 def scan_frames(normals: np.ndarray, reference_dir: np.ndarray) -> np.ndarray:
     """Scan directions t (N,3): the reference direction (3,) or per target (N,3) projected
-    on each tangent plane (geometry.scan_direction, the fixed rule of DESIGN §3)."""
+    on each tangent plane (geometry.scan_direction, the fixed rule of docs/design.md §3)."""
     nrm = np.asarray(normals, dtype=float).reshape(-1, 3)
     ref = np.broadcast_to(np.asarray(reference_dir, dtype=float), nrm.shape)
     return np.array([scan_direction(n, r) for n, r in zip(nrm, ref)]).reshape(-1, 3)

@@ -35,6 +35,8 @@ from typing import Any
 
 import numpy as np
 
+from elastoprobe.controller.core.process import set_parent_death_signal
+
 STATE_FILE = "serve.json"
 DEFAULT_LIFETIME_S = 4 * 3600.0
 SERVE_NICE = -10             # niceness of a loopback cell's served world (best effort)
@@ -188,8 +190,8 @@ def main_serve(cell_path: str | Path, seed: int, run_dir: str | Path | None = No
                lifetime_s: float = DEFAULT_LIFETIME_S) -> int:
     """CLI entry: ``elastoprobe sim serve [--cell CELL] [--seed N]``. Exit 0 on a clean stop,
     2 on a bad cell file (``path:line:col: message``)."""
-    from elastoprobe.controller.config import DEFAULT_CELL, load_cell
-    from elastoprobe.controller.errors import InputError
+    from elastoprobe.controller.core.config import DEFAULT_CELL, load_cell
+    from elastoprobe.controller.core.errors import InputError
 
     cell_path = Path(cell_path) if cell_path is not None else DEFAULT_CELL
     try:
@@ -225,10 +227,9 @@ def _announce(ready: threading.Event, stop: threading.Event, run_dir: str | Path
 def serve_child_main(cell_path: str, object_path: str | None, seed: int, run_dir: str, lifetime_s: float,
                      parent_pid: int) -> None:
     """Entry of a ``spawn``-ed serve process that dies with its parent (the loopback cell)."""
-    from elastoprobe.controller.config import load_cell
-    from elastoprobe.controller.drivers.hardware import _set_parent_death_signal
+    from elastoprobe.controller.core.config import load_cell
 
-    _set_parent_death_signal()
+    set_parent_death_signal()
     if os.getppid() != parent_pid:
         os._exit(0)
     try:

@@ -20,7 +20,7 @@ from typing import Callable, Protocol, runtime_checkable
 
 import numpy as np
 
-from elastoprobe.controller.geometry import matrix_to_rotvec, rotvec_to_matrix
+from elastoprobe.controller.core.geometry import matrix_to_rotvec, rotvec_to_matrix
 
 
 @runtime_checkable
@@ -120,13 +120,13 @@ def trapezoid_position(length: float, speed: float, accel: float, tau_s: float) 
 
 def _load_kinematics() -> tuple[Callable[[np.ndarray], np.ndarray] | None,
                                 Callable[[np.ndarray, np.ndarray], np.ndarray | None] | None]:
-    """(forward, inverse) in ur units from elastoprobe.controller.kinematics, if present.
+    """(forward, inverse) in ur units from elastoprobe.controller.core.kinematics, if present.
 
     forward(q_rad) -> pose_ur; inverse(pose_ur, seed_q_rad) -> q_rad or None.
     """
     try:
-        from elastoprobe.controller import kinematics as kin  # written concurrently by another engineer
-        from elastoprobe.controller.geometry import Pose
+        from elastoprobe.controller.core import kinematics as kin  # written concurrently by another engineer
+        from elastoprobe.controller.core.geometry import Pose
         model = kin.ur5e()
     except Exception:  # noqa: BLE001 — absent or not ready: work with poses only
         return None, None
@@ -152,7 +152,7 @@ def _load_kinematics() -> tuple[Callable[[np.ndarray], np.ndarray] | None,
 class KinematicBackend:
     """A real-time TCP mover without dynamics or contact: trapezoidal straight-line moves,
     speedL with an acceleration limit, stops at a deceleration. Joint angles come from
-    ``elastoprobe.controller.kinematics`` when it is available (else the last seed).
+    ``elastoprobe.controller.core.kinematics`` when it is available (else the last seed).
 
     ``initial_pose_ur``: start pose [m, rad]. ``t0_s``: the time of that state.
     """
@@ -195,7 +195,7 @@ class KinematicBackend:
 
     def move_joint(self, q_rad: np.ndarray, speed_rad_s: float, accel_rad_s2: float) -> None:
         if self._forward is None:
-            raise NotImplementedError("moveJ needs elastoprobe.controller.kinematics")
+            raise NotImplementedError("moveJ needs elastoprobe.controller.core.kinematics")
         q0 = self.joints_rad().copy()
         q1 = np.asarray(q_rad, dtype=float)
         lead = float(np.max(np.abs(q1 - q0)))

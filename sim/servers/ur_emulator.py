@@ -45,7 +45,7 @@ from typing import Callable
 
 import numpy as np
 
-from elastoprobe.controller.geometry import Pose
+from elastoprobe.controller.core.geometry import Pose
 
 from .ur_backend import ArmBackend, KinematicBackend  # noqa: F401  (re-exported)
 from .ur_rtde_protocol import (

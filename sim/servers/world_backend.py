@@ -33,9 +33,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from elastoprobe.controller.errors import MotionRefused
-from elastoprobe.controller.geometry import Pose
-from elastoprobe.controller.safety import SafetyLimits
+from elastoprobe.controller.core.errors import MotionRefused
+from elastoprobe.controller.core.geometry import Pose
+from elastoprobe.controller.core.safety import SafetyLimits
 
 from ..cell import SimCell, SimCellParams
 from ..world import US_PER_S

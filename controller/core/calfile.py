@@ -28,10 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from elastoprobe.controller.atomic import atomic_write_json
-from elastoprobe.controller.geometry import Pose
-
-from .common import CalibrationError
+from .atomic import atomic_write_json
+from .errors import CalibrationError
+from .geometry import Pose
 
 FORMAT = "elastoprobe-calibration"
 FORMAT_VERSION = 1
@@ -155,15 +154,14 @@ class Corrections:
     def apply_to(self, cell_spec):  # noqa: ANN001, ANN201 — controller.config.CellSpec in and out
         """A copy of the cell spec with the calibration in place (tool frames, tool shapes kept
         fixed on the flange, payload, object placement)."""
-        from elastoprobe.controller.config import PoseSpec
-
         tool = cell_spec.tool
+        pose_spec = type(tool.flange_to_tcp)    # config.PoseSpec, taken from the spec given
         old_f2t = tool.flange_to_tcp.pose()
         frames = self.tool_frames(old_f2t, tool.tcp_to_scanner.pose(), tool.tcp_to_sensor.pose())
         new_from_old = frames["flange_to_tcp"].inverse().compose(old_f2t)   # new tcp <- old tcp
 
-        def spec(pose: Pose) -> PoseSpec:
-            return PoseSpec(position_mm=tuple(float(v) for v in pose.position_mm),
+        def spec(pose: Pose) -> Any:
+            return pose_spec(position_mm=tuple(float(v) for v in pose.position_mm),
                             rpy_deg=matrix_to_rpy_deg(pose.rotation))
 
         shapes = [s.model_copy(update={"pose": spec(new_from_old.compose(s.pose.pose()))}) for s in tool.shapes]

@@ -17,15 +17,25 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
+from .calfile import believed_cell
 from .errors import InputError, InputErrors
 from .forceloop import ForceLoopGains
 from .geometry import NINE_ANGLES_DEG, Pose, rotvec_to_matrix
-from .learning.regions import MIN_CONTRAST
 from .safety import SafetyLimits
 from .yamlio import Spec, YamlDoc, load_validated
 
 Vec3 = tuple[float, float, float]
 PositiveFloat = Annotated[float, Field(gt=0)]
+
+
+# Regions of different elasticity differ in survey depth by at least this factor (the
+# composite's box and foam: ~10x; the user object's halves: ~25x). Within one material
+# the dent varies by more than geometry's ~1.3x: how the material is supported matters.
+# The composite's box top, clamped by its walls, dents 2.3x deeper at its centre than
+# 15 mm from a wall; neural-gas units gather by the walls, so the mixture often cuts the
+# top into a centre and a rim with medians ~1.9x apart. A plan probing materials that
+# differ by less sets phases.survey.min_contrast lower.
+MIN_CONTRAST = 2.5
 
 
 def rpy_deg_to_matrix(rpy_deg: Vec3) -> np.ndarray:
@@ -162,7 +172,7 @@ class LimitsSpec(Spec):
 
 
 class ForceLoopSpec(Spec):
-    """The contact search's and the force loop's tuning (controller/forceloop.py): one set for
+    """The contact search's and the force loop's tuning (controller/core/forceloop.py): one set for
     every backend, the simulated cell and the real arm alike.
 
     ``gain`` is the fraction of the force error corrected per period and ``integral_per_s``
@@ -505,7 +515,7 @@ def load_plan(path: str | Path) -> tuple[PlanSpec, YamlDoc]:
     return load_validated(path, PlanSpec)
 
 
-DEFAULT_CELL = Path(__file__).resolve().parent.parent / "config" / "cells" / "sim.yaml"
+DEFAULT_CELL = Path(__file__).resolve().parents[2] / "config" / "cells" / "sim.yaml"
 
 
 def load_session_inputs(plan_path: str | Path, cell_path: str | Path | None = None) -> SessionInputs:
@@ -514,7 +524,6 @@ def load_session_inputs(plan_path: str | Path, cell_path: str | Path | None = No
     if cell_path is None:
         cell_path = (Path(plan_path).parent / plan.cell) if plan.cell else DEFAULT_CELL
     cell_file, cell_doc = load_cell(cell_path)
-    from elastoprobe.calibration.calfile import believed_cell   # lazy: calibration imports controller
 
     cell, _ = believed_cell(cell_file, cell_path)
     errors: list[InputError] = []

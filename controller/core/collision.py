@@ -1,6 +1,6 @@
 """Motion validation against the cell: the tool's shapes (probe, F/T sensor, scanner,
 flange) against the object mesh, the keep-out boxes and the workspace, along a whole
-straight-line move and not only at its end (DESIGN §5).
+straight-line move and not only at its end (docs/design.md §5).
 
 Frames and units: mm; ``base`` is the robot base, poses are ``base <- tcp``; tool
 shapes are given in the TCP frame (+z from the flange toward the tip, the TCP at the

@@ -202,3 +202,16 @@ def probe_tcp_pose(point_mm: np.ndarray, normal: np.ndarray, t: np.ndarray, angl
     rotation = np.column_stack([x, y, z])
     u = -z
     return Pose(np.asarray(point_mm, dtype=float) + offset_mm * u, rotation)
+
+
+def scan_points_base(scans_xz_mm: np.ndarray, poses: np.ndarray, tcp_to_scanner: Pose) -> np.ndarray:
+    """Scanner-frame profiles (S, L, 2) at TCP poses (S, 6) -> base-frame points (M, 3), NaN dropped."""
+    out = []
+    for xz, pose6 in zip(scans_xz_mm, poses):
+        ok = np.isfinite(xz[:, 1]) & np.isfinite(xz[:, 0])
+        if not ok.any():
+            continue
+        local = np.column_stack([xz[ok, 0], np.zeros(int(ok.sum())), xz[ok, 1]])
+        base_scanner = Pose.from_list(pose6).compose(tcp_to_scanner)
+        out.append(base_scanner.apply(local))
+    return np.vstack(out) if out else np.zeros((0, 3))

@@ -167,7 +167,7 @@ class Arm(Protocol):
 
     ``move_linear`` and ``stop`` are the device's primitives; ``seek_contact`` and
     ``regulate_force`` are the force loop's skills
-    (:class:`~elastoprobe.controller.forceloop.ForceSupervisor`), run on the device's
+    (:class:`~elastoprobe.controller.core.forceloop.ForceSupervisor`), run on the device's
     primitives (a speed command, a stop) with the cell's ``force_loop`` gains wherever the
     device's data arrives: in virtual time in the simulated cell, in the hardware process
     on the real one.

@@ -88,3 +88,16 @@ class MotionRefused(ElastoprobeError):
 
 class SafetyTrip(ElastoprobeError):
     """A safety limit was crossed; the arm has been stopped."""
+
+
+class CalibrationError(ElastoprobeError):
+    """A calibration was refused: degenerate or too few poses, or a poor fit (the reason says which)."""
+
+
+class SessionAborted(Exception):
+    """The fault policy said abort (exit 1)."""
+
+
+class BudgetSpent(Exception):
+    """The plan's step or robot-time budget is used up: the session wraps up what it has."""
+

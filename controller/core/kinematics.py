@@ -1,5 +1,5 @@
 """UR5e-like arm kinematics: forward, analytic inverse (8 branches), straight-line
-(moveL) joint paths, trapezoidal timing and the Jacobian (DESIGN §5, §8).
+(moveL) joint paths, trapezoidal timing and the Jacobian (docs/design.md §5, §8).
 
 Frames and units:
 - base: the robot base frame of the UR standard DH convention (what the UR

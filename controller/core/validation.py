@@ -1,4 +1,4 @@
-"""Motion validation before anything is sent (DESIGN §5).
+"""Motion validation before anything is sent (docs/design.md §5).
 
 A straight TCP path is accepted only if inverse kinematics exists along it within
 the joint limits without a branch flip (what moveL can execute) and the tool's
