@@ -457,9 +457,25 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
                 fate["repeat_of_fault_id"] = earlier[-1].get("fault_id")
             earlier.append(fate)
         fates[ident] = earlier
+        if rec.get("follows") and fate["fate"] in ("recovered", "paused") and "fault_id" in fate:
+            _supersede(fates, rec["follows"], ident[1], run_id, fate["fault_id"])
     other = [f for f in faults if f.fault_id not in claimed]
     return {"fates": [f for group in fates.values() for f in group], "raw_injections": len(injected),
             "journaled_other": _histogram(f.kind for f in other)}
+
+
+def _supersede(fates: dict[tuple, list[dict[str, Any]]], kind: str, key: tuple, run_id: int | None,
+               fault_id: int) -> None:
+    """A follow-up fault struck before the controller could see the one it follows (a scanner
+    timeout is seen only when the burst's deadline passes): the follow-up was journaled and
+    recovered, and its retry repeated the work the first one spoiled. The first is judged
+    recovered by that retry, not undetected."""
+    for group in fates.values():
+        for fate in reversed(group):
+            if fate["kind"] == kind and tuple(fate["key"]) == key and fate["run_id"] == run_id \
+                    and fate["fate"] == "undetected":
+                fate.update(fate="recovered", superseded_by=fault_id)
+                return
 
 
 def journaled_match(rec: dict[str, Any], run_id: int | None, faults: list[Any], run_of_fault: dict[int, int],

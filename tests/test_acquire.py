@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from elastoprobe.controller import phases
 from elastoprobe.controller.acquire import SweepSettings, acquire_cloud, line_footprint_mm, sweep_lines
 from elastoprobe.controller.cellfactory import ground_truth_for
 from elastoprobe.controller.cli import main
@@ -191,12 +192,24 @@ def test_top_surface_is_what_is_seen_from_above_within_the_tilt():
     assert seen_mask(pts, pts + [0.0, 0.0, 1.9]).all() and not seen_mask(pts, pts + [0.0, 0.0, 2.1]).any()
 
 
-def test_session_journals_and_reports_the_unseen_area(tmp_path: Path):
+def _pause_after_the_cloud(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The operator asks for a pause as the cloud phase ends (a request before the run would
+    pause the sweep itself, before the cloud is committed)."""
+    sweep = phases.phase_cloud
+
+    def cloud_then_pause(ctx: phases.PhaseContext) -> None:
+        sweep(ctx)
+        ctx.session.flags.pause_requested = True
+
+    monkeypatch.setattr(phases, "phase_cloud", cloud_then_pause)
+
+
+def test_session_journals_and_reports_the_unseen_area(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     # The user object on the default cell: one raster line has the scanner in the robot's
-    # column and is planned again. Paused at the first step: the cloud phase is committed.
+    # column and is planned again. Paused after the cloud phase: it is committed.
     inputs = load_session_inputs(ROOT / "config" / "plans" / "user_object.yaml")
     session = Session(inputs, tmp_path / "s", seed=1)
-    session.flags.pause_requested = True
+    _pause_after_the_cloud(monkeypatch)
     assert session.run() == EXIT_PAUSED
     with Journal.open_readonly(tmp_path / "s") as j:
         sweep = j.phase("cloud", 0).outputs["sweep"]
@@ -209,7 +222,7 @@ def test_session_journals_and_reports_the_unseen_area(tmp_path: Path):
     assert cloud["coverage"] == sweep["coverage"] and cloud["lines_replanned"] == len(sweep["lines_replanned"])
 
 
-def test_a_generated_object_is_covered_on_its_true_surface(tmp_path: Path):
+def test_a_generated_object_is_covered_on_its_true_surface(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     # An object nobody tuned for (the suite's seed 1006, a dome, docs/generated_objects.md)
     # with the plan the rule gives it: its raster line nearest the robot's column has the
     # scanner in the column and is planned again (skipped, with lines a scanner's width and
@@ -218,7 +231,7 @@ def test_a_generated_object_is_covered_on_its_true_surface(tmp_path: Path):
     assert main(["sim", "object", "--seed", "1006", "--out", str(tmp_path / "obj")]) == 0
     inputs = load_session_inputs(tmp_path / "obj" / "plan.yaml")
     session = Session(inputs, tmp_path / "s", seed=1)
-    session.flags.pause_requested = True
+    _pause_after_the_cloud(monkeypatch)
     assert session.run() == EXIT_PAUSED
     with Journal.open_readonly(tmp_path / "s") as j:
         cloud = j.phase("cloud", 0)
