@@ -40,9 +40,9 @@ from typing import Any
 import numpy as np
 
 from elastoprobe.controller.core.devices import Trip, WrenchBlock
-from elastoprobe.controller.drivers.hardware import SafetyLoop, StopFirstGuard
 from elastoprobe.controller.core.forceloop import BlockVerdict, ForceLoopGains, ForceSupervisor
 from elastoprobe.controller.core.safety import SafetyLimits
+from elastoprobe.controller.drivers.hardware import SafetyLoop, StopFirstGuard
 
 RDT_RECORD = struct.Struct(">III6i")      # rdt_sequence, ft_sequence, status, Fx Fy Fz Tx Ty Tz counts
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)     # Linux

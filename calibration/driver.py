@@ -15,9 +15,9 @@ from elastoprobe.controller.core.devices import Cell, MotionState, Scan, WrenchB
 from elastoprobe.controller.core.errors import MotionRefused
 from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.controller.core.kinematics import ur5e
+from elastoprobe.controller.core.validation import PathValidator
 from elastoprobe.controller.machine import SessionMachine
 from elastoprobe.controller.probe import ProbeExecutor, ProbeFault, ProbeSettings
-from elastoprobe.controller.core.validation import PathValidator
 
 
 def build_validator(cell_spec, cell: Cell, obstacle_mesh_base=None,  # noqa: ANN001 — config.CellSpec, trimesh

@@ -25,9 +25,9 @@ import numpy as np
 import trimesh
 
 from .core.collision import ToolShape
-from .coverage import SEEN_WITHIN_MM, TopSurface, seen_mask, top_surface, unseen_patches
 from .core.errors import MotionRefused
 from .core.geometry import Pose, probe_tcp_pose, rotvec_to_matrix, scan_points_base
+from .coverage import SEEN_WITHIN_MM, TopSurface, seen_mask, top_surface, unseen_patches
 from .probe import ProbeExecutor
 
 UP = np.array([0.0, 0.0, 1.0])

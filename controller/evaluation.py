@@ -19,14 +19,14 @@ import numpy as np
 
 from .core.errors import InputError
 from .core.geometry import INTERIOR_ANGLES_DEG, scan_direction
-from .journal import Journal
 from .core.kinematics import inverse
+from .core.validation import arm_model_for
+from .journal import Journal
 from .learning import evaluate as ev
 from .learning.models import OutOfRange, RegionModel, ServedProfile
 from .learning.support import SUPPORT_NAMES
 from .predict import served_models
 from .probe import standoff_pose
-from .core.validation import arm_model_for
 
 REACH_CELL_MM = 10.0
 

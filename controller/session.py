@@ -225,9 +225,9 @@ class Session:
         step maps onto the same material again. A poor fit pauses the session: a person
         has to look at a cell where something moved.
         """
+        from .core.validation import build_validator
         from .phases import SWEEP_STEP_KEY, remove_table_below
         from .placement import reregister
-        from .core.validation import build_validator
 
         assert self.journal is not None and self.cell is not None
         j, cell, plan = self.journal, self.cell, self.inputs.plan

@@ -16,16 +16,16 @@ from elastoprobe.controller.cellfactory import ground_truth_for
 from elastoprobe.controller.cli import main
 from elastoprobe.controller.core.collision import Box, SceneChecker, boxes_from_cell, shapes_from_cell
 from elastoprobe.controller.core.config import load_cell, load_session_inputs
-from elastoprobe.controller.coverage import seen_mask, top_surface
 from elastoprobe.controller.core.geometry import Pose, probe_tcp_pose
-from elastoprobe.controller.journal import Journal
 from elastoprobe.controller.core.kinematics import ur5e
+from elastoprobe.controller.core.validation import PathValidator
+from elastoprobe.controller.coverage import seen_mask, top_surface
+from elastoprobe.controller.journal import Journal
 from elastoprobe.controller.learning.evaluate import truth_surface_scores
 from elastoprobe.controller.machine import SessionMachine
 from elastoprobe.controller.probe import ProbeExecutor, ProbeSettings
 from elastoprobe.controller.session import EXIT_PAUSED, Session
 from elastoprobe.controller.status import snapshot
-from elastoprobe.controller.core.validation import PathValidator
 from elastoprobe.sim.objects import SimObject, load_object
 
 from test_sim_helpers import go_to, make_cell

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from ruamel.yaml import YAML
 
-from elastoprobe.controller.core.calfile import pose_list, utc_now, write_section
 from elastoprobe.controller.cellfactory import build_cell
+from elastoprobe.controller.core.calfile import pose_list, utc_now, write_section
 from elastoprobe.controller.core.config import load_cell, load_session_inputs
 from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.controller.provenance import calibration_entry, sha256_file

@@ -11,8 +11,8 @@ import pytest
 
 from elastoprobe.controller.core.calfile import (Corrections, check_calibration, load_calibration, matrix_to_rpy_deg,
                                              pose_list, read_document, write_section)
-from elastoprobe.controller.core.errors import CalibrationError
 from elastoprobe.controller.core.config import load_cell, rpy_deg_to_matrix
+from elastoprobe.controller.core.errors import CalibrationError
 from elastoprobe.controller.core.geometry import Pose, rotvec_to_matrix
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -4,11 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from elastoprobe.controller.core.errors import CalibrationError
 from elastoprobe.calibration.ft_payload import GravityCompensator, PayloadModel, gravity_in_sensor, solve_payload
 from elastoprobe.calibration.scanner_sphere import SphereProfile, fit_circle, solve_scanner_sphere
 from elastoprobe.calibration.tcp_pivot import solve_pivot, solve_sphere_touches
 from elastoprobe.controller.core.devices import WrenchBlock
+from elastoprobe.controller.core.errors import CalibrationError
 from elastoprobe.controller.core.geometry import Pose, rotvec_to_matrix
 
 

@@ -13,12 +13,12 @@ import pytest
 from elastoprobe.controller.core.clock import VirtualClock
 from elastoprobe.controller.core.config import load_cell
 from elastoprobe.controller.core.devices import MotionState, Trip
-from elastoprobe.controller.drivers.real_cell import hardware_config
-from elastoprobe.controller.drivers.scripted import ScriptedArm
 from elastoprobe.controller.core.errors import InputError
 from elastoprobe.controller.core.forceloop import ForceLoopGains, ForceSupervisor, SupervisedMotion, Verdict
 from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.controller.core.safety import SafetyLimits
+from elastoprobe.controller.drivers.real_cell import hardware_config
+from elastoprobe.controller.drivers.scripted import ScriptedArm
 
 from test_sim_helpers import make_cell, press
 

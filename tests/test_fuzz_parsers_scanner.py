@@ -9,8 +9,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from elastoprobe.controller.drivers.line_scanner import MAX_POINTS, SYNC, FrameParser, decode_frame
 from elastoprobe.controller.core.errors import ProtocolError
+from elastoprobe.controller.drivers.line_scanner import MAX_POINTS, SYNC, FrameParser, decode_frame
 
 pytestmark = pytest.mark.timeout(240)
 # Hypothesis itself costs ~1 ms per example: one property per file keeps each file fast.

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from elastoprobe.controller.core.devices import MotionState, WrenchBlock
+from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.controller.drivers.hardware import DeviceTimebase
 from elastoprobe.controller.drivers.ur_link import URLinkConfig
-from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.sim.servers.world_backend import resample_profile
 from test_loopback_rig import make_rig, wait_for, wait_motion
 

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from elastoprobe.controller.core.devices import MotionState
-from elastoprobe.controller.drivers.line_scanner import SerialLineScanner
 from elastoprobe.controller.core.errors import DeviceError, DeviceTimeout
 from elastoprobe.controller.core.geometry import Pose
+from elastoprobe.controller.drivers.line_scanner import SerialLineScanner
 from test_loopback_rig import make_rig, wait_for, wait_motion
 
 TESTS = Path(__file__).resolve().parent
@@ -29,10 +29,10 @@ CONTROLLER = textwrap.dedent("""
     import numpy as np
     from dataclasses import replace
     from elastoprobe.controller.core.devices import MotionState
+    from elastoprobe.controller.core.geometry import Pose
     from elastoprobe.controller.drivers.hardware import HardwareProcess
     from elastoprobe.controller.drivers.real_cell import hardware_config
     from elastoprobe.controller.drivers.ur_link import URLinkConfig
-    from elastoprobe.controller.core.geometry import Pose
     from test_loopback_rig import cell_on, wait_motion
 
     if __name__ == "__main__":

@@ -25,9 +25,9 @@ import pytest
 
 from elastoprobe.controller.core.config import load_cell
 from elastoprobe.controller.core.devices import MotionState
-from elastoprobe.controller.drivers.ur_link import URLink, URLinkConfig
 from elastoprobe.controller.core.errors import DeviceError
 from elastoprobe.controller.core.geometry import Pose
+from elastoprobe.controller.drivers.ur_link import URLink, URLinkConfig
 from elastoprobe.sim.cell import SimCell, params_from_cell
 from elastoprobe.sim.servers.ur_backend import KinematicBackend
 from elastoprobe.sim.servers.ur_emulator import Cmd, UREmulator

@@ -16,10 +16,10 @@ import numpy as np
 
 from elastoprobe.controller.core.config import CellSpec, load_cell
 from elastoprobe.controller.core.devices import Motion, MotionState
+from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.controller.drivers.hardware import HardwareConfig, HardwareProcess
 from elastoprobe.controller.drivers.real_cell import hardware_config
 from elastoprobe.controller.drivers.ur_link import URLinkConfig
-from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.sim.servers.serve import ServedCell, start_servers
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from elastoprobe.controller.core.errors import CalibrationError
 from elastoprobe.calibration.object_registration import register_object
+from elastoprobe.controller.core.errors import CalibrationError
 from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.sim.objects import load_object
 

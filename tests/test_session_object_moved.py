@@ -19,9 +19,9 @@ import pytest
 from test_session_faults import _run, _setup
 from test_session_util import outcome
 
+from elastoprobe.controller.core.config import load_session_inputs
 from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.controller.journal import Journal
-from elastoprobe.controller.core.config import load_session_inputs
 from elastoprobe.controller.session import EXIT_DONE, EXIT_PAUSED, Session
 
 

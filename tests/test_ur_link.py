@@ -17,9 +17,9 @@ from typing import Callable, Iterator
 import numpy as np
 import pytest
 
+from elastoprobe.controller.core.errors import DeviceError, DeviceTimeout
 from elastoprobe.controller.drivers import ur_link
 from elastoprobe.controller.drivers.ur_link import LinkMove, RobotClock, URLink, URLinkConfig, URState
-from elastoprobe.controller.core.errors import DeviceError, DeviceTimeout
 from elastoprobe.sim.servers.ur_backend import KinematicBackend
 from elastoprobe.sim.servers.ur_emulator import UREmulator
 

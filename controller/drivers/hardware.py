@@ -63,11 +63,11 @@ import numpy as np
 from ..core.clock import Clock, RealClock
 from ..core.devices import ArmStatus, DeviceIdentity, MotionState, Trip, WrenchBlock
 from ..core.errors import DeviceError, DeviceTimeout, MotionRefused, ProgramNotRunning
-from .supervised import await_ready, kill_child
 from ..core.forceloop import BlockVerdict, ForceLoopGains, ForceSupervisor, SupervisedMotion
 from ..core.geometry import Pose
 from ..core.process import set_parent_death_signal
 from ..core.safety import SafetyGuard, SafetyLimits
+from .supervised import await_ready, kill_child
 from .ur_link import LinkMove, URLinkConfig, URState
 from .ur_primitives import URPrimitives
 
