@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 
 import pytest
 
@@ -76,7 +77,6 @@ def test_two_sigints_during_one_long_c_call_are_a_stop(flags: OperatorFlags) -> 
     stop`` sends it, must still be a stop. The long C call here is a blocking read(2) through
     ctypes, restarted after each signal (SA_RESTART), that ends when the sender writes."""
     import ctypes
-    import threading
     import time
 
     libc = ctypes.CDLL(None, use_errno=True)
@@ -105,10 +105,13 @@ def test_two_sigints_during_one_long_c_call_are_a_stop(flags: OperatorFlags) -> 
 
 def test_a_sigint_and_a_sigterm_in_one_c_call_count_once_each(flags: OperatorFlags) -> None:
     """Two handler calls (one per signal number) drain one pipe: nothing is counted twice."""
+    # Sent to the main thread itself: a signal sent to the process may be taken by another
+    # thread that does not block it, and its handler would then run after the assert.
+    main_thread = threading.main_thread().ident
     signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
     try:
-        os.kill(os.getpid(), signal.SIGINT)
-        os.kill(os.getpid(), signal.SIGTERM)
+        signal.pthread_kill(main_thread, signal.SIGINT)
+        signal.pthread_kill(main_thread, signal.SIGTERM)
     finally:
         # Both are delivered on unblocking; pthread_sigmask runs their handlers before it returns.
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
