@@ -173,14 +173,6 @@ def ground_truth_for(inputs: SessionInputs, seed: int, model: ObjectModel | None
     return SimGroundTruth(sim_object, inputs.cell.tool.tip_radius_mm)
 
 
-def object_mesh_for(object_file: Path) -> Any:
-    """The nominal surface (trimesh.Trimesh, object frame, mm) of a simulated object file: what a
-    plan is sized from (controller/planrule.py)."""
-    from elastoprobe.sim.objects import load_object
-
-    return load_object(object_file).mesh
-
-
 def check_real_cell_ready(inputs: SessionInputs, allow_stale_calibration: bool = False) -> None:
     """A real cell refuses to run without a current calibration (every section present, none
     older than the cell allows), unless the operator explicitly overrides it."""

@@ -321,7 +321,7 @@ def _within_reach(inputs: Any, points_mm: np.ndarray, normals: np.ndarray,
     touching pose of the tip (90 degrees) both have an inverse kinematics solution within the
     joint limits. Decided once per ``cell_mm`` cube (at its first point), so the few
     thousand IK solves stay cheap; the reach's edge is placed to within a cell."""
-    model = arm_model_for(inputs)
+    model = arm_model_for(inputs.cell)
     b2o = inputs.cell.object.base_to_object.pose()
     seed = np.radians(np.asarray(inputs.cell.robot.home_joints_deg, dtype=float))
     radius = inputs.cell.tool.tip_radius_mm

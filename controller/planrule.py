@@ -61,9 +61,10 @@ from typing import Any
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from .core.config import CellSpec
+from .core.config import CellSpec, ProbingSpec
 from .core.geometry import NINE_ANGLES_DEG, Pose
-from .core.kinematics import inverse, ur5e
+from .core.kinematics import inverse
+from .core.validation import arm_model_for
 from .probe import standoff_pose
 
 REFERENCE_HEIGHT_MM = 40.0
@@ -81,7 +82,7 @@ DENSIFY_RESOLUTION_MM = 6.0
 DENSIFY_ROUNDS = 3
 DENSIFY_POINTS_RANGE = (8, 24)
 MAX_MATERIALS = 4
-STANDOFF_MM = 15.0
+PROBING = ProbingSpec()          # the plan format's probing defaults, written out in full
 MIN_SEARCH_MM = 5.0
 
 
@@ -169,8 +170,8 @@ def plan_for_object(outline: ObjectOutline, cell: CellSpec, name: str, object_fi
         "cloud": {"source": "scan", "sweep_spacing_mm": SWEEP_SPACING_MM, "sweep_height_mm": SWEEP_HEIGHT_MM},
         "sampling": {"units": units, "geometry_weight": 1.0, "edge_clearance_mm": 3.0 * cell.tool.tip_radius_mm,
                      "max_tilt_deg": MAX_TILT_DEG, "reference_direction": [0.0, 1.0, 0.0]},
-        "probing": {"scans_per_step": 30, "settle_s": 3.0, "standoff_mm": STANDOFF_MM, "force_rate_n_s": 10.0,
-                    "force_tolerance_n": 0.5},
+        "probing": {"scans_per_step": 30, "settle_s": PROBING.settle_s, "standoff_mm": PROBING.standoff_mm,
+                    "force_rate_n_s": PROBING.force_rate_n_s, "force_tolerance_n": PROBING.force_tolerance_n},
         "phases": {
             "survey": {"angles_deg": [90.0], "forces_n": survey},
             "characterize": {"points_per_region": 2, "angles_deg": angles, "forces_n": characterize},
@@ -219,14 +220,13 @@ def fit_problems(outline: ObjectOutline, cell: CellSpec) -> list[str]:
     for box in cell.limits.keep_out:
         if np.all(b_lo < np.array(box.max_mm)) and np.all(b_hi > np.array(box.min_mm)):
             problems.append(f"the object's box overlaps keep-out box {box.name!r}")
-    limits = None if cell.robot.joint_limits_deg is None else np.radians(np.array(cell.robot.joint_limits_deg, float))
-    model = ur5e(cell.tool.flange_to_tcp.pose(), limits)
+    model = arm_model_for(cell)
     seed = np.radians(np.asarray(cell.robot.home_joints_deg, dtype=float))
     up, t = b2o.apply_vector(np.array([0.0, 0.0, 1.0])), b2o.apply_vector(np.array([0.0, 1.0, 0.0]))
     top = [np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[2]])]
     top += [np.array([x, y, hi[2]]) for x in (lo[0], hi[0]) for y in (lo[1], hi[1])]
     for p in top:
-        pose: Pose = standoff_pose(b2o.apply(p), up, t, 90.0, cell.tool.tip_radius_mm, STANDOFF_MM)
+        pose: Pose = standoff_pose(b2o.apply(p), up, t, 90.0, cell.tool.tip_radius_mm, PROBING.standoff_mm)
         if inverse(model, pose, seed) is None:
             problems.append(f"the arm cannot reach above the object's top at {np.round(p, 1).tolist()} mm")
     return problems

@@ -207,7 +207,7 @@ def test_case3_motion_validation_is_bounded_for_any_path(monkeypatch: pytest.Mon
     from elastoprobe.controller.core.geometry import probe_tcp_pose
 
     inputs = load_session_inputs(REPO / "config" / "plans" / "demo.yaml")
-    model = validation.arm_model_for(inputs)
+    model = validation.arm_model_for(inputs.cell)
     seed = np.radians(inputs.cell.robot.home_joints_deg)
     sampled: list[int] = []
     real = kinematics._valid_branches

@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from elastoprobe.controller.cellfactory import object_mesh_for
 from elastoprobe.controller.cli import main
 from elastoprobe.controller.core.config import DEFAULT_CELL, PlanSpec, load_cell, load_plan, load_session_inputs
 from elastoprobe.controller.planrule import (ObjectOutline, fit_problems, largest_force_n, outline_of, plan_for_object,
@@ -27,7 +26,7 @@ def valid(plan: dict, tmp_path: Path, name: str = "plan.yaml") -> PlanSpec:
 
 
 def shipped_plan(object_name: str) -> dict:
-    outline = outline_of(object_mesh_for(OBJECTS / f"{object_name}.yaml"))
+    outline = outline_of(load_object(OBJECTS / f"{object_name}.yaml").mesh)
     return plan_for_object(outline, CELL, object_name.replace("_", "-"), f"{OBJECTS / object_name}.yaml")
 
 

@@ -10,16 +10,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import SessionInputs, effective_motion_limits
+from .config import CellSpec, SessionInputs, effective_motion_limits
 from .devices import Cell
 from .errors import MotionRefused
 from .geometry import Pose
 from .kinematics import ArmModel, inverse, linear_path_joints, ur5e
 
 
-def arm_model_for(inputs: SessionInputs) -> ArmModel:
+def arm_model_for(cell: CellSpec) -> ArmModel:
     """The arm model of a cell: UR5e kinematics, its TCP, and the cell's joint limits."""
-    cell = inputs.cell
     limits = None
     if cell.robot.joint_limits_deg is not None:
         limits = np.radians(np.array(cell.robot.joint_limits_deg, dtype=float))
@@ -92,4 +91,4 @@ def build_validator(inputs: SessionInputs, cell: Cell, object_mesh: object) -> P
     pr = inputs.plan.probing
     # The probe may touch along the contact search: as far as the plan's (tightened) search goes.
     allowance = pr.standoff_mm + effective_motion_limits(inputs)["search_distance_mm"] + spec.tool.tip_radius_mm
-    return PathValidator(arm_model_for(inputs), checker, cell.arm.status().joints_rad, allowance)
+    return PathValidator(arm_model_for(inputs.cell), checker, cell.arm.status().joints_rad, allowance)
