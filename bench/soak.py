@@ -409,7 +409,7 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
     effects = {(r["kind"], tuple(r["key"] or ()), r["plan"], r["pid"]) for r in records if r.get("event") == "effect"}
     claimed: set[int] = set()
     fates: dict[tuple, list[dict[str, Any]]] = {}    # identity (kind, step key, plan) -> its firings
-    for rec in sorted(injected, key=lambda r: (run_of_pid.get(r["pid"], 10**9), r["t_s"])):
+    for rec in judging_order(injected, run_of_pid):
         ident = (rec["kind"], tuple(rec["key"] or ()), rec["plan"])
         run_id = run_of_pid.get(rec["pid"])
         match = journaled_match(rec, run_id, faults, run_of_fault, claimed)
@@ -462,6 +462,16 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
     other = [f for f in faults if f.fault_id not in claimed]
     return {"fates": [f for group in fates.values() for f in group], "raw_injections": len(injected),
             "journaled_other": _histogram(f.kind for f in other)}
+
+
+def judging_order(injected: list[dict[str, Any]], run_of_pid: dict[int, int]) -> list[dict[str, Any]]:
+    """The order in which injections claim journaled faults: by run, then by robot time.
+
+    A moved object may be seen many contacts later (its match window is open-ended), so it
+    claims a journaled fault only after every fault of its run with a closed window has
+    claimed its own: else it takes the slip fault a later slip caused, and that slip is
+    judged undetected while the move, never seen, is judged recovered."""
+    return sorted(injected, key=lambda r: (run_of_pid.get(r["pid"], 10**9), r["kind"] == "object_moved", r["t_s"]))
 
 
 def _supersede(fates: dict[tuple, list[dict[str, Any]]], kind: str, key: tuple, run_id: int | None,

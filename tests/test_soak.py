@@ -144,3 +144,25 @@ def test_a_stop_of_a_stopped_arm_claims_no_journaled_fault_and_phases_come_from_
     assert soak.phase_of_key((1, soak.SWEEP_KEY, 3), {}) == "sweeping"
     assert soak.phase_of_key((1, soak.LEARN_KEY - 2, 0), {}) == "learning"
     assert soak.phase_of_key((1, 12, 0), {12: "regions"}) == "characterize"
+
+
+def test_a_moved_object_does_not_take_the_slip_fault_a_later_slip_caused() -> None:
+    # The night of issue #15 met it: the object moved at 594 s (never seen), a slip fired at
+    # 628 s and the slip monitor journaled it at once; the moved object, matched first with
+    # its open-ended window, took that slip fault: the move was called recovered and the
+    # slip undetected.
+    from elastoprobe.controller.journal import FaultRecord
+
+    slip_fault = FaultRecord(fault_id=82, kind="slip", t_robot_s=628.85, t_wall_utc="", step_id=441,
+                             message="tip slipped 6.00 mm along the surface (limit 6.0 mm)",
+                             policy_action="retry", raw=None)
+    moved = {"pid": 7, "kind": "object_moved", "t_s": 594.111, "key": [1, 438, 0], "plan": 10}
+    slip = {"pid": 7, "kind": "slip", "t_s": 628.473, "key": [1, 441, 0], "plan": 7}
+    claimed: set[int] = set()
+    got = {}
+    for rec in soak.judging_order([moved, slip], {7: 12}):
+        match = soak.journaled_match(rec, 12, [slip_fault], {82: 12}, claimed)
+        if match is not None:
+            claimed.add(match.fault_id)
+        got[rec["kind"]] = match
+    assert got == {"slip": slip_fault, "object_moved": None}
