@@ -402,6 +402,11 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
         steps = j.steps()
         status = {r.step_id: r.status for r in steps}
         step_phase = {r.step_id: r.phase for r in steps}
+        # How far each run's robot clock got (its last transition or fault): a killed run
+        # that went on past a fault's match window had its chance to see it.
+        last_t_of_run = {int(r[0]): float(r[1]) for r in j._q(
+            "SELECT run_id, MAX(t) FROM (SELECT run_id, t_robot_s AS t FROM transitions "
+            "UNION ALL SELECT run_id, t_robot_s AS t FROM faults) WHERE t IS NOT NULL GROUP BY run_id")}
     finally:
         j.close()
     paused_fault_ids = _paused_fault_ids(children, faults, run_of_fault, run_of_pid)
@@ -442,7 +447,7 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
             # It struck while the controller recovered from an earlier fault: recovery
             # failed and the session paused cleanly, naming the earlier fault.
             fate.update(fate="paused", journaled=False, paused_recovering_from=during)
-        elif _killed_run(run_id, children, run_of_pid):
+        elif lost_to_kill(rec, run_id, children, run_of_pid, last_t_of_run):
             fate["fate"] = "lost_to_kill"     # the process died before journaling it
         else:
             fate["fate"] = "undetected"
@@ -566,6 +571,17 @@ def _paused_during_recovery(rec: dict[str, Any], run_id: int | None, faults: lis
 def _killed_run(run_id: int | None, children: list[ChildRun], run_of_pid: dict[int, int]) -> bool:
     """Whether the child that made journal run ``run_id`` was SIGKILLed."""
     return any(run_of_pid.get(c.pid) == run_id and c.returncode == -9 for c in children)
+
+
+def lost_to_kill(rec: dict[str, Any], run_id: int | None, children: list[ChildRun], run_of_pid: dict[int, int],
+                 last_t_of_run: dict[int, float]) -> bool:
+    """Whether an unjournaled injection died with its process: the run was SIGKILLed before
+    its robot clock passed the end of the injection's match window. A run that went on
+    longer had the time to see it, and did not: that is undetected, whatever killed it later."""
+    if not _killed_run(run_id, children, run_of_pid):
+        return False
+    last_t = last_t_of_run.get(run_id) if run_id is not None else None
+    return last_t is None or last_t < rec["t_s"] + MATCH_WINDOW_S
 
 
 def _histogram(items: Any) -> dict[str, int]:

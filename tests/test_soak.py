@@ -166,3 +166,14 @@ def test_a_moved_object_does_not_take_the_slip_fault_a_later_slip_caused() -> No
             claimed.add(match.fault_id)
         got[rec["kind"]] = match
     assert got == {"slip": slip_fault, "object_moved": None}
+
+
+def test_a_fault_unseen_long_before_its_process_was_killed_is_undetected_not_lost_to_kill() -> None:
+    # A frozen stream re-armed unseen at 238 s of a run SIGKILLed minutes later was judged
+    # "lost_to_kill" (harmless): the run had lived far past its match window.
+    killed = soak.ChildRun([], 101, -9, "delay 257.3 s", 1.0, 1.0, [])
+    frozen = {"kind": "ft_frozen", "t_s": 238.17}
+    assert soak.lost_to_kill(frozen, 14, [killed], {101: 14}, {14: 511.5}) is False
+    assert soak.lost_to_kill(frozen, 14, [killed], {101: 14}, {14: 240.0}) is True
+    paused = soak.ChildRun([], 101, 3, None, 1.0, 1.0, [])
+    assert soak.lost_to_kill(frozen, 14, [paused], {101: 14}, {14: 240.0}) is False
