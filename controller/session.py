@@ -100,6 +100,12 @@ def _json_default(o: Any) -> Any:
         return str(o)
 
 
+# Faults that are, or may be, a lost connection to the robot (a command's DeviceError):
+# their recovery waits for it to come back; for any other fault, the connection lost
+# while recovering is a second fault.
+CONNECTION_FAULT_KINDS = frozenset({"connection", "device"})
+
+
 class Session:
     """Runs (or resumes) one session in ``session_dir``."""
 
@@ -719,6 +725,12 @@ class Session:
         """
         assert self.cell is not None
         arm = self.cell.arm
+        if fault.kind not in CONNECTION_FAULT_KINDS and not arm.status().connected:
+            # The connection dropped after this fault was seen: a fault of its own.
+            self._journal_recovery_fault(fault, "connection", "lost the connection to the robot", None)
+            if self._await_connection() is None:
+                return "connection waiting to recover: the arm did not reconnect within 10 s"
+            return "connection waiting to recover: lost the connection to the robot"
         status = self._await_connection()
         if status is None:
             return "the arm did not reconnect within 10 s"

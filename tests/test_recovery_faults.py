@@ -2,7 +2,9 @@
 and named in the pause: the guard's trip latched during the wait for the connection or
 the protective-stop unlock is never re-armed unseen (issue #15's soak found an F/T stall
 during a lost connection in the cloud sweep, and a frozen stream during a protective
-stop's recovery, re-armed with the first fault's retry and never journaled).
+stop's recovery, re-armed with the first fault's retry and never journaled; then a
+connection lost just after a protective stop, waited out by the recovery and never
+journaled).
 
 Sessions run in this process on the tiny plan; both faults are placed in the cloud sweep
 (its simulator key, with delays), and an emergency stop later in the sweep bounds the
@@ -33,8 +35,10 @@ FIRST_AT_S = 3.0        # into the sweep: the arm is travelling or scanning a li
     ("connection_loss", "ft_stall", 0.4, "stale"),
     # A protective stop is unlocked 5 s after it; the stream freezes 0.5 s into the wait.
     ("protective_stop", "ft_frozen", 0.5, "frozen"),
+    # The connection drops 0.03 s after a protective stop, as the controller stops the arm.
+    ("protective_stop", "connection_loss", 0.03, "connection"),
 ])
-def test_an_ft_fault_during_recovery_is_journaled_and_pauses(tmp_path: Path, first: str, second: str,
+def test_a_fault_during_recovery_is_journaled_and_pauses(tmp_path: Path, first: str, second: str,
                                                              after_s: float, seen_as: str) -> None:
     faults = [{"kind": first, "step": SWEEP_STEP_KEY, "delay_s": FIRST_AT_S},
               {"kind": second, "step": SWEEP_STEP_KEY, "delay_s": FIRST_AT_S + after_s},
