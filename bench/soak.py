@@ -411,7 +411,9 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
         j.close()
     paused_fault_ids = _paused_fault_ids(children, faults, run_of_fault, run_of_pid)
     injected = [r for r in records if r.get("event") == "injected"]
-    effects = {(r["kind"], tuple(r["key"] or ()), r["plan"], r["pid"]) for r in records if r.get("event") == "effect"}
+    effect_at = {(r["kind"], tuple(r["key"] or ()), r["plan"], r["pid"]): r["t_s"]
+                 for r in records if r.get("event") == "effect"}
+    effects = set(effect_at)
     claimed: set[int] = set()
     fates: dict[tuple, list[dict[str, Any]]] = {}    # identity (kind, step key, plan) -> its firings
     for rec in judging_order(injected, run_of_pid):
@@ -422,6 +424,8 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
                                 "t_s": round(rec["t_s"], 3), "phase": phase_of_key(ident[1], step_phase)}
         if rec.get("follows"):
             fate["follows"] = rec["follows"]
+        if (rec["kind"], ident[1], rec["plan"], rec["pid"]) in effect_at:
+            fate["effect_t_s"] = round(effect_at[(rec["kind"], ident[1], rec["plan"], rec["pid"])], 3)
         if match is not None:
             claimed.add(match.fault_id)
             fate.update(fault_id=match.fault_id, seen_as=match.kind, step=match.step_id, action=match.policy_action,
@@ -464,9 +468,27 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
         fates[ident] = earlier
         if rec.get("follows") and fate["fate"] in ("recovered", "paused") and "fault_id" in fate:
             _supersede(fates, rec["follows"], ident[1], run_id, fate["fault_id"])
+    all_fates = [f for group in fates.values() for f in group]
+    share_burst(all_fates)
     other = [f for f in faults if f.fault_id not in claimed]
-    return {"fates": [f for group in fates.values() for f in group], "raw_injections": len(injected),
+    return {"fates": all_fates, "raw_injections": len(injected),
             "journaled_other": _histogram(f.kind for f in other)}
+
+
+SCANNER_KINDS = ("scanner_timeout", "scanner_short_burst")
+
+
+def share_burst(fates: list[dict[str, Any]]) -> None:
+    """Two scanner faults that spoiled the same burst (their first effect at the same robot
+    instant in the same run) show as one: the burst came short, one scanner fault is
+    journaled and retried. The one left unmatched is judged by that fault, not undetected."""
+    seen = {(f["run_id"], f["effect_t_s"]): f for f in fates
+            if f["kind"] in SCANNER_KINDS and "effect_t_s" in f and "fault_id" in f}
+    for f in fates:
+        if f["kind"] in SCANNER_KINDS and f["fate"] == "undetected" and "effect_t_s" in f:
+            other = seen.get((f["run_id"], f["effect_t_s"]))
+            if other is not None and other["fate"] in ("recovered", "paused"):
+                f.update(fate=other["fate"], same_burst_as=other["fault_id"])
 
 
 def judging_order(injected: list[dict[str, Any]], run_of_pid: dict[int, int]) -> list[dict[str, Any]]:

@@ -177,3 +177,19 @@ def test_a_fault_unseen_long_before_its_process_was_killed_is_undetected_not_los
     assert soak.lost_to_kill(frozen, 14, [killed], {101: 14}, {14: 240.0}) is True
     paused = soak.ChildRun([], 101, 3, None, 1.0, 1.0, [])
     assert soak.lost_to_kill(frozen, 14, [paused], {101: 14}, {14: 240.0}) is False
+
+
+def test_two_scanner_faults_on_one_burst_are_judged_by_the_one_fault_they_showed_as() -> None:
+    # The night met it: a short burst and a timeout drawn for the same retry both struck one
+    # burst (0 of 40 profiles); the controller journaled one scanner fault and retried, and
+    # the judge called the second injection undetected.
+    short = {"kind": "scanner_short_burst", "key": [1, 757, 1], "run_id": 27, "t_s": 155.45,
+             "effect_t_s": 163.43, "fault_id": 143, "fate": "recovered"}
+    timeout = {"kind": "scanner_timeout", "key": [1, 757, 1], "run_id": 27, "t_s": 156.134,
+               "effect_t_s": 163.43, "fate": "undetected"}
+    elsewhere = {"kind": "scanner_timeout", "key": [1, 800, 0], "run_id": 27, "t_s": 700.0,
+                 "effect_t_s": 705.0, "fate": "undetected"}
+    fates = [short, timeout, elsewhere]
+    soak.share_burst(fates)
+    assert timeout["fate"] == "recovered" and timeout["same_burst_as"] == 143
+    assert elsewhere["fate"] == "undetected"
