@@ -124,13 +124,13 @@ def test_check_calibration_flags_missing_old_and_partial(tmp_path: Path) -> None
 
 def test_run_calibration_tcp_on_the_miscalibrated_cell(tmp_path: Path) -> None:
     """End to end: the tip is found to 0.1 mm of the simulator's hidden truth, and written."""
-    from elastoprobe.calibration.runner import run_calibration, simulated_cell
+    from elastoprobe.calibration.runner import run_calibration, calibration_cell
 
     out = tmp_path / "cal.json"
     summary = run_calibration("tcp", MIS, seed=5, out_path=out)
     assert summary["written"] == str(out)
     spec, _ = load_cell(MIS)
-    cell, _ = simulated_cell(spec, MIS, 5, "tcp")
+    cell, _ = calibration_cell(spec, MIS, 5, "tcp")
     true_tip = cell._true_geometry(cell.params)["tip_offset"]
     assert np.linalg.norm(true_tip) > 1.9                      # the cell really is off by 2 mm
     assert np.linalg.norm(np.array(summary["result"]["tip_offset_mm"]) - true_tip) < 0.1
