@@ -120,7 +120,10 @@ def calibrate_object(rig: Rig, cell_spec, mesh, tcp_to_scanner: Pose,  # noqa: A
 def calibration_cell(cell_spec, cell_path: str | Path, seed: int, kind: str, cell_doc=None):  # noqa: ANN001, ANN201
     """(cell, what is on its table: mesh in the object frame) for a routine, from the cell
     registry: the reference sphere for ft/tcp/scanner, the cell's object for object. The
-    caller closes the cell. ``cell_doc``: the cell's YAML (to place errors in its object file)."""
+    caller closes the cell. ``cell_doc``: the cell's YAML (where an error in its object file is
+    reported), read from ``cell_path`` if not given."""
+    if cell_doc is None:
+        _, cell_doc = load_cell(cell_path)
     built = build_calibration_cell(cell_spec, cell_doc, cell_path, seed,
                                    None if kind == "object" else SPHERE_RADIUS_MM)
     return built.cell, built.object_mesh
