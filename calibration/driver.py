@@ -22,6 +22,14 @@ from elastoprobe.controller.core.validation import PathValidator
 from elastoprobe.controller.toolhead import MotionSettings, Toolhead
 
 
+# Touch-offs press a rigid sphere: under a 5 mm tip acetal is some 500-900 N/mm between 0.4
+# and 2 N, so the force rises at stiffness x speed. At 2 mm/s, on the real drivers (loopback,
+# a loaded machine: a stop lands a few ms after the contact threshold) a touch reached the
+# cell's 1500 N/s force-rate limit and tripped; at 1 mm/s the rate at the overshoot is
+# about 40 % of that (the overshoot depth halves too).
+TOUCH_SPEED_MM_S = 1.0
+
+
 def build_validator(cell_spec, cell: Cell, obstacle_mesh_base=None,  # noqa: ANN001 — config.CellSpec, trimesh
                     contact_allowance_mm: float = 40.0) -> PathValidator:
     """A path validator for the cell with ``obstacle_mesh_base`` (base frame) as the object."""
@@ -35,10 +43,10 @@ def build_validator(cell_spec, cell: Cell, obstacle_mesh_base=None,  # noqa: ANN
 
 
 def motion_settings(cell_spec, speed_mm_s: float | None = None) -> MotionSettings:  # noqa: ANN001
-    """The cell's speeds, the contact search slowed to at most 2 mm/s (touch-offs stop within
-    microns of first contact)."""
+    """The cell's speeds, the contact search slowed to at most ``TOUCH_SPEED_MM_S``."""
     lim = cell_spec.limits
-    return MotionSettings(contact_force_n=lim.contact_force_n, contact_speed_mm_s=min(lim.contact_speed_mm_s, 2.0),
+    return MotionSettings(contact_force_n=lim.contact_force_n,
+                          contact_speed_mm_s=min(lim.contact_speed_mm_s, TOUCH_SPEED_MM_S),
                           free_speed_mm_s=speed_mm_s or lim.free_speed_mm_s, free_accel_mm_s2=lim.free_accel_mm_s2)
 
 
