@@ -21,7 +21,7 @@ from elastoprobe.controller.cellfactory import build_calibration_cell
 from elastoprobe.controller.core.calfile import calibration_path, load_calibration, pose_list, write_section
 from elastoprobe.controller.core.config import load_cell
 from elastoprobe.controller.core.devices import Cell
-from elastoprobe.controller.core.errors import CalibrationError
+from elastoprobe.controller.core.errors import CalibrationError, ElastoprobeError
 from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.controller.toolhead import ProbeFault
 
@@ -141,8 +141,25 @@ def scanner_mount_for_object(cell_spec, cal_file: Path | None) -> tuple[Pose, st
 
 def run_on_cell(kind: str, cell_spec, cell: Cell, mesh, seed: int,  # noqa: ANN001
                 tcp_to_scanner: Pose | None = None) -> Section:
-    """Run one routine on a built cell (``mesh``: the object's or the reference sphere's, object frame)."""
+    """Run one routine on a built cell (``mesh``: the object's or the reference sphere's, object frame).
+
+    A fault (ProbeFault: a trip, a protective stop, a lost link) stops the routine; the arm is
+    then unloaded and lifted to travel height as a session parks after one (not if an
+    operator, an emergency stop or a lost link has it), and the fault is raised."""
     rig = make_rig(cell_spec, cell, mesh, seed)
+    try:
+        return _run_routine(kind, rig, cell_spec, mesh, seed, tcp_to_scanner)
+    except ProbeFault:
+        rig.head.acknowledged_trip = cell.arm.trip()
+        try:
+            rig.head.safe_retract()
+        except (ProbeFault, ElastoprobeError):
+            pass                    # best effort: the fault raised below is what the operator must see
+        raise
+
+
+def _run_routine(kind: str, rig: Rig, cell_spec, mesh, seed: int,  # noqa: ANN001
+                 tcp_to_scanner: Pose | None) -> Section:
     if kind == "ft":
         return calibrate_ft(rig, cell_spec)
     if kind == "tcp":
