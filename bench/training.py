@@ -1,10 +1,10 @@
 """Benchmark: train one region model on a 9 angles x 5 forces characterization, then serve it.
 
 Prints ONE JSON object: ``train_s`` (wall time to the stopping rule of the session's
-training: a region's full ensemble, ``members`` nets, spline outputs, the roughness
-penalty, float32, the noise-relative stop), ``train_mse`` (normalised), ``epochs``,
-``stop_reason`` and ``test_rmse_mm`` (unseen (F, α) against the noise-free truth, every
-sample) beside the same for the training as it was before (``baseline_*``: float64, one weight per output
+training: a region's full ensemble, ``members`` nets, spline outputs, float32, the
+noise-relative stop), ``train_mse`` (normalised), ``epochs``, ``stop_reason`` and
+``test_rmse_mm`` (unseen (F, α) against the noise-free truth, every sample) beside the
+same for the training as it was before (``baseline_*``: float64, one weight per output
 sample, a 400-epoch 0.2 % plateau), trained in the same run on the same data, and
 ``speedup``; single-query latency of the numpy serving path (``infer_p50_us``,
 ``infer_p99_us``) beside the plain torch forward of the same net (``torch_infer_p50_us``,
@@ -81,8 +81,7 @@ def main() -> int:
     grid = ProfileGrid(80.0, 256)
     rng = np.random.default_rng(0)
     f, a, meas = characterization(grid.x_mm, rng)
-    # The session's training for a 5 mm tip (phases.region_train_config).
-    config = TrainConfig(ensemble=MEMBERS - 1, seed=0, basis_spacing_mm=1.0, smooth_length_mm=5.0)
+    config = TrainConfig(ensemble=MEMBERS - 1, seed=0, basis_spacing_mm=1.0)
     t0, c0 = time.perf_counter(), time.process_time()
     model = fit_region_model(f, a, meas, grid.x_mm, config=config, noise_mm=NOISE_MM)
     train_s, train_cpu_s = time.perf_counter() - t0, time.process_time() - c0

@@ -38,13 +38,9 @@ FEATURE_HALF_WINDOW_MM = 15.0
 SWEEP_STEP_KEY = 2**32 - 2
 CHARACTERIZE = "regions"
 # Training weight of a target sample by its support (support.SUPPORT_NAMES order): what was
-# measured, mirrored or under the tip counts fully, an inferred sample half; an unsupported
-# one has no value to weigh (it is NaN: the model's roughness penalty carries the curve there).
-SUPPORT_WEIGHTS = np.array([1.0, 1.0, 1.0, 0.5, 0.0])
-# The roughness penalty's cut-off wavelength in tip radii (region_train_config), chosen on
-# the demo, the rubber ball and generated objects: shorter leaves ripples where no data
-# is, longer starts to round the measured dents.
-SMOOTH_LENGTH_TIP_RADII = 1.0
+# measured, mirrored or under the tip counts fully, an inferred sample half, an
+# interpolated one a quarter (they shape the curve between supported samples only).
+SUPPORT_WEIGHTS = np.array([1.0, 1.0, 1.0, 0.5, 0.25])
 
 
 _crash_counts: dict[str, int] = {}
@@ -690,16 +686,13 @@ def fit_region(steps: RegionSteps, config: TrainConfig, tip_radius_mm: float, me
 
 def region_train_config(model_spec: Any, seed: int, region: int, tip_radius_mm: float) -> TrainConfig:
     """How the session trains a region's model: the plan's network and ensemble, its epoch
-    cap, a seed per session and region, spline outputs with knots a fifth of the tip
+    cap, a seed per session and region, and spline outputs with knots a fifth of the tip
     radius apart (a spherical tip's dent has no feature finer than its contact, and a cubic
     spline at that spacing follows the simulator's dents of the shipped objects to 0.002 mm
-    RMS), and a roughness penalty with a cut-off wavelength of SMOOTH_LENGTH_TIP_RADII tip
-    radii (where no sample supports a profile, it is the least curved curve joining its
-    supported neighbours)."""
+    RMS)."""
     return TrainConfig(hidden_units=model_spec.hidden_units, ensemble=model_spec.ensemble - 1,
                        epochs_per_stage=max(10, model_spec.max_epochs // 5), seed=seed * 1000 + region,
-                       basis_spacing_mm=tip_radius_mm / 5.0,
-                       smooth_length_mm=SMOOTH_LENGTH_TIP_RADII * tip_radius_mm)
+                       basis_spacing_mm=tip_radius_mm / 5.0)
 
 
 def phase_models(ctx: PhaseContext, round_: int) -> None:

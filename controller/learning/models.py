@@ -33,16 +33,6 @@ steps against that sample's own end-to-end trend along a force grid
 (``monotone_forces`` forces over the trained range +-5 %, at the trained angles and
 midway between them). Only training changes; serving is untouched.
 
-Smooth where no data is: a sample without a training value (NaN, or weight 0) costs
-nothing in the data term, so nothing stops the net from rippling there. The loss adds a
-roughness penalty, the discrete form of a smoothing spline's (Whittaker's smoother):
-lambda x the mean over output profiles and samples of the squared second difference
-along x, on the training inputs and on the monotone penalty's force-angle grid (between
-the trained angles too). lambda follows from a cut-off wavelength ``smooth_length_mm``
-(``_roughness_weight``): against unit-weight data, detail longer than it passes, shorter
-is damped; where no data is, the curve is the least curved one joining its supported
-neighbours. Only training changes; serving is untouched.
-
 Serving is pure numpy with the normalisation folded into the weights and
 preallocated buffers (``predict_mm``), fast enough for a 1 kHz haptic loop. A model
 may carry :class:`ServingLimits`: every serving path clips to its physical depth
@@ -56,7 +46,7 @@ import io
 import json
 import platform
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -99,9 +89,6 @@ class TrainConfig:
     # Smooth outputs: the output layer is trained as a cubic B-spline along x with knots this
     # far apart (mm; None = one free weight per output sample). See ``_spline_basis``.
     basis_spacing_mm: float | None = None
-    # Smooth outputs where no data is: a roughness penalty on the second difference of every
-    # output profile along x, with its cut-off wavelength (mm; None = off). See ``_roughness``.
-    smooth_length_mm: float | None = None
 
     def __post_init__(self) -> None:
         if self.activation not in ("tanh", "sigmoid"):
@@ -116,8 +103,6 @@ class TrainConfig:
             raise ValueError("plateau_noise_fraction must be >= 0")
         if self.basis_spacing_mm is not None and not self.basis_spacing_mm > 0.0:
             raise ValueError("basis_spacing_mm must be > 0 (or None)")
-        if self.smooth_length_mm is not None and not self.smooth_length_mm > 0.0:
-            raise ValueError("smooth_length_mm must be > 0 (or None)")
 
     @classmethod
     def baseline(cls, **changes: Any) -> "TrainConfig":
@@ -599,25 +584,6 @@ def _monotone_penalty(g: Any, margin: float) -> Any:
     return wrong.sum(dim=2).mean(dim=(1, 2))
 
 
-def _roughness_weight(x_mm: np.ndarray, length_mm: float | None) -> float:
-    """lambda of the roughness penalty for a cut-off wavelength ``length_mm`` on the grid
-    ``x_mm`` (0 when off). Whittaker's smoother, sum w (y - z)^2 + lambda sum (D2 z)^2 with
-    unit weights, passes a sinusoid of wavelength p samples at half power when
-    lambda (2 - 2 cos(2 pi / p))^2 = 1; solved for p = length_mm / spacing, so the
-    smoothing is the same in mm whatever the grid's sample count."""
-    if length_mm is None or x_mm.size < 3:
-        return 0.0
-    spacing = float(x_mm[-1] - x_mm[0]) / (x_mm.size - 1)
-    samples = max(length_mm / spacing, 2.0)
-    return float(1.0 / (2.0 - 2.0 * np.cos(2.0 * np.pi / samples)) ** 2)
-
-
-def _roughness(pred: Any) -> Any:
-    """(B,...,L) profiles -> (B,) mean squared second difference along the last axis."""
-    d2 = pred[..., 2:] - 2.0 * pred[..., 1:-1] + pred[..., :-2]
-    return (d2 ** 2).flatten(1).mean(dim=1)
-
-
 def bootstrap_point_weights(point_ids: np.ndarray, members: int, rng: np.random.Generator) -> np.ndarray:
     """(members+1, M) row weights: row 0 all ones; rows 1.. draw the distinct probe points
     with replacement, and every profile of a point gets the point's draw count."""
@@ -736,42 +702,29 @@ def _fit(force_n: np.ndarray, angle_deg: np.ndarray, depth_mm: np.ndarray, x_mm:
     grid = _monotone_grid(a, f_range, config) if config.monotone_weight > 0.0 else None
     grid_t = torch.from_numpy(grid[0]).to(dtype) if grid is not None else None
     basis_t = torch.from_numpy(basis.T.copy()).to(dtype) if basis is not None else None
-    rough_w = _roughness_weight(np.asarray(x_mm, dtype=float), config.smooth_length_mm)
-    # The roughness penalty also looks between the trained angles (the monotone grid's
-    # inputs), where a served query lands as often as on them.
-    rough_x = grid_t
-    if rough_w > 0.0 and rough_x is None:
-        two = _monotone_grid(a, f_range, replace(config, monotone_forces=2))
-        rough_x = torch.from_numpy(two[0]).to(dtype) if two is not None else None
 
-    def profiles_at(inputs: Any, params: list[Any]) -> Any:
-        out = _torch_forward(inputs, *params, config.activation)
-        return out @ basis_t if basis_t is not None else out
-
-    def member_losses() -> tuple[Any, Any, Any]:
-        """(data MSE, monotone penalty, roughness penalty) per member."""
+    def member_losses() -> tuple[Any, Any]:
+        """(data MSE, monotone penalty) per member."""
         params = unflatten(flat)
-        pred = profiles_at(x_t, params)
+        pred = _torch_forward(x_t, *params, config.activation)
+        if basis_t is not None:
+            pred = pred @ basis_t
         mse = ((pred - y_t[None]) ** 2 * w_t).sum(dim=(1, 2)) / denom
-        mono = rough = torch.zeros_like(mse)
-        g = profiles_at(grid_t, params) if grid_t is not None else None
-        if g is not None:
-            mono = config.monotone_weight * _monotone_penalty(g.view(members + 1, *grid[1], -1),
-                                                              config.monotone_margin)
-        if rough_w > 0.0:
-            rough = _roughness(pred)
-            if rough_x is not None:
-                rough = rough + _roughness(g if rough_x is grid_t and g is not None else profiles_at(rough_x, params))
-            rough = rough_w * rough
-        return mse, mono, rough
+        if grid is None:
+            return mse, torch.zeros_like(mse)
+        g = _torch_forward(grid_t, *params, config.activation)
+        if basis_t is not None:
+            g = g @ basis_t
+        return mse, config.monotone_weight * _monotone_penalty(g.view(members + 1, *grid[1], -1),
+                                                               config.monotone_margin)
 
     opt = torch.optim.Rprop([flat], lr=config.rprop_lr, etas=config.rprop_etas,
                             step_sizes=config.rprop_step_sizes)
     epoch = 0
     for epoch in range(1, config.stages * config.epochs_per_stage + 1):
         opt.zero_grad(set_to_none=False)
-        mse, mono, rough = member_losses()
-        losses = mse + mono + rough
+        mse, pen = member_losses()
+        losses = mse + pen
         # Stopped members get zero gradient, and Rprop leaves a zero-gradient weight alone.
         (losses * active).sum().backward()
         opt.step()
@@ -795,7 +748,7 @@ def _fit(force_n: np.ndarray, angle_deg: np.ndarray, depth_mm: np.ndarray, x_mm:
         if active[b] != 0:
             epochs[b] = epoch
     with torch.no_grad():
-        final_mse, final_pen, final_rough = (v.to(torch.float64).numpy().tolist() for v in member_losses())
+        final_mse, final_pen = (v.to(torch.float64).numpy().tolist() for v in member_losses())
     w1, b1, w2, b2 = (p.detach().to(torch.float64).numpy().copy() for p in unflatten(flat.detach()))
     if basis is not None:
         w2, b2 = np.einsum("lk,bkh->blh", basis, w2), b2 @ basis.T
@@ -803,7 +756,6 @@ def _fit(force_n: np.ndarray, angle_deg: np.ndarray, depth_mm: np.ndarray, x_mm:
                          train_s=time.perf_counter() - t0, n_profiles=int(f.shape[0]),
                          n_points=int(np.unique(ids).shape[0]), valid_fraction=float(valid.mean()),
                          extra={"loss_goal_norm": goal, "monotone_penalty": [float(v) for v in final_pen],
-                                "roughness_penalty": [float(v) for v in final_rough], "roughness_weight": rough_w,
                                 "monotone_grid": None if grid is None else list(grid[1]),
                                 "check_every": config.check_every,
                                 "loss_history": [[float(f"{v:.6g}") for v in row] for row in history]})

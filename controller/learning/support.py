@@ -27,16 +27,16 @@ support code:
   order: the tangential load shifts the dent and adds an odd term that decays away from
   the contact). Used only where the mirror is admitted (the 90-degree profile's unseen
   half is a mirror);
-- ``unsupported``: none of the above. The sample has no value (NaN): nothing invented goes
-  into training or export. The model is trained with a roughness penalty
-  (:mod:`.models`), so where no sample supports it the served curve is the least curved
-  one joining its supported neighbours, and it is flagged unsupported when served.
+- ``unsupported``: none of the above; filled by shape-preserving interpolation between
+  supported samples (held flat beyond the last one), so the value is bounded by its
+  supported neighbours, and flagged. Where the mirror is not admitted the unseen side
+  of a row is first guessed from the row's own reflection about the tip (a dent falls
+  off beyond the tip on both sides), flagged unsupported all the same.
 
 Everything is numpy; depths in mm along -n (positive into the object), x in mm along t.
 """
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -108,6 +108,24 @@ class CompletedTargets:
 
 
 # --------------------------------------------------------------------------- helpers
+
+def fill_gaps(x_mm: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """NaN samples filled by monotone (PCHIP) interpolation between finite ones, held flat
+    beyond the first and last; all NaN stays all NaN. Never overshoots its neighbours."""
+    x = np.asarray(x_mm, dtype=float)
+    v = np.asarray(values, dtype=float)
+    ok = np.isfinite(v)
+    if ok.all() or not ok.any():
+        return v.copy()
+    if ok.sum() == 1:
+        return np.full_like(v, v[ok][0])
+    from scipy.interpolate import PchipInterpolator   # training only: predict needs only the names here
+
+    out = PchipInterpolator(x[ok], v[ok], extrapolate=False)(x)
+    out[x < x[ok][0]] = v[ok][0]
+    out[x > x[ok][-1]] = v[ok][-1]
+    return np.where(ok, v, out)
+
 
 def sphere_depth_mm(x_mm: np.ndarray, tip_x_mm: float, tip_depth_mm: float, radius_mm: float) -> np.ndarray:
     """Depth of the tip's lower surface (mm along -n) on the grid, NaN outside its footprint.
@@ -239,13 +257,13 @@ def _shape_residual(a: np.ndarray, b: np.ndarray, min_samples: int = 8) -> np.nd
 # --------------------------------------------------------------------------- completion
 
 def complete_targets(steps: RegionSteps, tip_radius_mm: float) -> CompletedTargets:
-    """Every sample of every step's profile with its support code, and a value where it has
-    support (module docstring); an unsupported sample stays NaN."""
+    """Every sample of every step's profile with a value and a support code (module docstring)."""
     x = steps.x_mm
     m, length = steps.depth_mm.shape
     depth = np.array(steps.depth_mm, dtype=float, copy=True)
     support = np.full((m, length), UNSUPPORTED, dtype=np.int8)
-    support[np.isfinite(depth)] = MEASURED
+    measured = np.isfinite(depth)
+    support[measured] = MEASURED
     mirror = mirror_test(steps)
     rows = _group(steps)
     if mirror.admitted:
@@ -257,6 +275,12 @@ def complete_targets(steps: RegionSteps, tip_radius_mm: float) -> CompletedTarge
             fill = ~np.isfinite(depth[k]) & np.isfinite(mirrored)
             depth[k, fill] = mirrored[fill]
             support[k, fill] = MIRRORED
+    if not mirror.admitted:
+        # Nothing supports the unseen side: rather than hold the last seen depth flat out to
+        # the grid's end, guess that the dent falls off beyond the tip as it does on the seen
+        # side (the row reflected about the tip), flagged unsupported.
+        for k in range(m):
+            _reflect_about_tip(x, depth[k], float(steps.tip_x_mm[k]))
     normal_rows = [k for k in range(m) if _is_normal(steps.angle_deg[k])]
     for k in normal_rows:
         _complete_normal(x, depth[k], support[k], float(steps.tip_x_mm[k]), float(steps.tip_depth_mm[k]),
@@ -270,48 +294,67 @@ def complete_targets(steps: RegionSteps, tip_radius_mm: float) -> CompletedTarge
             _infer_oblique(x, depth[k], support[k], float(steps.force_n[k]), float(steps.angle_deg[k]), fam,
                            tip_radius_mm, float(steps.tip_x_mm[k]))
         _respect_tip(x, depth[k], float(steps.tip_x_mm[k]), float(steps.tip_depth_mm[k]), tip_radius_mm)
+        depth[k] = fill_gaps(x, depth[k])
     counts = {name: int(np.count_nonzero(support == code)) for code, name in enumerate(SUPPORT_NAMES)}
     return CompletedTargets(depth, support, mirror, counts)
+
+
+def _reflect_about_tip(x: np.ndarray, depth: np.ndarray, tip_x: float) -> None:
+    """Missing samples from the row's own reflection about the tip's position (0 if unknown);
+    the support code stays unsupported."""
+    centre = tip_x if np.isfinite(tip_x) else 0.0
+    seen = np.isfinite(depth)
+    if seen.sum() < 2:
+        return
+    reflected = np.interp(2.0 * centre - x, x[seen], depth[seen], left=np.nan, right=np.nan)
+    gap = ~seen & np.isfinite(reflected)
+    # Only where the reflection lands on seen samples (interp bridges gaps; keep to real ones).
+    near = np.abs(np.interp(2.0 * centre - x[gap], x, np.where(seen, 0.0, 1.0))) < 0.5
+    idx = np.flatnonzero(gap)[near]
+    depth[idx] = reflected[idx]
 
 
 def _complete_normal(x: np.ndarray, depth: np.ndarray, support: np.ndarray, tip_x: float, tip_depth: float,
                      radius: float, mirror_admitted: bool) -> None:
     """A 90-degree row in place: its own mirror (when admitted: the row is its own pair),
-    then the tip within its half-width; no seen sample is left above the tip's sphere."""
+    the tip within its half-width, then the gaps, kept between the sphere (the surface
+    cannot be above the tip) and the tip's depth (a normal push is deepest under the tip)."""
     if mirror_admitted:
         own = depth[::-1].copy()
         fill = ~np.isfinite(depth) & np.isfinite(own)
         depth[fill] = own[fill]
         support[fill] = MIRRORED
     half = tip_half_width_mm(tip_depth, radius)
+    sphere = sphere_depth_mm(x, tip_x, tip_depth, radius)
     if half > 0.0:
         zone = np.abs(x - tip_x) <= half
-        depth[zone] = sphere_depth_mm(x, tip_x, tip_depth, radius)[zone]
+        depth[zone] = sphere[zone]
         support[zone] = TIP
-    _respect_tip(x, depth, tip_x, tip_depth, radius)
+    filled = fill_gaps(x, depth)
+    gap = ~np.isfinite(depth)
+    if np.isfinite(tip_depth) and tip_depth > 0.0:
+        under = gap & np.isfinite(sphere)
+        filled[under] = np.clip(filled[under], sphere[under], tip_depth)
+    depth[gap] = filled[gap]
 
 
 def _normal_families(steps: RegionSteps, depth: np.ndarray, normal_rows: list[int]
                      ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """Point -> (forces (K,), completed 90-degree profiles (K,L), NaN where unsupported),
-    forces increasing, with the zero profile at 0 N first. A point's 90-degree rows count
-    only when both halves of the dent are supported (seen, mirrored or under the tip) at
-    the rows' tip (else they say nothing of the unseen half). Steps are grouped by their planned force level (the
+    """Point -> (forces (K,), complete 90-degree profiles (K,L)), forces increasing, with
+    the zero profile at 0 N first. Steps are grouped by their planned force level (the
     repeats of a level are averaged, and so are their measured forces): grouped by the
     measured force instead, two repeats a few mN apart would make two knots whose profiles
     differ by the scans' noise, and the interpolation between them swings by far more."""
     by_point: dict[int, dict[float, list[int]]] = {}
     for k in normal_rows:
-        if np.isfinite(depth[k, steps.x_mm <= 0.0]).any() and np.isfinite(depth[k, steps.x_mm >= 0.0]).any():
+        if np.all(np.isfinite(depth[k])):
             by_point.setdefault(int(steps.point_ids[k]), {}).setdefault(
                 round(float(steps.force_level_n[k]), 6), []).append(k)
     out = {}
     for p, levels in by_point.items():
         groups = [levels[level] for level in sorted(levels)]
         forces = np.array([np.mean(steps.force_n[rows]) for rows in groups])
-        with np.errstate(invalid="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)      # a sample no repeat supports stays NaN
-            profiles = np.array([np.nanmean(depth[rows], axis=0) for rows in groups])
+        profiles = np.array([np.mean(depth[rows], axis=0) for rows in groups])
         keep = np.concatenate([[True], np.diff(forces) > 0.0])   # the interpolation needs increasing forces
         out[p] = (np.concatenate([[0.0], forces[keep]]), np.vstack([np.zeros(profiles.shape[1]), profiles[keep]]))
     return out
@@ -320,7 +363,7 @@ def _normal_families(steps: RegionSteps, depth: np.ndarray, normal_rows: list[in
 def normal_profile_at(forces_n: np.ndarray, profiles_mm: np.ndarray, load_n: float) -> np.ndarray:
     """The 90-degree profile at normal load ``load_n``: monotone interpolation in force per
     sample between the measured levels (from the zero profile at 0 N); the deepest level's
-    profile beyond the largest force. NaN where a level has no value."""
+    profile beyond the largest force."""
     f = np.asarray(forces_n, dtype=float)
     y = np.asarray(profiles_mm, dtype=float)
     if load_n >= f[-1]:
@@ -330,11 +373,7 @@ def normal_profile_at(forces_n: np.ndarray, profiles_mm: np.ndarray, load_n: flo
         return (1.0 - w) * y[0] + w * y[1]
     from scipy.interpolate import PchipInterpolator
 
-    ok = np.isfinite(y).all(axis=0)          # a sample some level does not support stays NaN
-    out = np.full(y.shape[1], np.nan)
-    if ok.any():
-        out[ok] = PchipInterpolator(f, y[:, ok], axis=0)(max(load_n, 0.0))
-    return out
+    return PchipInterpolator(f, y, axis=0)(max(load_n, 0.0))
 
 
 def _infer_oblique(x: np.ndarray, depth: np.ndarray, support: np.ndarray, force_n: float, angle_deg: float,
@@ -352,9 +391,7 @@ def _infer_oblique(x: np.ndarray, depth: np.ndarray, support: np.ndarray, force_
     if not seen.any():
         return
     sym = normal_profile_at(*family, force_n * np.sin(np.radians(angle_deg)))
-    if not np.isfinite(sym).any():
-        return
-    peak = float(np.nanmax(sym))
+    peak = float(np.max(sym))
     if not peak > 0.0:
         return
     spacing = float(x[1] - x[0])
@@ -366,9 +403,7 @@ def _infer_oblique(x: np.ndarray, depth: np.ndarray, support: np.ndarray, force_
         shifted = np.interp(x - s, x, sym)
         w = seen & (shifted > 0.05 * peak)
         if w.sum() < 3:
-            w = seen & np.isfinite(shifted)
-        if not w.any():
-            continue
+            w = seen
         c = float(np.mean(depth[w] - shifted[w]))
         err = float(np.mean((depth[w] - shifted[w] - c) ** 2))
         if best is None or err < best[0]:
@@ -376,7 +411,7 @@ def _infer_oblique(x: np.ndarray, depth: np.ndarray, support: np.ndarray, force_
     assert best is not None
     _, s, c = best
     inferred = np.interp(x - s, x, sym) + c
-    fill = ~seen & np.isfinite(inferred)
+    fill = ~seen
     depth[fill] = inferred[fill]
     support[fill] = INFERRED
 
