@@ -130,9 +130,14 @@ def step_profile(session: "Session", target: ProbeTarget, data: StepData) -> tup
     return measure_step_data(session, target, data).depth_mm, session_grid(session).x_mm
 
 
-def session_grid(session: "Session") -> prof.ProfileGrid:
-    m = session.inputs.plan.model
+def plan_grid(inputs: Any) -> prof.ProfileGrid:
+    """The profile grid a session's plan asks for."""
+    m = inputs.plan.model
     return prof.ProfileGrid(span_mm=m.profile_span_mm, samples=m.profile_samples)
+
+
+def session_grid(session: "Session") -> prof.ProfileGrid:
+    return plan_grid(session.inputs)
 
 
 def measure_step_data(session: "Session", target: ProbeTarget, data: StepData) -> prof.StepMeasurement:
@@ -578,9 +583,7 @@ class ScanGeometry:
 def scan_geometry(inputs: Any, tcp_to_scanner: Any, base_to_object: Any) -> ScanGeometry:
     """The scan geometry of a session's inputs with the scanner mount and the object's
     placement given (a live cell's, or the journal's word: :func:`registered_placement`)."""
-    m = inputs.plan.model
-    return ScanGeometry(prof.ProfileGrid(span_mm=m.profile_span_mm, samples=m.profile_samples), tcp_to_scanner,
-                        base_to_object, inputs.cell.tool.tip_radius_mm)
+    return ScanGeometry(plan_grid(inputs), tcp_to_scanner, base_to_object, inputs.cell.tool.tip_radius_mm)
 
 
 def registered_placement(j: Any) -> Pose | None:
