@@ -714,8 +714,12 @@ def run_soak(cfg: SoakConfig, work_dir: Path) -> dict[str, Any]:
                           work_dir / "children.stderr")
         if child.returncode == -9 and child.killed is None and aimed is not None:
             child.killed = f"aimed {aimed}"
-        _, reason = _session_status(out)
+        session_status, reason = _session_status(out)
         child.pause_reason = reason if child.returncode == 3 else None
+        # The operator answers the session's state, not how its process ended: a kill that
+        # lands after an e-stop was journaled as a pause, but before the child exited 3,
+        # leaves the same paused session and the same e-stop to release.
+        estop_paused = session_status == "paused" and bool(reason) and "emergency_stop" in reason
         children.append(child)
         state["journal_problems"] += [f"after child {len(children)}: {p}" for p in journal_soundness(out)]
         stop = False
@@ -724,6 +728,9 @@ def run_soak(cfg: SoakConfig, work_dir: Path) -> dict[str, Any]:
             state["kills_by_mode"][mode] = state["kills_by_mode"].get(mode, 0) + 1
             kills_left -= 1
             mode_index += 1
+            if estop_paused:
+                time.sleep(cfg.operator_delay_s)
+                state["operator_clears"] += 1
         elif child.returncode == 3:
             if mode == "learning":
                 # It paused before it reached a learning phase: try again, but after three
@@ -734,7 +741,7 @@ def run_soak(cfg: SoakConfig, work_dir: Path) -> dict[str, Any]:
             # The operator plays their part whatever kill was armed (a pause on an e-stop
             # while a learning kill waited was left uncounted, and the short run's judge
             # then missed its operator release).
-            if reason and "emergency_stop" in reason:
+            if estop_paused:
                 time.sleep(cfg.operator_delay_s)     # the operator walks over and releases it
                 state["operator_clears"] += 1
         else:
