@@ -96,9 +96,9 @@ def test_overnight_soak(tmp_path: Path) -> None:
 
 
 def soak_kinds() -> tuple[str, ...]:
-    from elastoprobe.sim.faults import KINDS
+    from elastoprobe.controller.core.faultkinds import INJECTED_FAULT_NAMES
 
-    return KINDS
+    return INJECTED_FAULT_NAMES
 
 
 def test_a_fault_during_recovery_counts_as_the_pause_it_caused() -> None:

@@ -19,6 +19,7 @@ from pydantic import Field, field_validator, model_validator
 
 from .calfile import believed_cell
 from .errors import InputError, InputErrors
+from .faultkinds import InjectedFault
 from .forceloop import ForceLoopGains
 from .geometry import NINE_ANGLES_DEG, Pose, rotvec_to_matrix
 from .safety import SafetyLimits
@@ -202,9 +203,6 @@ class ForceLoopSpec(Spec):
                               force_window=self.force_window, seek_accel_mm_s2=self.seek_accel_mm_s2)
 
 
-FaultKind = Literal["force_spike", "ft_stall", "ft_frozen", "scanner_timeout", "scanner_short_burst",
-                    "protective_stop", "connection_loss", "emergency_stop", "object_moved", "slip",
-                    "disk_error"]
 
 
 class FaultSpec(Spec):
@@ -212,7 +210,8 @@ class FaultSpec(Spec):
     of other faults (a rate per 100 faults that fire, ``delay_s`` after each: faults come
     in bursts, and one lands while the controller recovers from another)."""
 
-    kind: FaultKind
+    # Lax: the cell file gives the kind's name, the enum is what the simulator reads.
+    kind: InjectedFault = Field(strict=False)
     step: int | None = Field(None, ge=0)
     rate_per_100_steps: float | None = Field(None, gt=0, le=100)
     rate_per_100_faults: float | None = Field(None, gt=0, le=100)
@@ -225,7 +224,7 @@ class FaultSpec(Spec):
     def _when(self) -> "FaultSpec":
         if sum(v is not None for v in (self.step, self.rate_per_100_steps, self.rate_per_100_faults)) != 1:
             raise ValueError("give exactly one of step, rate_per_100_steps or rate_per_100_faults")
-        if self.rate_per_100_faults is not None and self.kind == "disk_error":
+        if self.rate_per_100_faults is not None and self.kind is InjectedFault.DISK_ERROR:
             raise ValueError("a disk error happens at a journal write, not as a follow-up of another fault")
         return self
 
