@@ -4,8 +4,8 @@ equals an uninterrupted one (docs/design.md §6; issue "The probing controller",
 Each session runs the real CLI in a child process on the tiny plan (tests/data/session/
 tiny.yaml) and a private copy of the simulated cell. Kills land after random delays and
 at chosen points: inside a step commit, inside a phase commit, around a model save and
-during the report (``ELASTOPROBE_JOURNAL_CRASH_AT``, see controller/journal.py and
-controller/phases.py ``crash_point``). After every kill the journal must be sound
+during the report (``ELASTOPROBE_JOURNAL_CRASH_AT``, the crash points of
+controller/testing.py). After every kill the journal must be sound
 (``PRAGMA integrity_check``, checksums, no half-written step); at the end every step is
 done or skipped exactly as in the uninterrupted run, with the same raw data, the same
 models (model hashes) and the same region map (final cloud labels).
