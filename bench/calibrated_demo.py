@@ -71,7 +71,12 @@ from typing import Any
 
 import numpy as np
 
-import cli_runs
+# Run as a script (python bench/NAME.py) the repository's root is not on the path; the
+# benches' shared helpers are imported as the package they are.
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from bench import cli_runs  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 PLAN = ROOT / "config" / "plans" / "demo.yaml"

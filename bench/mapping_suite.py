@@ -79,9 +79,14 @@ from typing import Any
 import numpy as np
 from ruamel.yaml import YAML
 
-import cli_runs
-from elastoprobe.controller.provenance import git_revision
-from elastoprobe.sim import generate as gen
+# Run as a script (python bench/NAME.py) the repository's root is not on the path; the
+# benches' shared helpers are imported as the package they are.
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from bench import cli_runs  # noqa: E402
+from elastoprobe.controller.provenance import git_revision  # noqa: E402
+from elastoprobe.sim import generate as gen  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 RUN_TIMEOUT_S = 3 * 3600.0        # bounds a hung run only; a suite run takes minutes

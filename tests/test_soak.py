@@ -15,14 +15,12 @@ follow-ups during recovery, 24 kills) is marked soak.
 """
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
-import soak  # noqa: E402
+from bench import soak
 
 # Fates that are not a failure of the controller: a scanner fault with no scan asked for
 # or a slip with no contact changed nothing any device showed; a fault whose process was
