@@ -321,7 +321,8 @@ def cmd_sim_object(args: argparse.Namespace) -> int:
 
     from .core.atomic import atomic_write_text
     from .core.config import DEFAULT_CELL, load_cell, load_session_inputs
-    from .planrule import fit_problems, forces_for_height, outline_of, plan_for_object, plan_yaml_text
+    from .core.yamlio import dump_yaml_text
+    from .planrule import fit_problems, forces_for_height, outline_of, plan_for_object
 
     cell_path = Path(args.cell) if args.cell else DEFAULT_CELL
     cell, _ = load_cell(cell_path)
@@ -349,7 +350,7 @@ def cmd_sim_object(args: argparse.Namespace) -> int:
     header = (f"# The plan for {obj.name} by the plan rule (controller/planrule.py, docs/generated_objects.md):\n"
               f"# sized from the object alone (height {outline.height_mm:.0f} mm, footprint "
               f"{outline.footprint_area_mm2:.0f} mm^2). Run: elastoprobe run {plan_path} --seed 1\n")
-    atomic_write_text(plan_path, header + plan_yaml_text(plan))
+    atomic_write_text(plan_path, header + dump_yaml_text(plan))
     load_session_inputs(plan_path, cell_path)          # what was written is a valid plan for the cell
     summary = {**obj.summary(), "object": str(object_path), "plan": str(plan_path)}
     if args.json:

@@ -190,20 +190,6 @@ def plan_for_object(outline: ObjectOutline, cell: CellSpec, name: str, object_fi
     return plan
 
 
-def plan_yaml_text(plan: dict[str, Any]) -> str:
-    """A plan dict as YAML text (block style, short lists inline)."""
-    import io
-
-    from ruamel.yaml import YAML
-
-    yaml = YAML()
-    yaml.default_flow_style = None
-    yaml.width = 120
-    buf = io.StringIO()
-    yaml.dump(plan, buf)
-    return buf.getvalue()
-
-
 def fit_problems(outline: ObjectOutline, cell: CellSpec) -> list[str]:
     """Why the object does not fit the cell (empty: it does): its box in the workspace, clear of
     every keep-out, and its top's centre and corners pressable along +z (IK at the standoff)."""

@@ -10,8 +10,8 @@ import pytest
 
 from elastoprobe.controller.cli import main
 from elastoprobe.controller.core.config import DEFAULT_CELL, PlanSpec, load_cell, load_plan, load_session_inputs
-from elastoprobe.controller.planrule import (ObjectOutline, fit_problems, largest_force_n, outline_of, plan_for_object,
-                                             plan_yaml_text)
+from elastoprobe.controller.core.yamlio import dump_yaml_text
+from elastoprobe.controller.planrule import ObjectOutline, fit_problems, largest_force_n, outline_of, plan_for_object
 from elastoprobe.sim.objects import load_object
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -21,7 +21,7 @@ CELL, _ = load_cell(DEFAULT_CELL)
 
 def valid(plan: dict, tmp_path: Path, name: str = "plan.yaml") -> PlanSpec:
     path = tmp_path / name
-    path.write_text(plan_yaml_text(plan), encoding="utf-8")
+    path.write_text(dump_yaml_text(plan), encoding="utf-8")
     return load_plan(path)[0]
 
 
@@ -121,4 +121,4 @@ def test_the_plan_text_reads_back_as_the_same_plan() -> None:
     from ruamel.yaml import YAML
 
     plan = shipped_plan("user_object")
-    assert json.loads(json.dumps(YAML(typ="safe").load(plan_yaml_text(plan)))) == json.loads(json.dumps(plan))
+    assert json.loads(json.dumps(YAML(typ="safe").load(dump_yaml_text(plan)))) == json.loads(json.dumps(plan))
