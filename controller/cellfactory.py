@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from .core.calfile import believed_cell, check_calibration
-from .core.config import SessionInputs
+from .core.calfile import check_calibration
+from .core.config import CellSpec, SessionInputs
 from .core.devices import Cell
 from .core.errors import InputError
 from .core.meshcheck import bounds_problem, mesh_findings, read_mesh
@@ -154,10 +154,9 @@ def _simulated(inputs: SessionInputs, seed: int, model: ObjectModel | None) -> B
 
 def calibration_warnings(inputs: SessionInputs) -> list[str]:
     """Why the controller's believed geometry may be off (empty when the calibration is
-    current, or when a simulated cell is calibrated by construction)."""
-    cell_file = inputs.cell_file if inputs.cell_file is not None else inputs.cell
-    _, state = believed_cell(cell_file, inputs.cell_path)
-    return list(state.problems)
+    current, or when a simulated cell is calibrated by construction): found once, when the
+    inputs were loaded (config.load_session_inputs)."""
+    return list(inputs.calibration_problems)
 
 
 def ground_truth_for(inputs: SessionInputs, seed: int, model: ObjectModel | None = None) -> Any:

@@ -481,6 +481,9 @@ class SessionInputs:
     # corrections applied (calibration.calfile.believed_cell); ``cell_file`` is the file as
     # written (a simulated cell's true tool is built from it). None: same as ``cell``.
     cell_file: CellSpec | None = None
+    # Why ``cell`` may not be the cell (calibration missing, partial, stale or unusable),
+    # found once when the inputs are loaded: the CLI prints it, the session logs it.
+    calibration_problems: tuple[str, ...] = ()
 
     def resolve(self, relative_to: Path, name: str) -> Path:
         p = Path(name)
@@ -524,7 +527,7 @@ def load_session_inputs(plan_path: str | Path, cell_path: str | Path | None = No
         cell_path = (Path(plan_path).parent / plan.cell) if plan.cell else DEFAULT_CELL
     cell_file, cell_doc = load_cell(cell_path)
 
-    cell, _ = believed_cell(cell_file, cell_path)
+    cell, calibration = believed_cell(cell_file, cell_path)
     errors: list[InputError] = []
     lim = cell.limits
     # A plan may only tighten the cell's limits.
@@ -570,7 +573,8 @@ def load_session_inputs(plan_path: str | Path, cell_path: str | Path | None = No
     limits = lim.safety().tightened(**{k: v for k, v in overrides.items()
                                        if k in SafetyLimits.__dataclass_fields__})
     inputs = SessionInputs(plan=plan, cell=cell, plan_path=Path(plan_path), cell_path=Path(cell_path),
-                           plan_doc=plan_doc, cell_doc=cell_doc, limits=limits, cell_file=cell_file)
+                           plan_doc=plan_doc, cell_doc=cell_doc, limits=limits, cell_file=cell_file,
+                           calibration_problems=tuple(calibration.problems))
     obj = inputs.object_file()
     if not obj.exists():
         where = (plan_doc, ("simulated_object",)) if plan.simulated_object else (cell_doc, ("object", "file"))
