@@ -110,6 +110,10 @@ class RobotSpec(Spec):
                     raise ValueError("each joint limit must satisfy -360 <= min < max <= 360")
         return v
 
+    def joint_limits_rad(self) -> np.ndarray | None:
+        """The joint limits as (6, 2) [min, max] in radians; None: the arm's own (+-2 pi)."""
+        return None if self.joint_limits_deg is None else np.radians(np.asarray(self.joint_limits_deg, dtype=float))
+
 
 class ToolSpec(Spec):
     tip_radius_mm: float = Field(gt=0, le=50)
