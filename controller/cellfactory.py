@@ -111,6 +111,7 @@ def build_cell(inputs: SessionInputs, seed: int, dry_run: bool = False,
     """Build the cell a session runs on (``model``: the object loaded by :func:`load_object_model`,
     loaded here when not given)."""
     kind = inputs.cell.kind
+    model = model or load_object_model(inputs)
     if kind == "simulated" or dry_run:
         return _simulated(inputs, seed, model)
     # The real drivers: ur_rtde in a supervised child, the Net F/T stream and the
@@ -118,7 +119,6 @@ def build_cell(inputs: SessionInputs, seed: int, dry_run: bool = False,
     # first starts the simulated servers that speak those protocols.
     from .drivers.real_cell import build_real_cell
 
-    model = model or load_object_model(inputs)
     if kind != "loopback":
         return BuiltCell(cell=build_real_cell(inputs, model.mesh), object_mesh=model.mesh)
     from elastoprobe.sim.servers.loopback import LoopbackServers
@@ -133,18 +133,17 @@ def build_cell(inputs: SessionInputs, seed: int, dry_run: bool = False,
     return BuiltCell(cell=real, object_mesh=model.mesh)
 
 
-def _simulated(inputs: SessionInputs, seed: int, model: ObjectModel | None) -> BuiltCell:
+def _simulated(inputs: SessionInputs, seed: int, model: ObjectModel) -> BuiltCell:
+    """The in-process simulated cell around ``model``, the object already loaded (never again:
+    a mesh object's file is read once per run)."""
     from elastoprobe.sim.cell import SimCell, params_from_cell
 
-    obj = inputs.object_file()
-    if obj.suffix.lower() not in (".yaml", ".yml"):
+    if model.simulated is None:
         raise InputError("a dry run needs a simulated object (an objects/*.yaml with materials): set the plan's "
                          "simulated_object", path=str(inputs.plan_path))
     # The world is built from the cell FILE (its miscalibration, drawn from the cell's own
     # seed, included); the controller's side from ``inputs.cell``, the file corrected by
     # its calibration file (config.load_session_inputs).
-    if model is None or model.simulated is None:
-        model = load_object_model(inputs)
     if inputs.cell.kind == "ur":              # a dry run of a real cell: its physics was not checked yet
         check_physics(inputs, model.simulated)
     cell_file = inputs.cell_file if inputs.cell_file is not None else inputs.cell
