@@ -57,26 +57,34 @@ def load_object_model(inputs: SessionInputs) -> ObjectModel:
         if findings.errors:
             raise where[0].error(where[1], f"{path}: " + "; ".join(findings.errors))
         model = ObjectModel(mesh=mesh, warnings=[f"{path}: {w}" for w in findings.warnings])
-    limits = inputs.cell.limits
-    vertices_base = inputs.cell.object.base_to_object.pose().apply(model.mesh.vertices)
-    problem = bounds_problem(vertices_base, limits.workspace.min_mm, limits.workspace.max_mm)
-    if problem is not None:
-        problem += " (check the mesh's scale_mm_per_unit and the cell's object placement)"
-    for box in limits.keep_out:
-        inside = np.all((vertices_base >= box.min_mm) & (vertices_base <= box.max_mm), axis=1)
-        if problem is None and inside.any():
-            problem = (f"the object reaches into keep-out box {box.name!r} ({int(inside.sum())} mesh vertices "
-                       f"inside; check the cell's object placement)")
-    size_mm = float(np.ptp(vertices_base, axis=0).max())
-    tip_mm = 2.0 * inputs.cell.tool.tip_radius_mm
-    if problem is None and size_mm < tip_mm:
-        problem = (f"the object is {size_mm:.3g} mm across, smaller than the probe's tip ({tip_mm:g} mm): "
-                   f"nothing on it can be probed (a mesh in metres needs scale_mm_per_unit: 1000)")
+    problem = placement_problem(model.mesh.vertices, inputs.cell)
     if problem is not None:
         raise where[0].error(where[1], f"{path}: {problem}")
     if model.simulated is not None and inputs.cell.kind != "ur":    # simulated and loopback cells
         check_physics(inputs, model.simulated)
     return model
+
+
+def placement_problem(vertices_mm: np.ndarray, cell: CellSpec) -> str | None:
+    """Why an object whose mesh has ``vertices_mm`` (object frame, mm), set down where ``cell``
+    places it, cannot be probed there: outside the workspace, into a keep-out box, or smaller
+    than the probe's tip. None: it fits."""
+    limits = cell.limits
+    vertices_base = cell.object.base_to_object.pose().apply(vertices_mm)
+    problem = bounds_problem(vertices_base, limits.workspace.min_mm, limits.workspace.max_mm)
+    if problem is not None:
+        return problem + " (check the mesh's scale_mm_per_unit and the cell's object placement)"
+    for box in limits.keep_out:
+        inside = np.all((vertices_base >= box.min_mm) & (vertices_base <= box.max_mm), axis=1)
+        if inside.any():
+            return (f"the object reaches into keep-out box {box.name!r} ({int(inside.sum())} mesh vertices "
+                    f"inside; check the cell's object placement)")
+    size_mm = float(np.ptp(vertices_base, axis=0).max())
+    tip_mm = 2.0 * cell.tool.tip_radius_mm
+    if size_mm < tip_mm:
+        return (f"the object is {size_mm:.3g} mm across, smaller than the probe's tip ({tip_mm:g} mm): "
+                f"nothing on it can be probed (a mesh in metres needs scale_mm_per_unit: 1000)")
+    return None
 
 
 def check_physics(inputs: SessionInputs, sim_object: Any) -> None:
