@@ -511,11 +511,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    # After parsing: --help and usage errors need neither (the journal brings numpy, ~0.2 s).
     from .journal import JournalCorruption
     from .signals import OperatorFlags, OperatorInterrupt
 
-    parser = build_parser()
-    args = parser.parse_args(argv)
     flags = OperatorFlags().install() if args.command in INTERRUPTIBLE else None
     try:
         if flags is None:
