@@ -513,7 +513,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    # After parsing: --help and usage errors need neither (the journal brings numpy, ~0.2 s).
+    # After parsing: --help and usage errors need neither (the journal brings numpy).
     from .journal import JournalCorruption
     from .signals import OperatorFlags, OperatorInterrupt
 

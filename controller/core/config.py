@@ -207,8 +207,6 @@ class ForceLoopSpec(Spec):
                               force_window=self.force_window, seek_accel_mm_s2=self.seek_accel_mm_s2)
 
 
-
-
 class FaultSpec(Spec):
     """A fault the simulator injects: at a step, at a rate per 100 steps, or as a follow-up
     of other faults (a rate per 100 faults that fire, ``delay_s`` after each: faults come
