@@ -71,7 +71,13 @@ from typing import Any
 
 import numpy as np
 
-import cli_runs
+# Run as a script (python bench/NAME.py) the repository's root is not on the path; the
+# benches' shared helpers are imported as the package they are.
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from bench import cli_runs  # noqa: E402
+from elastoprobe.controller.core.yamlio import dump_yaml_text  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 PLAN = ROOT / "config" / "plans" / "demo.yaml"
@@ -92,13 +98,11 @@ def copy_cell(src: Path, dest_dir: Path) -> Path:
     file it names then lives next to the copy, never next to the shipped cell)."""
     from ruamel.yaml import YAML
 
-    yaml = YAML()
-    doc = yaml.load(src.read_text(encoding="utf-8"))
+    doc = YAML().load(src.read_text(encoding="utf-8"))
     doc["object"]["file"] = str((src.parent / doc["object"]["file"]).resolve())
     dest_dir.mkdir(parents=True, exist_ok=True)
     dest = dest_dir / src.name
-    with dest.open("w", encoding="utf-8") as f:
-        yaml.dump(doc, f)
+    dest.write_text(dump_yaml_text(doc), encoding="utf-8")
     return dest
 
 
@@ -288,11 +292,9 @@ def draw_cell(src: Path, dest_dir: Path, cell_seed: int) -> Path:
     from ruamel.yaml import YAML
 
     dest = copy_cell(src, dest_dir)
-    yaml = YAML()
-    doc = yaml.load(dest.read_text(encoding="utf-8"))
+    doc = YAML().load(dest.read_text(encoding="utf-8"))
     doc["simulation"]["miscalibration"]["seed"] = int(cell_seed)
-    with dest.open("w", encoding="utf-8") as f:
-        yaml.dump(doc, f)
+    dest.write_text(dump_yaml_text(doc), encoding="utf-8")
     return dest
 
 

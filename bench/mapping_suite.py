@@ -79,9 +79,15 @@ from typing import Any
 import numpy as np
 from ruamel.yaml import YAML
 
-import cli_runs
-from elastoprobe.controller.provenance import git_revision
-from elastoprobe.sim import generate as gen
+# Run as a script (python bench/NAME.py) the repository's root is not on the path; the
+# benches' shared helpers are imported as the package they are.
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from bench import cli_runs  # noqa: E402
+from elastoprobe.controller.core.yamlio import dump_yaml_text  # noqa: E402
+from elastoprobe.controller.provenance import git_revision  # noqa: E402
+from elastoprobe.sim import generate as gen  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 RUN_TIMEOUT_S = 3 * 3600.0        # bounds a hung run only; a suite run takes minutes
@@ -181,12 +187,10 @@ def densify_off(plan: dict[str, Any]) -> dict[str, Any]:
 
 def write_variant(source: Path, dest: Path, change: Any, why: str) -> Path:
     """``dest``: the plan at ``source`` with ``change(plan dict)`` applied, a header saying why."""
-    yaml = YAML()
-    doc = yaml.load(source.read_text(encoding="utf-8"))
+    doc = YAML().load(source.read_text(encoding="utf-8"))
     change(doc)
-    with dest.open("w", encoding="utf-8") as f:
-        f.write(f"# {why}: bench/mapping_suite.py from {source.name} (the plan rule's plan)\n")
-        yaml.dump(doc, f)
+    dest.write_text(f"# {why}: bench/mapping_suite.py from {source.name} (the plan rule's plan)\n"
+                    + dump_yaml_text(doc), encoding="utf-8")
     return dest
 
 

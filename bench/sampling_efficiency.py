@@ -5,9 +5,9 @@ angle(s), here 90 degrees, at the plan's survey forces): raster (coarse-to-fine 
 the top surfaces), random (uniform surface points), neural_gas (the session's
 geometry-aware NG, one unit per contact), densify (a small NG start, then rounds of
 densify.plan_round where adjacent regions disagree, with survey-mean region models as the
-disagreement proxy) (controller/learning/strategies.py), and gp: the palpation
+disagreement proxy) (bench/strategies.py), and gp: the palpation
 literature's Gaussian-process active search (Garg et al. 2016, Salman et al. 2018;
-controller/learning/gp_search.py): a raster start of ``--gp-start`` probes, then one probe
+bench/gp_search.py): a raster start of ``--gp-start`` probes, then one probe
 at a time where the straddle of a GP over the surface (the log dent) is largest at the
 levels between the regions found so far; its map is the GP's own (``session_map_error``
 beside it: the same probes mapped the session's way).
@@ -81,7 +81,12 @@ from typing import Any, Callable
 
 import numpy as np
 
-from elastoprobe.sim import generate as gen
+# Run as a script (python bench/NAME.py) the repository's root is not on the path; the
+# benches' shared helpers are imported as the package they are.
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from elastoprobe.sim import generate as gen  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 STRATEGIES = ("raster", "random", "neural_gas", "densify", "gp")
@@ -208,7 +213,7 @@ class SeedRun:
         from elastoprobe.controller.evaluation import scored_top_surface
         from elastoprobe.controller.learning import cloud as cl
         from elastoprobe.controller.learning import evaluate as ev
-        from elastoprobe.controller.learning import strategies as st
+        from bench import strategies as st
         from elastoprobe.controller.learning import surface_map as sm
         from elastoprobe.controller.learning import targets as tg
 
@@ -254,7 +259,7 @@ class SeedRun:
                 ) -> tuple[np.ndarray, np.ndarray, Any, np.ndarray]:
         """The session's regions of the surveyed points (with the measured noise): (seen mask,
         labels of the seen points, the RegionMap, surface-graph edges over the seen points)."""
-        from elastoprobe.controller.learning import strategies as st
+        from bench import strategies as st
         from elastoprobe.controller.phases import FEATURE_HALF_WINDOW_MM
 
         depth = np.array([m.depth_mm for m in measured])
@@ -278,7 +283,7 @@ class SeedRun:
         over them). The map is the session's: nearest labelled target along the surface,
         parts split at folds, the seam drawn through targets whose dent lies between regions."""
         from elastoprobe.controller.learning import regions as rg
-        from elastoprobe.controller.learning import strategies as st
+        from bench import strategies as st
         from elastoprobe.controller.learning import surface_map as sm
         from elastoprobe.controller.phases import FEATURE_HALF_WINDOW_MM
 
@@ -299,7 +304,7 @@ class SeedRun:
 
     def gp_candidates(self, spacing_mm: float) -> Any:
         """Where the GP search may probe (gp_search.candidates), built once per seed."""
-        from elastoprobe.controller.learning import gp_search as gps
+        from bench import gp_search as gps
 
         if self._gp_candidates is None:
             self._gp_candidates = gps.candidates(self.surface, self.rules, spacing_mm, self.reference_dir)
@@ -358,7 +363,7 @@ def run_prefix_strategy(run: SeedRun, make: Callable[[int], Any], budgets: list[
 
 
 def run_neural_gas(run: SeedRun, budgets: list[int], stop: Callable[[list], bool], steps_per_unit: int) -> list[Point]:
-    from elastoprobe.controller.learning import strategies as st
+    from bench import strategies as st
 
     out: list[Point] = []
     for b in budgets:
@@ -375,7 +380,7 @@ def run_densify(run: SeedRun, start_units: int, per_round: int, max_budget: int,
                 steps_per_unit: int) -> list[Point]:
     """NG start, then densify rounds (survey-mean proxy models) until the budget or the stop rule."""
     from elastoprobe.controller.core.geometry import scan_direction
-    from elastoprobe.controller.learning import strategies as st
+    from bench import strategies as st
     from elastoprobe.controller.phases import FEATURE_HALF_WINDOW_MM
 
     plan = run.inputs.plan
@@ -414,7 +419,7 @@ def run_densify(run: SeedRun, start_units: int, per_round: int, max_budget: int,
 
 def run_gp(run: SeedRun, start: int, budgets: list[int], stop: Callable[[list], bool], spacing_mm: float,
            min_spacing_mm: float) -> list[Point]:
-    """Gaussian-process active search (controller/learning/gp_search.py).
+    """Gaussian-process active search (bench/gp_search.py).
 
     The first ``start`` probes are the coarse-to-fine raster's (a space-filling first design);
     then one probe at a time: the GP is fitted to every seen probe's dent level, the
@@ -424,8 +429,8 @@ def run_gp(run: SeedRun, start: int, budgets: list[int], stop: Callable[[list], 
     from every probe taken. At each budget the map is the GP's own: each surface point
     takes the region of the band its posterior mean falls in (``extra``:
     ``session_map_error``, the same probes mapped the session's way)."""
-    from elastoprobe.controller.learning import gp_search as gps
-    from elastoprobe.controller.learning import strategies as st
+    from bench import gp_search as gps
+    from bench import strategies as st
     from elastoprobe.controller.learning import surface_map as sm
     from elastoprobe.controller.phases import FEATURE_HALF_WINDOW_MM
 
@@ -677,7 +682,7 @@ def run_seed(args: argparse.Namespace, plan_path: str, seed: int, budgets: list[
              ) -> dict[str, Any]:
     """Every strategy's curve on one plan's object and one seed."""
     from elastoprobe.controller.core.config import load_session_inputs
-    from elastoprobe.controller.learning import strategies as st
+    from bench import strategies as st
 
     inputs = load_session_inputs(plan_path)
     plan = inputs.plan
@@ -733,7 +738,7 @@ def _ratio(a: float | None, b: float | None) -> float | None:
 def summarise_plan(args: argparse.Namespace, rows: list[dict[str, Any]], budgets: list[int], strategies: list[str]
                    ) -> dict:
     """Every strategy over every seed on one plan's object: that plan's full figures."""
-    from elastoprobe.controller.learning.gp_search import STRADDLE_KAPPA
+    from bench.gp_search import STRADDLE_KAPPA
 
     target = float(args.target_error)
     per_seed = {s: [{"seed": r["seed"], "curve": r["curves"][s]} for r in rows] for s in strategies}

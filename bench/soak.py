@@ -1,7 +1,7 @@
 """The simulated overnight soak: a night of probing with faults, kills and resumes (issues #7, #15).
 
-A private copy of the simulated cell injects rate-based faults of every kind in
-``sim.faults.KINDS`` (about one every ten force steps in total; the emergency stop with
+A private copy of the simulated cell injects rate-based faults of every kind of
+``InjectedFault`` in controller/core/faultkinds.py (about one every ten force steps in total; the emergency stop with
 ``clear_after_s``, a disk error on the journal's write among them), follow-up faults that
 strike while the controller recovers from another one (``rate_per_100_faults``), and
 faults fixed in the cloud sweep and in learning phases (the simulator is keyed there as
@@ -167,11 +167,11 @@ QUICK = SoakConfig(
 # ----------------------------------------------------------------------------- set-up
 def fault_rates(cfg: SoakConfig) -> dict[str, float]:
     """Per-kind rates (per 100 force steps): the even split of the total over every kind."""
-    from elastoprobe.sim.faults import KINDS
+    from elastoprobe.controller.core.faultkinds import INJECTED_FAULT_NAMES
 
     if cfg.rates_per_100_steps is not None:
         return dict(cfg.rates_per_100_steps)
-    return {k: cfg.fault_rate_per_100_steps / len(KINDS) for k in KINDS}
+    return {k: cfg.fault_rate_per_100_steps / len(INJECTED_FAULT_NAMES) for k in INJECTED_FAULT_NAMES}
 
 
 def write_cell(dst_dir: Path, name: str, rates: dict[str, float], estop_clear_after_s: float,

@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from .core.calfile import believed_cell, check_calibration
-from .core.config import SessionInputs
+from .core.calfile import check_calibration
+from .core.config import CellSpec, SessionInputs
 from .core.devices import Cell
 from .core.errors import InputError
 from .core.meshcheck import bounds_problem, mesh_findings, read_mesh
@@ -45,21 +45,7 @@ def load_object_model(inputs: SessionInputs) -> ObjectModel:
     where = (inputs.plan_doc, ("simulated_object",)) if inputs.plan.simulated_object and inputs.cell.kind != "ur" \
         else (inputs.cell_doc, ("object", "file"))
     model = read_object_model(path, where[0], where[1])
-    limits = inputs.cell.limits
-    vertices_base = inputs.cell.object.base_to_object.pose().apply(model.mesh.vertices)
-    problem = bounds_problem(vertices_base, limits.workspace.min_mm, limits.workspace.max_mm)
-    if problem is not None:
-        problem += " (check the mesh's scale_mm_per_unit and the cell's object placement)"
-    for box in limits.keep_out:
-        inside = np.all((vertices_base >= box.min_mm) & (vertices_base <= box.max_mm), axis=1)
-        if problem is None and inside.any():
-            problem = (f"the object reaches into keep-out box {box.name!r} ({int(inside.sum())} mesh vertices "
-                       f"inside; check the cell's object placement)")
-    size_mm = float(np.ptp(vertices_base, axis=0).max())
-    tip_mm = 2.0 * inputs.cell.tool.tip_radius_mm
-    if problem is None and size_mm < tip_mm:
-        problem = (f"the object is {size_mm:.3g} mm across, smaller than the probe's tip ({tip_mm:g} mm): "
-                   f"nothing on it can be probed (a mesh in metres needs scale_mm_per_unit: 1000)")
+    problem = placement_problem(model.mesh.vertices, inputs.cell)
     if problem is not None:
         raise where[0].error(where[1], f"{path}: {problem}")
     if model.simulated is not None and inputs.cell.kind != "ur":    # simulated and loopback cells
@@ -84,6 +70,28 @@ def read_object_model(path: Path, doc: Any, keys: tuple[str, ...]) -> ObjectMode
     if findings.errors:
         raise doc.error(keys, f"{path}: " + "; ".join(findings.errors))
     return ObjectModel(mesh=mesh, warnings=[f"{path}: {w}" for w in findings.warnings])
+
+
+def placement_problem(vertices_mm: np.ndarray, cell: CellSpec) -> str | None:
+    """Why an object whose mesh has ``vertices_mm`` (object frame, mm), set down where ``cell``
+    places it, cannot be probed there: outside the workspace, into a keep-out box, or smaller
+    than the probe's tip. None: it fits."""
+    limits = cell.limits
+    vertices_base = cell.object.base_to_object.pose().apply(vertices_mm)
+    problem = bounds_problem(vertices_base, limits.workspace.min_mm, limits.workspace.max_mm)
+    if problem is not None:
+        return problem + " (check the mesh's scale_mm_per_unit and the cell's object placement)"
+    for box in limits.keep_out:
+        inside = np.all((vertices_base >= box.min_mm) & (vertices_base <= box.max_mm), axis=1)
+        if inside.any():
+            return (f"the object reaches into keep-out box {box.name!r} ({int(inside.sum())} mesh vertices "
+                    f"inside; check the cell's object placement)")
+    size_mm = float(np.ptp(vertices_base, axis=0).max())
+    tip_mm = 2.0 * cell.tool.tip_radius_mm
+    if size_mm < tip_mm:
+        return (f"the object is {size_mm:.3g} mm across, smaller than the probe's tip ({tip_mm:g} mm): "
+                f"nothing on it can be probed (a mesh in metres needs scale_mm_per_unit: 1000)")
+    return None
 
 
 def check_physics(inputs: SessionInputs, sim_object: Any) -> None:
@@ -118,6 +126,7 @@ def build_cell(inputs: SessionInputs, seed: int, dry_run: bool = False,
     """Build the cell a session runs on (``model``: the object loaded by :func:`load_object_model`,
     loaded here when not given)."""
     kind = inputs.cell.kind
+    model = model or load_object_model(inputs)
     if kind == "simulated" or dry_run:
         return _simulated(inputs, seed, model)
     # The real drivers: ur_rtde in a supervised child, the Net F/T stream and the
@@ -125,7 +134,6 @@ def build_cell(inputs: SessionInputs, seed: int, dry_run: bool = False,
     # first starts the simulated servers that speak those protocols.
     from .drivers.real_cell import build_real_cell
 
-    model = model or load_object_model(inputs)
     if kind != "loopback":
         return BuiltCell(cell=build_real_cell(inputs.cell, inputs.limits), object_mesh=model.mesh)
     from elastoprobe.sim.servers.loopback import LoopbackServers
@@ -140,18 +148,17 @@ def build_cell(inputs: SessionInputs, seed: int, dry_run: bool = False,
     return BuiltCell(cell=real, object_mesh=model.mesh)
 
 
-def _simulated(inputs: SessionInputs, seed: int, model: ObjectModel | None) -> BuiltCell:
+def _simulated(inputs: SessionInputs, seed: int, model: ObjectModel) -> BuiltCell:
+    """The in-process simulated cell around ``model``, the object already loaded (never again:
+    a mesh object's file is read once per run)."""
     from elastoprobe.sim.cell import SimCell, params_from_cell
 
-    obj = inputs.object_file()
-    if obj.suffix.lower() not in (".yaml", ".yml"):
+    if model.simulated is None:
         raise InputError("a dry run needs a simulated object (an objects/*.yaml with materials): set the plan's "
                          "simulated_object", path=str(inputs.plan_path))
     # The world is built from the cell FILE (its miscalibration, drawn from the cell's own
     # seed, included); the controller's side from ``inputs.cell``, the file corrected by
     # its calibration file (config.load_session_inputs).
-    if model is None or model.simulated is None:
-        model = load_object_model(inputs)
     if inputs.cell.kind == "ur":              # a dry run of a real cell: its physics was not checked yet
         check_physics(inputs, model.simulated)
     cell_file = inputs.cell_file if inputs.cell_file is not None else inputs.cell
@@ -161,10 +168,9 @@ def _simulated(inputs: SessionInputs, seed: int, model: ObjectModel | None) -> B
 
 def calibration_warnings(inputs: SessionInputs) -> list[str]:
     """Why the controller's believed geometry may be off (empty when the calibration is
-    current, or when a simulated cell is calibrated by construction)."""
-    cell_file = inputs.cell_file if inputs.cell_file is not None else inputs.cell
-    _, state = believed_cell(cell_file, inputs.cell_path)
-    return list(state.problems)
+    current, or when a simulated cell is calibrated by construction): found once, when the
+    inputs were loaded (config.load_session_inputs)."""
+    return list(inputs.calibration_problems)
 
 
 def ground_truth_for(inputs: SessionInputs, seed: int, model: ObjectModel | None = None) -> Any:

@@ -316,12 +316,22 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 
 def cmd_sim_object(args: argparse.Namespace) -> int:
-    """Generate a painted object (sim/generate.py) and a plan for it by the plan rule (planrule.py)."""
+    """Generate a painted object (sim/generate.py) and a plan for it by the plan rule (planrule.py).
+
+    Both are written to a folder beside ``--out`` first and checked there as a session loads
+    them (the object on the cell: workspace, keep-outs, physics at the plan's forces); only
+    files that pass replace anything in ``--out``."""
+    import os
+    import shutil
+    import tempfile
+
     from elastoprobe.sim import generate as gen
 
+    from .cellfactory import load_object_model
     from .core.atomic import atomic_write_text
     from .core.config import DEFAULT_CELL, load_cell, load_session_inputs
-    from .planrule import fit_problems, forces_for_height, outline_of, plan_for_object, plan_yaml_text
+    from .core.yamlio import dump_yaml_text
+    from .planrule import forces_for_height, outline_of, plan_for_object, reach_problems
 
     cell_path = Path(args.cell) if args.cell else DEFAULT_CELL
     cell, _ = load_cell(cell_path)
@@ -332,7 +342,7 @@ def cmd_sim_object(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise InputError(str(exc)) from None
     outline = outline_of(obj.mesh())
-    problems = fit_problems(outline, cell)
+    problems = reach_problems(outline, cell)
     if problems:
         raise InputError(f"generated object {obj.name} does not fit the cell: " + "; ".join(problems),
                          path=str(cell_path))
@@ -340,17 +350,33 @@ def cmd_sim_object(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise InputError("--out must be a folder (it is a file)", path=str(out))
     try:
-        object_path = gen.write_object(obj, out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     except OSError as exc:
         raise InputError(f"cannot write the object: {exc.strerror or exc}", path=str(out)) from None
-    plan = plan_for_object(outline, cell, obj.name, object_path.name,
-                           str(cell_path.resolve()) if args.cell else None, seed=1)
-    plan_path = out / "plan.yaml"
-    header = (f"# The plan for {obj.name} by the plan rule (controller/planrule.py, docs/generated_objects.md):\n"
-              f"# sized from the object alone (height {outline.height_mm:.0f} mm, footprint "
-              f"{outline.footprint_area_mm2:.0f} mm^2). Run: elastoprobe run {plan_path} --seed 1\n")
-    atomic_write_text(plan_path, header + plan_yaml_text(plan))
-    load_session_inputs(plan_path, cell_path)          # what was written is a valid plan for the cell
+    try:
+        try:
+            staged_object = gen.write_object(obj, staging)
+        except OSError as exc:
+            raise InputError(f"cannot write the object: {exc.strerror or exc}", path=str(out)) from None
+        plan = plan_for_object(outline, cell, obj.name, staged_object.name,
+                               str(cell_path.resolve()) if args.cell else None, seed=1)
+        plan_path = out / "plan.yaml"
+        header = (f"# The plan for {obj.name} by the plan rule (controller/planrule.py, docs/generated_objects.md):\n"
+                  f"# sized from the object alone (height {outline.height_mm:.0f} mm, footprint "
+                  f"{outline.footprint_area_mm2:.0f} mm^2). Run: elastoprobe run {plan_path} --seed 1\n")
+        atomic_write_text(staging / plan_path.name, header + dump_yaml_text(plan))
+        try:    # what was written is a valid plan for the cell, and its object fits the cell
+            load_object_model(load_session_inputs(staging / plan_path.name, cell_path))
+        except InputError as exc:
+            raise InputError(f"generated object {obj.name} does not fit the cell: "
+                             + exc.message.replace(str(staging), str(out)), path=str(cell_path)) from None
+        out.mkdir(exist_ok=True)
+        for staged in sorted(staging.iterdir()):
+            os.replace(staged, out / staged.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    object_path = out / staged_object.name
     summary = {**obj.summary(), "object": str(object_path), "plan": str(plan_path)}
     if args.json:
         print(json.dumps(summary, allow_nan=False))
@@ -487,11 +513,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    # After parsing: --help and usage errors need neither (the journal brings numpy).
     from .journal import JournalCorruption
     from .signals import OperatorFlags, OperatorInterrupt
 
-    parser = build_parser()
-    args = parser.parse_args(argv)
     flags = OperatorFlags().install() if args.command in INTERRUPTIBLE else None
     try:
         if flags is None:

@@ -25,7 +25,6 @@ import hashlib
 import json
 import os
 import shutil
-import signal
 import socket
 import sqlite3
 import urllib.parse
@@ -39,6 +38,7 @@ from .core.atomic import ensure_dir, json_default
 from .core.errors import DiskError, ElastoprobeError, InputError
 from .locking import SessionLock
 from .signals import deferred_interrupts
+from .testing import crash_point
 
 SCHEMA_VERSION = 1
 JOURNAL_NAME = "journal.sqlite"
@@ -107,25 +107,6 @@ def _json(text: Any, what: str) -> Any:
         return json.loads(text)
     except (TypeError, ValueError) as exc:
         raise JournalCorruption(f"journal: {what} is not valid JSON (stored data is damaged: {exc})") from None
-
-
-# ============================================================================ crash hook
-_crash_counts: dict[str, int] = {}
-
-
-def _crash_point(name: str) -> None:
-    """Test hook: ``ELASTOPROBE_JOURNAL_CRASH_AT=name[@n]`` SIGKILLs this process at the
-    n-th (default first) time it passes ``name`` — inside a transaction, to prove that
-    nothing half-written survives. Costs one dict lookup when unset."""
-    spec = os.environ.get("ELASTOPROBE_JOURNAL_CRASH_AT")
-    if not spec:
-        return
-    point, _, nth = spec.partition("@")
-    if point != name:
-        return
-    _crash_counts[name] = _crash_counts.get(name, 0) + 1
-    if _crash_counts[name] >= (int(nth) if nth else 1):
-        os.kill(os.getpid(), signal.SIGKILL)
 
 
 # ============================================================================ helpers
@@ -947,18 +928,18 @@ class Journal:
                             "committed_utc, run_id) VALUES (?,?,'committed',?,?,?,?,?)",
                             (name, int(round), outputs_json, digest, len(steps), now, self.run_id))
             phase_id = int(cur.lastrowid)
-            _crash_point("commit_phase:after_phase_row")
+            crash_point("commit_phase:after_phase_row")
             c.executemany("INSERT INTO phase_arrays VALUES (?,?,?,?,?,?)",
                           [(phase_id, k, *e) for k, e in encoded.items()])
             half = len(steps) // 2
             try:
                 c.executemany(_INSERT_STEP, [_step_row(s, phase_id, name, round) for s in steps[:half]])
-                _crash_point("commit_phase:half_steps")
+                crash_point("commit_phase:half_steps")
                 c.executemany(_INSERT_STEP, [_step_row(s, phase_id, name, round) for s in steps[half:]])
             except sqlite3.IntegrityError as exc:
                 raise JournalError(f"phase {name!r} round {round}: planned step ids collide with "
                                    f"existing steps ({exc})") from None
-            _crash_point("commit_phase:before_commit")
+            crash_point("commit_phase:before_commit")
         return digest
 
     def complete_phase(self, name: str, round: int) -> None:
@@ -1019,7 +1000,7 @@ class Journal:
             c.execute("UPDATE steps SET status='in_progress', attempts=?, started_utc=?, finished_utc=NULL, "
                       "run_id=?, fail_reason=NULL, fault_id=NULL WHERE step_id=?",
                       (attempt, _utc_now(), self.run_id, step_id))
-            _crash_point("begin_step:before_commit")
+            crash_point("begin_step:before_commit")
         return attempt
 
     def commit_step(self, step_id: int, attempt: int, result: StepResult) -> None:
@@ -1048,13 +1029,13 @@ class Journal:
             c.execute("DELETE FROM step_arrays WHERE step_id=?", (step_id,))
             half = len(encoded) // 2
             c.executemany("INSERT INTO step_arrays VALUES (?,?,?,?,?,?)", encoded[:half])
-            _crash_point("commit_step:half_arrays")
+            crash_point("commit_step:half_arrays")
             c.executemany("INSERT INTO step_arrays VALUES (?,?,?,?,?,?)", encoded[half:])
-            _crash_point("commit_step:after_arrays")
+            crash_point("commit_step:after_arrays")
             c.execute("UPDATE steps SET status='done', finished_utc=?, summary=? WHERE step_id=?",
                       (_utc_now(), summary_json, step_id))
             self._add_robot_time(c, "probing", float(result.robot_time_s))
-            _crash_point("commit_step:before_commit")
+            crash_point("commit_step:before_commit")
 
     def fail_step(self, step_id: int, attempt: int, reason: str, fault_id: int | None = None) -> None:
         """Mark the attempt in progress as failed (the step stays pending for a retry)."""
@@ -1065,7 +1046,7 @@ class Journal:
                                      f"(status {status}, attempts {attempts})")
             c.execute("UPDATE steps SET status='failed', finished_utc=?, fail_reason=?, fault_id=? "
                       "WHERE step_id=?", (_utc_now(), reason, fault_id, step_id))
-            _crash_point("fail_step:before_commit")
+            crash_point("fail_step:before_commit")
 
     def skip_step(self, step_id: int, reason: str) -> None:
         """Give up on a step that is not done (fault policy, budget): it leaves the pending list."""
@@ -1215,7 +1196,7 @@ class Journal:
             cur = c.execute("INSERT INTO faults (run_id, kind, t_robot_s, t_wall_utc, step_id, message, "
                             "policy_action, raw_dtype, raw_shape, raw_sha256, raw) VALUES (?,?,?,?,?,?,?,?,?,?,?)",
                             (self.run_id, kind, t_robot_s, _utc_now(), step_id, message, policy_action, *blob))
-            _crash_point("record_fault:before_commit")
+            crash_point("record_fault:before_commit")
             return int(cur.lastrowid)
 
     def faults(self, step_id: int | None = None, with_raw: bool = True) -> list[FaultRecord]:

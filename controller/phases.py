@@ -8,9 +8,6 @@ together; the session runs the planned steps between them.
 """
 from __future__ import annotations
 
-import os
-import signal
-import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -24,6 +21,7 @@ from .learning import profiles as prof
 from .learning.models import RegionModel, ServingLimits, TrainConfig, fit_region_model
 from .learning.support import UNSUPPORTED, CompletedTargets, RegionSteps, complete_targets, support_table
 from .probe import ProbeTarget, StepData
+from .testing import crash_point
 
 if TYPE_CHECKING:
     from .session import Session
@@ -41,34 +39,6 @@ CHARACTERIZE = "regions"
 # measured, mirrored or under the tip counts fully, an inferred sample half, an
 # interpolated one a quarter (they shape the curve between supported samples only).
 SUPPORT_WEIGHTS = np.array([1.0, 1.0, 1.0, 0.5, 0.25])
-
-
-_crash_counts: dict[str, int] = {}
-
-
-def crash_point(name: str) -> None:
-    """Test hook beside the journal's: ``ELASTOPROBE_JOURNAL_CRASH_AT=name[@n][+delay_s]``
-    SIGKILLs this process the n-th time (default first) it passes ``name`` — at once, or
-    ``delay_s`` later from a timer (to land inside long work such as the report). Points:
-    ``models:before_save``, ``models:after_save``, ``models:before_commit``,
-    ``final:before_report``, ``report:begin`` (use a delay), ``final:after_report``.
-    Costs one dict lookup when unset."""
-    spec = os.environ.get("ELASTOPROBE_JOURNAL_CRASH_AT")
-    if not spec:
-        return
-    head, _, delay_text = spec.partition("+")
-    point, _, nth_text = head.partition("@")
-    if point != name:
-        return
-    _crash_counts[name] = _crash_counts.get(name, 0) + 1
-    if _crash_counts[name] != (int(nth_text) if nth_text else 1):
-        return
-    if delay_text:
-        timer = threading.Timer(float(delay_text), os.kill, (os.getpid(), signal.SIGKILL))
-        timer.daemon = True
-        timer.start()
-    else:
-        os.kill(os.getpid(), signal.SIGKILL)
 
 
 def canonical(values: np.ndarray, decimals: int) -> np.ndarray:

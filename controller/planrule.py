@@ -190,36 +190,13 @@ def plan_for_object(outline: ObjectOutline, cell: CellSpec, name: str, object_fi
     return plan
 
 
-def plan_yaml_text(plan: dict[str, Any]) -> str:
-    """A plan dict as YAML text (block style, short lists inline)."""
-    import io
-
-    from ruamel.yaml import YAML
-
-    yaml = YAML()
-    yaml.default_flow_style = None
-    yaml.width = 120
-    buf = io.StringIO()
-    yaml.dump(plan, buf)
-    return buf.getvalue()
-
-
-def fit_problems(outline: ObjectOutline, cell: CellSpec) -> list[str]:
-    """Why the object does not fit the cell (empty: it does): its box in the workspace, clear of
-    every keep-out, and its top's centre and corners pressable along +z (IK at the standoff)."""
+def reach_problems(outline: ObjectOutline, cell: CellSpec) -> list[str]:
+    """Where the arm cannot press the object's top along +z (empty: it can at its centre and
+    corners; IK at the standoff). Whether the object lies inside the workspace and clear of the
+    keep-outs is the object loader's check (cellfactory.load_object_model), on the mesh itself."""
     b2o = cell.object.base_to_object.pose()
     lo, hi = outline.bounds_min_mm, outline.bounds_max_mm
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    base = b2o.apply(corners)
-    b_lo, b_hi = base.min(axis=0), base.max(axis=0)
     problems = []
-    ws = cell.limits.workspace
-    if np.any(b_lo < np.array(ws.min_mm)) or np.any(b_hi > np.array(ws.max_mm)):
-        problems.append(f"the object's box (base {np.round(b_lo, 1).tolist()} .. {np.round(b_hi, 1).tolist()} mm) "
-                        "leaves the workspace")
-    for box in cell.limits.keep_out:
-        if np.all(b_lo < np.array(box.max_mm)) and np.all(b_hi > np.array(box.min_mm)):
-            problems.append(f"the object's box overlaps keep-out box {box.name!r}")
     model = arm_model_for(cell)
     seed = np.radians(np.asarray(cell.robot.home_joints_deg, dtype=float))
     up, t = b2o.apply_vector(np.array([0.0, 0.0, 1.0])), b2o.apply_vector(np.array([0.0, 1.0, 0.0]))

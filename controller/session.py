@@ -32,6 +32,7 @@ from .machine import SessionMachine
 from .placement import PlacementMonitor
 from .probe import ForceLevel, ProbeExecutor, ProbeFault, ProbeSettings, ProbeTarget, StepData
 from .signals import OperatorFlags, OperatorInterrupt, deferred_interrupts
+from .testing import play_disk_error
 
 EXIT_DONE, EXIT_FAULT, EXIT_PAUSED = 0, 1, 3
 
@@ -554,7 +555,7 @@ class Session:
             measured = phases.measure_step_data(self, target, data)
             result = StepResult.from_step_data(data, measured.depth_mm, phases.session_grid(self).x_mm,
                                                summary=measured.facts())
-            self._inject_disk_error(data.step_id, retry)
+            play_disk_error(cell, j, data.step_id, retry, self._log)
             j.commit_step(data.step_id, attempt, result)
             step_time += data.robot_time_s
             self._current_step = None
@@ -581,21 +582,6 @@ class Session:
             if overhead > 0:
                 j.add_robot_time("travel_and_contact", overhead)
             self.progress.robot_s = j.robot_time_s()["total"]
-
-    def _inject_disk_error(self, step_id: int, retry: int) -> None:
-        """Simulated cells: a ``disk_error`` fault (at a step, first attempt only, or at a
-        rate per 100 steps) fails this step's journal write. The simulator schedules it
-        like every fault (keyed by step and retry) but cannot reach the disk, so the
-        controller plays it: the fault is journaled (a resume then draws a new key and
-        does not meet it again) and the write raises what SQLite raises on a failing disk."""
-        take = getattr(getattr(self.cell, "faults", None), "take_disk_error", None)
-        if take is None or not take(step_id, retry):    # real cells have no injector
-            return
-        assert self.journal is not None and self.cell is not None
-        self.journal.record_fault("disk_error", "injected disk error: the step's write failed",
-                                  t_robot_s=self.cell.clock.now_s(), step_id=step_id, policy_action="pause")
-        self._log("fault", kind="disk_error", step=step_id, action="pause")
-        raise sqlite3.OperationalError(f"disk I/O error (injected by the simulated cell at step {step_id})")
 
     def _stop_arm(self) -> None:
         """Stop the arm; with the link down the command cannot reach it (the robot's own

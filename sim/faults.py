@@ -41,29 +41,28 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from elastoprobe.controller.core.errors import DeviceError
+from elastoprobe.controller.core.faultkinds import INJECTED_FAULT_NAMES, InjectedFault
 
 from .world import PRE_STEP, US_PER_S, Stream, keyed_rng
 
 if TYPE_CHECKING:   # pragma: no cover
     from .world import Contact, SimWorld
 
-KINDS = ("force_spike", "ft_stall", "ft_frozen", "scanner_timeout", "scanner_short_burst", "protective_stop",
-         "connection_loss", "emergency_stop", "object_moved", "slip", "disk_error")
 
 # Defaults per kind: (duration_s, magnitude). Magnitudes: spike N, object shift mm, slip mm/s,
 # short burst: fraction of the profiles delivered.
-_DEFAULTS = {
-    "force_spike": (0.005, 80.0),
-    "ft_stall": (0.25, 0.0),
-    "ft_frozen": (0.25, 0.0),
-    "scanner_timeout": (math.inf, 0.0),
-    "scanner_short_burst": (math.inf, 0.5),
-    "protective_stop": (0.0, 0.0),
-    "connection_loss": (1.0, 0.0),
-    "emergency_stop": (math.inf, 0.0),
-    "object_moved": (0.0, 12.0),
-    "slip": (math.inf, 20.0),
-    "disk_error": (0.0, 0.0),
+_DEFAULTS: dict[str, tuple[float, float]] = {
+    InjectedFault.FORCE_SPIKE: (0.005, 80.0),
+    InjectedFault.FT_STALL: (0.25, 0.0),
+    InjectedFault.FT_FROZEN: (0.25, 0.0),
+    InjectedFault.SCANNER_TIMEOUT: (math.inf, 0.0),
+    InjectedFault.SCANNER_SHORT_BURST: (math.inf, 0.5),
+    InjectedFault.PROTECTIVE_STOP: (0.0, 0.0),
+    InjectedFault.CONNECTION_LOSS: (1.0, 0.0),
+    InjectedFault.EMERGENCY_STOP: (math.inf, 0.0),
+    InjectedFault.OBJECT_MOVED: (0.0, 12.0),
+    InjectedFault.SLIP: (math.inf, 20.0),
+    InjectedFault.DISK_ERROR: (0.0, 0.0),
 }
 
 FAULT_LOG_ENV = "ELASTOPROBE_SIM_FAULT_LOG"
@@ -88,8 +87,10 @@ class FaultPlan:
     clear_after_s: float | None = None    # emergency stop: the operator clears it after this
 
     def __post_init__(self) -> None:
-        if self.kind not in KINDS:
+        if self.kind not in INJECTED_FAULT_NAMES:
             raise ValueError(f"unknown fault kind {self.kind!r}")
+        # The plain name: records, logs and comparisons see what the cell file said.
+        object.__setattr__(self, "kind", InjectedFault(self.kind).value)
         given = [x is not None for x in (self.step, self.at_t_s, self.rate_per_100_steps, self.rate_per_100_faults)]
         if sum(given) != 1:
             raise ValueError("give exactly one of step, at_t_s, rate_per_100_steps, rate_per_100_faults")

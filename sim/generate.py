@@ -94,6 +94,8 @@ import numpy as np
 import trimesh
 from scipy.spatial import Delaunay, cKDTree
 
+from elastoprobe.controller.core.yamlio import dump_yaml_text
+
 from .materials import Material, MaterialSpec, material_from_spec
 from .objects import MeshObject
 from .physics import FoamResponse, HertzResponse, PlateResponse
@@ -1071,10 +1073,6 @@ def _label_heights(painted: PaintedMesh, n_labels: int, default_mm: float) -> li
 
 def object_yaml_text(obj: GeneratedObject, mesh_file: str) -> str:
     """The object file (config/objects/*.yaml format) for ``obj`` with its mesh at ``mesh_file``."""
-    import io
-
-    from ruamel.yaml import YAML
-
     s = obj.summary()
     lines = [f"# Generated: elastoprobe sim object --seed {obj.seed} --shape {obj.shape.kind} "
              f"--pattern {obj.pattern.kind} --pairs {obj.pairs}",
@@ -1091,12 +1089,7 @@ def object_yaml_text(obj: GeneratedObject, mesh_file: str) -> str:
         "blend_width_mm": 6.0,
         "materials": {n: spec for n, spec in zip(obj.materials.names, obj.materials.specs)},
     }
-    yaml = YAML()
-    yaml.default_flow_style = None
-    yaml.width = 120
-    buf = io.StringIO()
-    yaml.dump(doc, buf)
-    return "\n".join(lines) + "\n" + buf.getvalue()
+    return "\n".join(lines) + "\n" + dump_yaml_text(doc)
 
 
 def write_object(obj: GeneratedObject, out_dir: str | Path, stem: str = "object") -> Path:

@@ -123,8 +123,7 @@ def test_restated_goal_after_calibration_within_the_margin_of_exact_and_of_the_c
 
 
 def _bench():
-    sys.path.insert(0, str(ROOT / "bench"))
-    import calibrated_demo
+    from bench import calibrated_demo
 
     return calibrated_demo
 

@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from elastoprobe.controller.cellfactory import placement_problem
 from elastoprobe.controller.core.config import DEFAULT_CELL, load_cell
-from elastoprobe.controller.planrule import fit_problems, forces_for_height, outline_of
+from elastoprobe.controller.planrule import forces_for_height, outline_of, reach_problems
 from elastoprobe.sim import generate as gen
 from elastoprobe.sim.objects import load_object
 
@@ -71,7 +72,9 @@ def test_every_suite_object_loads_with_its_paint_valid_physics_and_contrast(
                 assert 2.7 <= ratio <= 3.3, (obj.name, c)
             else:
                 assert ratio >= 3.45, (obj.name, c)
-        assert fit_problems(outline_of(obj.mesh()), CELL) == [], obj.name
+        # Fits the default cell: reachable, inside the workspace and clear of the keep-outs.
+        assert reach_problems(outline_of(obj.mesh()), CELL) == [], obj.name
+        assert placement_problem(obj.mesh().vertices, CELL) is None, obj.name
 
 
 def test_near_and_far_pairs_are_honoured(suite_objects: list[gen.GeneratedObject]) -> None:

@@ -1,10 +1,10 @@
-"""Gaussian-process active search (controller/learning/gp_search.py): the bench's GP peer."""
+"""Gaussian-process active search (bench/gp_search.py): the bench's GP peer."""
 from __future__ import annotations
 
 import numpy as np
 
-from elastoprobe.controller.learning import gp_search as gps
-from elastoprobe.controller.learning import strategies as st
+from bench import gp_search as gps
+from bench import strategies as st
 from elastoprobe.controller.learning import targets as tg
 
 X_MM = np.linspace(-20.0, 20.0, 41)

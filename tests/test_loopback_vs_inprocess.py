@@ -30,7 +30,6 @@ ur_rtde ports, so loopback.
 """
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import pytest
@@ -41,11 +40,9 @@ P_MIN = 0.005
 
 
 def _compare_module():
-    spec = importlib.util.spec_from_file_location("loopback_vs_inprocess", ROOT / "bench" / "loopback_vs_inprocess.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    from bench import loopback_vs_inprocess
+
+    return loopback_vs_inprocess
 
 
 def _run_pair(base: Path, host: str, corr_floor_mm: float | None, reference_seeds: tuple[int, ...]) -> dict:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +20,7 @@ import numpy as np
 import pytest
 from ruamel.yaml import YAML
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
-import mapping_suite as ms  # noqa: E402
+from bench import mapping_suite as ms
 
 QUICK_OBJECTS = {"1004-block-strip": 2, "1005-block-plain": 1}     # object -> materials
 

@@ -10,8 +10,10 @@ import pytest
 
 from elastoprobe.controller.cli import main
 from elastoprobe.controller.core.config import DEFAULT_CELL, PlanSpec, load_cell, load_plan, load_session_inputs
-from elastoprobe.controller.planrule import (ObjectOutline, fit_problems, largest_force_n, outline_of, plan_for_object,
-                                             plan_yaml_text)
+from elastoprobe.controller.core.yamlio import dump_yaml_text
+from elastoprobe.controller.cellfactory import load_object_model
+from elastoprobe.controller.core.errors import InputError
+from elastoprobe.controller.planrule import ObjectOutline, largest_force_n, outline_of, plan_for_object, reach_problems
 from elastoprobe.sim.objects import load_object
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -21,7 +23,7 @@ CELL, _ = load_cell(DEFAULT_CELL)
 
 def valid(plan: dict, tmp_path: Path, name: str = "plan.yaml") -> PlanSpec:
     path = tmp_path / name
-    path.write_text(plan_yaml_text(plan), encoding="utf-8")
+    path.write_text(dump_yaml_text(plan), encoding="utf-8")
     return load_plan(path)[0]
 
 
@@ -60,13 +62,26 @@ def test_forces_follow_the_height_within_the_cells_limits(tmp_path: Path) -> Non
     assert dens.resolution_mm >= 2 * dens.min_spacing_mm and dens.points_per_round == 14
 
 
-def test_an_object_that_does_not_fit_the_cell_is_named() -> None:
+def test_an_object_that_does_not_fit_the_cell_is_named(tmp_path: Path) -> None:
     composite = outline_of(load_object(OBJECTS / "composite.yaml").mesh)
-    assert fit_problems(composite, CELL) == []
+    assert reach_problems(composite, CELL) == []
     huge = ObjectOutline(np.array([-700.0, -200.0, 0.0]), np.array([700.0, 200.0, 50.0]), 500_000.0)
-    problems = fit_problems(huge, CELL)
-    assert any("workspace" in p for p in problems) and any("robot_column" in p for p in problems)
-    assert any("cannot reach" in p for p in problems)
+    assert any("cannot reach" in p for p in reach_problems(huge, CELL))
+    # Workspace and keep-outs: the object loader's check on the mesh (what sim object runs too).
+    plan = ROOT / "config" / "plans" / "demo.yaml"
+    for x_mm, named in ((400.0, None), (900.0, "workspace"), (60.0, "robot_column")):
+        text = DEFAULT_CELL.read_text(encoding="utf-8")
+        text = text.replace("base_to_object: {position_mm: [400.0, 0.0, 0.0]}",
+                            f"base_to_object: {{position_mm: [{x_mm}, 0.0, 0.0]}}")
+        text = text.replace("file: ../objects/composite.yaml", f"file: {OBJECTS / 'composite.yaml'}")
+        cell = tmp_path / f"cell_{x_mm:g}.yaml"
+        cell.write_text(text, encoding="utf-8")
+        inputs = load_session_inputs(plan, cell)
+        if named is None:
+            load_object_model(inputs)
+            continue
+        with pytest.raises(InputError, match=named):
+            load_object_model(inputs)
 
 
 def test_sim_object_writes_an_object_and_a_plan_that_run_as_they_are(tmp_path: Path,
@@ -121,4 +136,4 @@ def test_the_plan_text_reads_back_as_the_same_plan() -> None:
     from ruamel.yaml import YAML
 
     plan = shipped_plan("user_object")
-    assert json.loads(json.dumps(YAML(typ="safe").load(plan_yaml_text(plan)))) == json.loads(json.dumps(plan))
+    assert json.loads(json.dumps(YAML(typ="safe").load(dump_yaml_text(plan)))) == json.loads(json.dumps(plan))

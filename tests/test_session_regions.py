@@ -1,5 +1,6 @@
 """The plan's region settings reach the session's clustering, and the evaluation counts and
-places what a wrong map mislabels (real tiny runs on the simulated cell)."""
+places what a wrong map mislabels (real tiny runs on the simulated cell: by default one run
+beside the shared tiny session, with -m slow two full runs of seed 1)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -10,12 +11,41 @@ from ruamel.yaml import YAML
 from elastoprobe.controller.evaluation import evaluate_session
 from elastoprobe.controller.journal import Journal
 
-from test_session_util import TINY_PLAN, child_env, run_cli
+from test_session_util import TINY_PLAN, child_env, plan_for, run_cli
 
 
-def test_plan_min_contrast_decides_whether_box_and_foam_are_two_regions(tmp_path: Path) -> None:
-    """Box and foam dent ~10x apart: two regions at the default contrast; a plan that asks
-    for 100x before calling two regions different gets one, merged by contrast."""
+# A plan that asks for 100x before calling two regions different (box and foam dent ~10x apart).
+HIGH_CONTRAST = {"    angles_deg: [90]\n    forces_n: [4.0, 12.0]\n":
+                 "    angles_deg: [90]\n    forces_n: [4.0, 12.0]\n    min_contrast: 100.0\n"}
+# Densification cannot split one region into two: the merged run skips its round.
+NO_DENSIFY = {"    rounds: 1\n": "    rounds: 0\n"}
+
+
+def _regions(session: Path) -> tuple[int, int]:
+    """(regions found, merged by contrast) of the survey's clustering."""
+    with Journal.open_readonly(session) as j:
+        rec = j.phase("regions", 0)
+    assert rec is not None
+    return rec.outputs["n_regions"], rec.outputs["stats"].get("merged_by_contrast", 0)
+
+
+def test_plan_min_contrast_decides_whether_box_and_foam_are_two_regions(tiny_session: dict, tmp_path: Path) -> None:
+    """Two regions at the default contrast (the shared tiny session, seed 2); one, merged by
+    contrast, for the same plan asking for 100x (one run, without its densify round)."""
+    plan = plan_for(tiny_session["cell"], tmp_path, edits={**HIGH_CONTRAST, **NO_DENSIFY})
+    one = tmp_path / "session_100"
+    child = run_cli(["run", str(plan), "--out", str(one), "--seed", str(tiny_session["seed"]), "--quiet"],
+                    tiny_session["env"])
+    assert child.returncode == 0, child.stderr[-2000:]
+    two = tiny_session["finished"]
+    assert _regions(two)[0] == 2
+    assert _regions(one) == (1, 1)
+    _assert_evaluation_places_the_mislabelled(one, two)
+
+
+@pytest.mark.slow
+def test_plan_min_contrast_two_full_runs_seed_1(tmp_path: Path) -> None:
+    """The same on seed 1, both runs the whole tiny plan (densify round included)."""
     yaml = YAML()
     doc = yaml.load(TINY_PLAN.read_text(encoding="utf-8"))
     for key in ("cell", "simulated_object"):
@@ -31,17 +61,17 @@ def test_plan_min_contrast_decides_whether_box_and_foam_are_two_regions(tmp_path
         out = tmp_path / f"session_{contrast}"
         child = run_cli(["run", str(plan), "--out", str(out), "--seed", "1", "--quiet"], env)
         assert child.returncode == 0, child.stderr[-2000:]
-        with Journal.open_readonly(out) as j:
-            rec = j.phase("regions", 0)
-        assert rec is not None
-        found[contrast] = (rec.outputs["n_regions"], rec.outputs["stats"].get("merged_by_contrast", 0))
+        found[contrast] = _regions(out)
     assert found[None][0] == 2
     assert found[100.0] == (1, 1)
+    _assert_evaluation_places_the_mislabelled(tmp_path / "session_100.0", tmp_path / "session_None")
 
-    # One region where there are two: every point of the smaller material is mislabelled,
-    # up to the farthest one from the seam; the evaluation counts and places them (on the
-    # scanned cloud) and weighs them (on the true surface: the box's whole top, 25 600 mm^2).
-    one, two = evaluate_session(tmp_path / "session_100.0"), evaluate_session(tmp_path / "session_None")
+
+def _assert_evaluation_places_the_mislabelled(one_dir: Path, two_dir: Path) -> None:
+    """One region where there are two: every point of the smaller material is mislabelled,
+    up to the farthest one from the seam; the evaluation counts and places them (on the
+    scanned cloud) and weighs them (on the true surface: the box's whole top, 25 600 mm^2)."""
+    one, two = evaluate_session(one_dir), evaluate_session(two_dir)
     c1, c2 = one["cloud"], two["cloud"]
     assert one["regions_found"] == 1 and c1["mislabelled_points"] > 1000
     assert c1["mislabelled_points"] == round(c1["region_map_error"] * c1["scored_points"])

@@ -4,8 +4,8 @@ equals an uninterrupted one (docs/design.md §6; issue "The probing controller",
 Each session runs the real CLI in a child process on the tiny plan (tests/data/session/
 tiny.yaml) and a private copy of the simulated cell. Kills land after random delays and
 at chosen points: inside a step commit, inside a phase commit, around a model save and
-during the report (``ELASTOPROBE_JOURNAL_CRASH_AT``, see controller/journal.py and
-controller/phases.py ``crash_point``). After every kill the journal must be sound
+during the report (``ELASTOPROBE_JOURNAL_CRASH_AT``, the crash points of
+controller/testing.py). After every kill the journal must be sound
 (``PRAGMA integrity_check``, checksums, no half-written step); at the end every step is
 done or skipped exactly as in the uninterrupted run, with the same raw data, the same
 models (model hashes) and the same region map (final cloud labels).
@@ -14,18 +14,15 @@ from __future__ import annotations
 
 import json
 import random
-import time
 from pathlib import Path
 
 import pytest
 
-from test_session_util import (Outcome, child_env, copy_cell, outcome, plan_for, start_or_resume)
+from test_session_util import Outcome, child_env, outcome, start_or_resume
 
 from elastoprobe.controller.journal import Journal
 
 SEED = 2                      # two regions and a densify round with this seed
-REPO = Path(__file__).resolve().parent.parent
-SIM_CELL = REPO / "config" / "cells" / "sim.yaml"
 MAX_FINAL_RESUMES = 4
 
 # Aimed kills: (crash spec, where it lands). Counts are per process (each resume counts anew).
@@ -37,24 +34,19 @@ AIMED = [
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory: pytest.TempPathFactory) -> dict:
-    tmp = tmp_path_factory.mktemp("resume")
-    cell = copy_cell(SIM_CELL, tmp, "resume-test-cell")
-    plan = plan_for(cell, tmp)
-    return {"tmp": tmp, "cell": cell, "plan": plan, "env": child_env(tmp / "locks")}
+def setup(tiny_session: dict) -> dict:
+    """The shared tiny session's cell, plan and lock directory (conftest.py); killed runs
+    write beside its finished one, never into it."""
+    assert tiny_session["seed"] == SEED
+    return tiny_session
 
 
 @pytest.fixture(scope="module")
 def reference(setup: dict) -> Outcome:
-    """The uninterrupted session with the same seed."""
-    out = setup["tmp"] / "reference"
-    t0 = time.monotonic()
-    child = start_or_resume(setup["plan"], out, SEED, setup["env"])
-    # How long a whole session takes on this machine now: random kills are placed as
-    # fractions of it, so they land inside the session however fast the machine is.
-    setup["reference_wall_s"] = time.monotonic() - t0
-    assert child.returncode == 0, child.stderr[-3000:]
-    ref = outcome(out)
+    """The uninterrupted session with the same seed: the shared tiny session. Its wall time
+    (``wall_s``) says how long a whole session takes on this machine now: random kills are
+    placed as fractions of it, so they land inside the session however fast the machine is."""
+    ref = setup["outcome"]
     assert ref.status == "done" and ref.integrity == ["ok"] and not ref.problems
     assert sum(s == "done" for s in ref.step_status.values()) >= 10
     return ref
@@ -130,7 +122,7 @@ def test_kill_at_aimed_and_random_moments_then_resume_equals_uninterrupted(setup
     # Early in the session (a fraction of an uninterrupted run's wall time), so enough of it
     # is left for the aimed kills after it: a fixed 6-14 s landed near the end once the
     # simulator got faster, and the step-commit kill that follows found no third commit.
-    kills: list[tuple[str, object]] = [("delay", rnd.uniform(0.1, 0.25) * setup["reference_wall_s"])]
+    kills: list[tuple[str, object]] = [("delay", rnd.uniform(0.1, 0.25) * setup["wall_s"])]
     kills += [("crash", spec) for spec, _ in AIMED]
     out, codes = _kill_and_resume(setup, "killed", kills)
     assert codes.count(-9) >= 4

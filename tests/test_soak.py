@@ -15,14 +15,12 @@ follow-ups during recovery, 24 kills) is marked soak.
 """
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
-import soak  # noqa: E402
+from bench import soak
 
 # Fates that are not a failure of the controller: a scanner fault with no scan asked for
 # or a slip with no contact changed nothing any device showed; a fault whose process was
@@ -96,9 +94,9 @@ def test_overnight_soak(tmp_path: Path) -> None:
 
 
 def soak_kinds() -> tuple[str, ...]:
-    from elastoprobe.sim.faults import KINDS
+    from elastoprobe.controller.core.faultkinds import INJECTED_FAULT_NAMES
 
-    return KINDS
+    return INJECTED_FAULT_NAMES
 
 
 def test_a_fault_during_recovery_counts_as_the_pause_it_caused() -> None:

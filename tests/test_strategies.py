@@ -1,15 +1,13 @@
-"""Survey sampling strategies (controller/learning/strategies.py) and the bench's measured path."""
+"""Survey sampling strategies (bench/strategies.py) and the bench's measured path."""
 from __future__ import annotations
 
-import importlib.util
-import sys
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from elastoprobe.controller.learning import strategies as st
+from bench import strategies as st
 from elastoprobe.controller.learning import targets as tg
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -108,11 +106,9 @@ def test_survey_mean_model_is_a_profile_model():
 
 
 def _bench_module():
-    spec = importlib.util.spec_from_file_location("sampling_efficiency", ROOT / "bench" / "sampling_efficiency.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["sampling_efficiency"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    from bench import sampling_efficiency
+
+    return sampling_efficiency
 
 
 def test_measured_survey_maps_the_composite_within_the_goal():

@@ -43,7 +43,7 @@ def test_scan_lines_and_an_unscanned_band_stay_one_face():
 
 @pytest.fixture(scope="module")
 def composite_surface():
-    from elastoprobe.controller.learning import strategies as st
+    from bench import strategies as st
     from elastoprobe.controller.learning.cloud import sample_mesh
     from elastoprobe.sim.objects import load_object
 

@@ -19,6 +19,7 @@ from pydantic import Field, field_validator, model_validator
 
 from .calfile import believed_cell
 from .errors import InputError, InputErrors
+from .faultkinds import InjectedFault
 from .forceloop import ForceLoopGains
 from .geometry import NINE_ANGLES_DEG, Pose, rotvec_to_matrix
 from .safety import SafetyLimits
@@ -108,6 +109,10 @@ class RobotSpec(Spec):
                 if not (-360.0 <= lo < hi <= 360.0):
                     raise ValueError("each joint limit must satisfy -360 <= min < max <= 360")
         return v
+
+    def joint_limits_rad(self) -> np.ndarray | None:
+        """The joint limits as (6, 2) [min, max] in radians; None: the arm's own (+-2 pi)."""
+        return None if self.joint_limits_deg is None else np.radians(np.asarray(self.joint_limits_deg, dtype=float))
 
 
 class ToolSpec(Spec):
@@ -202,17 +207,13 @@ class ForceLoopSpec(Spec):
                               force_window=self.force_window, seek_accel_mm_s2=self.seek_accel_mm_s2)
 
 
-FaultKind = Literal["force_spike", "ft_stall", "ft_frozen", "scanner_timeout", "scanner_short_burst",
-                    "protective_stop", "connection_loss", "emergency_stop", "object_moved", "slip",
-                    "disk_error"]
-
-
 class FaultSpec(Spec):
     """A fault the simulator injects: at a step, at a rate per 100 steps, or as a follow-up
     of other faults (a rate per 100 faults that fire, ``delay_s`` after each: faults come
     in bursts, and one lands while the controller recovers from another)."""
 
-    kind: FaultKind
+    # Lax: the cell file gives the kind's name, the enum is what the simulator reads.
+    kind: InjectedFault = Field(strict=False)
     step: int | None = Field(None, ge=0)
     rate_per_100_steps: float | None = Field(None, gt=0, le=100)
     rate_per_100_faults: float | None = Field(None, gt=0, le=100)
@@ -225,7 +226,7 @@ class FaultSpec(Spec):
     def _when(self) -> "FaultSpec":
         if sum(v is not None for v in (self.step, self.rate_per_100_steps, self.rate_per_100_faults)) != 1:
             raise ValueError("give exactly one of step, rate_per_100_steps or rate_per_100_faults")
-        if self.rate_per_100_faults is not None and self.kind == "disk_error":
+        if self.rate_per_100_faults is not None and self.kind is InjectedFault.DISK_ERROR:
             raise ValueError("a disk error happens at a journal write, not as a follow-up of another fault")
         return self
 
@@ -482,6 +483,9 @@ class SessionInputs:
     # corrections applied (calibration.calfile.believed_cell); ``cell_file`` is the file as
     # written (a simulated cell's true tool is built from it). None: same as ``cell``.
     cell_file: CellSpec | None = None
+    # Why ``cell`` may not be the cell (calibration missing, partial, stale or unusable),
+    # found once when the inputs are loaded: the CLI prints it, the session logs it.
+    calibration_problems: tuple[str, ...] = ()
 
     def resolve(self, relative_to: Path, name: str) -> Path:
         p = Path(name)
@@ -525,7 +529,7 @@ def load_session_inputs(plan_path: str | Path, cell_path: str | Path | None = No
         cell_path = (Path(plan_path).parent / plan.cell) if plan.cell else DEFAULT_CELL
     cell_file, cell_doc = load_cell(cell_path)
 
-    cell, _ = believed_cell(cell_file, cell_path)
+    cell, calibration = believed_cell(cell_file, cell_path)
     errors: list[InputError] = []
     lim = cell.limits
     # A plan may only tighten the cell's limits.
@@ -571,7 +575,8 @@ def load_session_inputs(plan_path: str | Path, cell_path: str | Path | None = No
     limits = lim.safety().tightened(**{k: v for k, v in overrides.items()
                                        if k in SafetyLimits.__dataclass_fields__})
     inputs = SessionInputs(plan=plan, cell=cell, plan_path=Path(plan_path), cell_path=Path(cell_path),
-                           plan_doc=plan_doc, cell_doc=cell_doc, limits=limits, cell_file=cell_file)
+                           plan_doc=plan_doc, cell_doc=cell_doc, limits=limits, cell_file=cell_file,
+                           calibration_problems=tuple(calibration.problems))
     obj = inputs.object_file()
     if not obj.exists():
         where = (plan_doc, ("simulated_object",)) if plan.simulated_object else (cell_doc, ("object", "file"))

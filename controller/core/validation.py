@@ -19,10 +19,7 @@ from .kinematics import ArmModel, inverse, linear_path_joints, ur5e
 
 def arm_model_for(cell: CellSpec) -> ArmModel:
     """The arm model of a cell: UR5e kinematics, its TCP, and the cell's joint limits."""
-    limits = None
-    if cell.robot.joint_limits_deg is not None:
-        limits = np.radians(np.array(cell.robot.joint_limits_deg, dtype=float))
-    return ur5e(cell.tool.flange_to_tcp.pose(), limits)
+    return ur5e(cell.tool.flange_to_tcp.pose(), cell.robot.joint_limits_rad())
 
 
 class PathValidator:

@@ -13,10 +13,13 @@ ruamel.yaml's node graph (not its constructors) so that:
 - bytes that are not UTF-8 are refused with the position of the first bad byte.
 
 ``validate`` then runs a pydantic model over the data and maps each validation
-error back to the position of the offending key or value.
+error back to the position of the offending key or value. ``dump_yaml_text`` is the other
+direction: the one way YAML that people will read is written (generated plans and objects,
+the benches' edited copies).
 """
 from __future__ import annotations
 
+import io
 import json
 import math
 import re
@@ -248,3 +251,15 @@ def load_validated(path: str | Path, model: type[M], context: dict[str, Any] | N
     """Load ``path`` and validate it against ``model``."""
     doc = load_yaml(path)
     return validate(doc, model, context), doc
+
+
+def dump_yaml_text(doc: Any) -> str:
+    """``doc`` as YAML text for people: block style with lists of scalars inline, lines up to 120
+    characters. ``doc`` is plain data or a document loaded round-trip (ruamel.yaml ``YAML()``),
+    whose comments and key order are kept."""
+    yaml = YAML()
+    yaml.default_flow_style = None
+    yaml.width = 120
+    buf = io.StringIO()
+    yaml.dump(doc, buf)
+    return buf.getvalue()

@@ -74,7 +74,6 @@ def hardware_config(cell: Any, limits: Any, *, robot_host: str | None = None, ft
     plan-tightened ``SafetyLimits``); addresses may be overridden (a served world's)."""
     tcp_to_sensor = cell.tool.tcp_to_sensor.pose()
     axis = tcp_to_sensor.rotation.T @ np.array([0.0, 0.0, 1.0])
-    joint_limits = None if cell.robot.joint_limits_deg is None else np.radians(np.asarray(cell.robot.joint_limits_deg, float))
     if link is None:
         # On loopback the emulator streams RTDE in Python: 125 Hz spares the shared CPU, but
         # the control stream stays at 500 Hz: ur_rtde 1.6.5 sends a command (a stop) only
@@ -85,7 +84,7 @@ def hardware_config(cell: Any, limits: Any, *, robot_host: str | None = None, ft
                           rdt_port=rdt_port or cell.ft.rdt_port, calinfo_port=calinfo_port or cell.ft.calinfo_port,
                           ft_rate_hz=cell.ft.rate_hz, probe_axis_sensor=tuple(float(v) for v in axis),
                           tcp_to_sensor=tcp_to_sensor, flange_to_tcp=cell.tool.flange_to_tcp.pose(),
-                          joint_limits_rad=joint_limits, link=link, force_loop=cell.force_loop.gains())
+                          joint_limits_rad=cell.robot.joint_limits_rad(), link=link, force_loop=cell.force_loop.gains())
 
 
 def build_real_cell(cell: Any, limits: Any, *, addresses: dict[str, Any] | None = None,

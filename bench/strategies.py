@@ -34,11 +34,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from . import densify as dn
-from . import evaluate as ev
-from . import regions as rg
-from . import surface_map as sm
-from . import targets as tg
+from elastoprobe.controller.learning import densify as dn
+from elastoprobe.controller.learning import evaluate as ev
+from elastoprobe.controller.learning import regions as rg
+from elastoprobe.controller.learning import surface_map as sm
+from elastoprobe.controller.learning import targets as tg
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -90,7 +90,7 @@ def seen_from_above(points_mm: np.ndarray, normals: np.ndarray, cell_mm: float |
 
 def make_surface(points_mm: np.ndarray, normals: np.ndarray, max_tilt_deg: float, k: int = 16) -> SurveySurface:
     """A :class:`SurveySurface` from a cloud seen from above (curvature from k-NN PCA)."""
-    from .cloud import curvature
+    from elastoprobe.controller.learning.cloud import curvature
 
     p = np.asarray(points_mm, dtype=float)
     n = np.asarray(normals, dtype=float)
@@ -210,7 +210,7 @@ def neural_gas_targets(surface: SurveySurface, rules: tg.TargetRules, n_units: i
     """Targets from geometry-aware neural gas with ``n_units`` units, as the session's sampling phase
     (trained on the probe-able surface, features xyz + scaled normals, curvature-weighted
     draws, 256-sample minibatches)."""
-    from . import neural_gas as ng
+    from elastoprobe.controller.learning import neural_gas as ng
 
     where = tg.probeable(surface.points_mm, surface.normals, surface.curvature, rules)
     if np.count_nonzero(where) < n_units:

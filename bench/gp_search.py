@@ -30,8 +30,8 @@ from scipy.spatial import cKDTree
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
 
-from . import targets as tg
-from .strategies import SurveySurface, raster_candidates
+from bench.strategies import SurveySurface, raster_candidates
+from elastoprobe.controller.learning import targets as tg
 
 # The straddle's confidence multiplier (Bryan et al. 2005, as used for level-set estimation
 # by Gotovos et al. 2013 and the palpation papers): a candidate scores kappa*sigma - |mu - h|.
