@@ -44,22 +44,3 @@ def tiny_session(tmp_path_factory: pytest.TempPathFactory) -> dict:
     assert child.returncode == 0, child.stderr[-3000:]
     setup.update(finished=tmp / "finished", wall_s=time.monotonic() - t0, outcome=outcome(tmp / "finished"))
     return setup
-
-
-# Files whose tests open the real transports on loopback (ur-rtde's fixed ports, the Net F/T
-# UDP ports, pseudo-terminals behind the served cell). Under pytest-xdist they run in one
-# group, on one worker, one at a time: two at once would collide on the fixed ports.
-_LOOPBACK_FILES = frozenset({
-    "test_explicit_targets.py", "test_forceloop.py", "test_hardware.py", "test_line_scanner.py",
-    "test_loopback_calibrate.py", "test_loopback_faults.py", "test_loopback_forceloop.py",
-    "test_loopback_operator_stop.py", "test_loopback_rig.py", "test_loopback_run.py",
-    "test_loopback_vs_inprocess.py", "test_netft.py", "test_ur_emulator.py", "test_ur_link.py",
-})
-
-
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    # Only the loopback tests are grouped: test by test is how two workers balance best
-    # (one group per file measured 761 s against 632 s, the files' sizes being uneven).
-    for item in items:
-        if item.path.name in _LOOPBACK_FILES or item.get_closest_marker("loopback") is not None:
-            item.add_marker(pytest.mark.xdist_group("loopback"))
