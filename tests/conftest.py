@@ -6,6 +6,7 @@ import fcntl
 import json
 import os
 import re
+import sys
 import time
 from pathlib import Path
 
@@ -43,10 +44,14 @@ def tiny_session(tmp_path_factory: pytest.TempPathFactory) -> dict:
     Built once per test run: under pytest-xdist the first worker to ask runs it while the
     others wait on a file lock, then every worker reads the same finished directory.
 
+    Its plan is the tiny plan with a ``notify`` command on finish and pause that appends each
+    payload to ``notify_inbox`` (every run of the plan does, killed and resumed ones too).
+
     Keys: ``plan``, ``cell`` (a private copy of the simulated cell), ``env`` (this worker's own
     lock directory, so two workers' sessions on the cell never meet each other's cell lock),
     ``tmp`` (this worker's directory for sessions written beside the finished one), ``seed``,
-    ``finished`` (the session directory: never written to), ``outcome`` and ``wall_s``."""
+    ``finished`` (the session directory: never written to), ``outcome``, ``wall_s`` and
+    ``notify_inbox``."""
     from test_session_util import child_env, copy_cell, outcome, plan_for, start_or_resume
 
     own = tmp_path_factory.mktemp("tiny")
@@ -61,6 +66,11 @@ def tiny_session(tmp_path_factory: pytest.TempPathFactory) -> dict:
             cell = copy_cell(Path(__file__).resolve().parents[1] / "config" / "cells" / "sim.yaml", shared,
                              "tiny-test-cell")
             plan = plan_for(cell, shared)
+            # The operator's notify command, on finish and pause, appends each payload to one
+            # file (tests/test_session_notify.py reads the finished run's).
+            hook = f"import sys; open({str(shared / 'notify.jsonl')!r}, 'a').write(sys.stdin.read() + '\\n')"
+            plan.write_text(plan.read_text() + f"notify:\n  command: [{json.dumps(sys.executable)}, -c, "
+                                               f"{json.dumps(hook)}]\n  on: [finish, pause]\n")
             t0 = time.monotonic()
             child = start_or_resume(plan, shared / "finished", 2, child_env(shared / "locks"))
             assert child.returncode == 0, child.stderr[-3000:]
@@ -69,7 +79,7 @@ def tiny_session(tmp_path_factory: pytest.TempPathFactory) -> dict:
         record = json.loads(built.read_text())
     return {"tmp": own, "cell": Path(record["cell"]), "plan": Path(record["plan"]), "seed": record["seed"],
             "env": child_env(own / "locks"), "finished": shared / "finished", "wall_s": record["wall_s"],
-            "outcome": outcome(shared / "finished")}
+            "outcome": outcome(shared / "finished"), "notify_inbox": shared / "notify.jsonl"}
 
 
 # ----------------------------------------------------------------------------- two workers
