@@ -9,6 +9,7 @@ import re
 import sys
 import time
 from pathlib import Path
+from typing import Iterator
 
 import pytest
 
@@ -34,6 +35,18 @@ def composite():
 @pytest.fixture(scope="module")
 def user_object():
     return load_object(OBJECTS / "user_object.yaml")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _own_cell_locks(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """Cell locks in this run's (this worker's) own directory, for in-process sessions and the
+    CLI children that inherit it: under the machine-wide default two workers' sessions on one
+    shipped cell (or another test run's) would refuse each other. Tests that name their own
+    lock directory still do."""
+    patch = pytest.MonkeyPatch()
+    patch.setenv("ELASTOPROBE_LOCK_DIR", str(tmp_path_factory.mktemp("cell-locks")))
+    yield
+    patch.undo()
 
 
 @pytest.fixture(scope="session")
