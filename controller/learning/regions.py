@@ -334,26 +334,33 @@ def _merge_by_noise(features: np.ndarray, labels: np.ndarray, noise: np.ndarray,
 
 
 def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: list[int],
-                       min_contrast: float, floor_mm: float = 0.0) -> tuple[np.ndarray, int]:
-    """Merge clusters that are not two materials, closest pair first: their median depths
-    (+ ``floor_mm``, the noise under which a dent is not seen) differ by less than a factor
-    ``min_contrast`` at every survey force (``depth_columns``: the peak-depth features), or
-    the difference does not hold at every force (one is shallower by the contrast at one
-    force, and not clearly shallower at another: by 3 standard errors of the difference of
-    the two medians, see :func:`_median_standard_errors`).
+                       min_contrast: float, floor_mm: float = 0.0,
+                       peak_noise_mm: float | None = None) -> tuple[np.ndarray, int]:
+    """Merge clusters that are not two materials, closest pair first. Two clusters are two
+    materials when, at the largest survey force at which either dent is measured (deeper
+    than ``MEASURED_DENT_NOISES`` x ``peak_noise_mm``, the scatter of one point's peak depth,
+    default ``floor_mm``, see :func:`peak_depth_noise_mm`), their median depths (+
+    ``floor_mm``) differ by at least a factor ``min_contrast`` and by more than 3 standard
+    errors of the difference of the medians (:func:`_median_standard_errors`), and at no
+    measured force is the order of the two reversed by more than 3 standard errors.
+    ``depth_columns``: the peak-depth features, in increasing force.
 
     The mixture splits one material wherever geometry shifts the visible dent (the rim of
     a pillow, a slope, a tilted ball surface: up to ~30 % deeper in the simulator, where
     the probe's shadow ends closer to the contact); that is not a different elasticity.
-    A stiffer material dents less at every force; two clusters of a stiff material whose
-    visible dents are a few hundredths of a millimetre can differ by 4x at one force
-    (ripple of the profile near the tip) and not at all at the other.
 
-    "Clearly shallower" is judged on the medians' standard errors, not on one point's noise:
-    at the smaller survey force a hard rubber and an elastomer both dent about as deep as
-    one profile's noise (0.009 and 0.019 mm against 0.0065 mm on generated slab 2001), so a
-    one-point test merged them although 25 and 45 points put their medians 5 standard
-    errors apart. Single points (the split before the mixture) are judged as before.
+    Why the largest measured force decides: a dent grows with the force and the noise does
+    not, so the largest force measures the contrast best. At a smaller force a stiff
+    material's peak is the largest of the noisy samples near the contact, not the dent: on
+    generated slab 2001 hard rubber and elastomer read 0.009 and 0.019 mm at 2 N (noise
+    0.003 mm, plus the scanner's correlated floor, which averaging does not remove), and
+    the mixture cut the hard rubber into clusters by that noise, some reading as deep as
+    the elastomer at 2 N. Requiring the contrast at every force merged the materials (one
+    region in round 0) or joined half the hard rubber to the elastomer; taking the largest
+    ratio over the forces split the hard rubber in two by its 2 N noise. A stiffer
+    material dents less at every force, so an order clearly reversed at another force
+    still refutes the pair. A pair measured at no force is one material as far as the
+    survey can tell.
     """
     merges = 0
     if not depth_columns or min_contrast <= 1.0:
@@ -364,28 +371,26 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     labels, k = _compact(labels)
     med = np.maximum(_region_medians(cols, labels, k), 0.0) + floor
     se = _median_standard_errors(cols, labels, k, floor)
+    peak_noise = floor if peak_noise_mm is None else max(float(peak_noise_mm), floor)
+    n_forces = cols.shape[1]
     while k > 1:
         logs = np.log(med)
         signed = logs[:, None, :] - logs[None, :, :]                       # (k,k,F)
         finite = np.isfinite(signed)
-        # A force at which both dents are within MEASURED_DENT_NOISES noises says nothing
-        # either way: the peak of a profile that flat is the largest of its noisy samples,
-        # not the dent. Such forces neither show the contrast nor refute it; a pair measured
-        # at no force is one material as far as the survey can tell.
-        measured = np.maximum(med[:, None, :], med[None, :, :]) > MEASURED_DENT_NOISES * floor
-        absd = np.where(finite & measured, np.abs(signed), -np.inf)
-        gap = absd.max(axis=2)
-        seen_at_all = np.isfinite(gap)
-        # Pairs measured at no force merge in the order of their ratio over all forces.
-        gap = np.where(seen_at_all, gap, np.where(finite, np.abs(signed), -np.inf).max(axis=2))
-        at = np.take_along_axis(signed, absd.argmax(axis=2)[:, :, None], axis=2)[:, :, 0]
-        # Shallower at every measured force by more than 3 standard errors of the difference
-        # (in mm: a dent at the noise floor is shallower than one 5 noises deep, whatever
-        # their ratio says).
+        measured = finite & (np.maximum(med[:, None, :], med[None, :, :]) > MEASURED_DENT_NOISES * peak_noise)
+        seen_at_all = measured.any(axis=2)
+        # The deciding force: the largest measured one (the largest finite one when none is).
+        last = np.where(measured, np.arange(n_forces), -1).max(axis=2)
+        last_finite = np.where(finite, np.arange(n_forces), -1).max(axis=2)
+        decide = np.where(seen_at_all, last, last_finite)
+        at = np.take_along_axis(signed, np.maximum(decide, 0)[:, :, None], axis=2)[:, :, 0]
+        gap = np.where(decide >= 0, np.abs(at), -np.inf)
         diff_mm = med[:, None, :] - med[None, :, :]
-        resolved = (np.sign(at)[:, :, None] * diff_mm
-                    > 3.0 * np.sqrt(se[:, None, :] ** 2 + se[None, :, :] ** 2)) | ~finite | ~measured
-        same = (gap < log_c) | ~resolved.all(axis=2) | ~seen_at_all
+        margin = 3.0 * np.sqrt(se[:, None, :] ** 2 + se[None, :, :] ** 2)
+        along = np.sign(at)[:, :, None] * diff_mm                          # > 0: the deciding order
+        resolved = np.take_along_axis(along - margin, np.maximum(decide, 0)[:, :, None], axis=2)[:, :, 0] > 0
+        reversed_ = np.any(measured & (along < -margin), axis=2)
+        same = (gap < log_c) | ~resolved | reversed_ | ~seen_at_all
         same &= np.triu(np.ones((k, k), dtype=bool), 1) & np.isfinite(gap)
         if not same.any():
             break
@@ -403,6 +408,38 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
         se[i] = _median_standard_errors(cols[members], np.zeros(int(members.sum()), dtype=np.int64), 1, floor)[0]
         merges += 1
     return labels, merges
+
+
+def peak_depth_noise_mm(peaks_mm: np.ndarray, edges: np.ndarray, fraction: float = 1.0 / 3.0) -> float:
+    """The scatter (mm) of one survey point's peak depth where dents are shallowest: 1.4826 x
+    the median absolute difference between surface neighbours, over sqrt(2), over the
+    ``fraction`` of neighbour pairs (``edges`` (E,2)) whose mean peak at the largest force
+    (last column of ``peaks_mm`` (N,F)) is lowest; the largest over the forces. 0 when
+    fewer than 3 pairs are seen.
+
+    The standard error of an averaged profile (densify.averaged_noise_mm) is the scan-to-scan
+    noise over sqrt(scans); the scanner's correlated floor is common to the scans of one
+    step and does not average out, and a peak is the deepest of several such samples. On
+    generated slab 2001 the hard rubber's peaks scatter 0.007-0.010 mm against 0.0026 mm
+    from the scans. Neighbours on one material have about the same dent, so their
+    difference is the noise; choosing pairs by their MEAN level leaves the distribution of
+    their DIFFERENCE unchanged (independent for two equal-variance Gaussians), so the
+    choice does not shrink the estimate the way choosing points by their own level would.
+    """
+    pk = np.asarray(peaks_mm, dtype=float)
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    if pk.ndim != 2 or e.shape[0] == 0:
+        return 0.0
+    ok = np.all(np.isfinite(pk[e[:, 0]]), axis=1) & np.all(np.isfinite(pk[e[:, 1]]), axis=1)
+    e = e[ok]
+    if e.shape[0] < 3:
+        return 0.0
+    level = 0.5 * (pk[e[:, 0], -1] + pk[e[:, 1], -1])
+    low = e[level <= np.quantile(level, fraction)]
+    if low.shape[0] < 3:
+        return 0.0
+    diff = pk[low[:, 0]] - pk[low[:, 1]]
+    return float(np.max(1.4826 * np.median(np.abs(diff), axis=0) / np.sqrt(2.0)))
 
 
 def _median_standard_errors(columns: np.ndarray, labels: np.ndarray, k: int, noise_mm: float) -> np.ndarray:
@@ -600,6 +637,8 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
     log_depth = z_std[:, log_cols] if log_cols else None
 
     stats: dict[str, Any] = {}
+    peak_noise_mm = max(peak_depth_noise_mm(x[:, depth_cols], e), floor_mm) if depth_cols else floor_mm
+    stats["peak_noise_mm"] = peak_noise_mm
     if n >= 4:
         labels, bics = _choose_mixture(z, kmax, seed)
     else:
@@ -611,7 +650,7 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
         # The mixture may put two lone probes of two different inclusions in one component
         # (one component per probe costs more than the likelihood it buys): split every
         # cluster by the materials that the contrast rule alone finds among single points.
-        alone, _ = _merge_by_contrast(x, np.arange(n), depth_cols, min_contrast, floor_mm)
+        alone, _ = _merge_by_contrast(x, np.arange(n), depth_cols, min_contrast, floor_mm, peak_noise_mm)
         labels, k = _compact(labels * (int(alone.max()) + 1) + alone)
     if previous_labels is not None:
         prev = np.asarray(previous_labels, dtype=np.int64).reshape(-1)
@@ -626,7 +665,8 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
         labels, k = _compact(labels)
     stats["merged"] = merges
     if k > 1:
-        labels, contrast_merges = _merge_by_contrast(x, labels, depth_cols, min_contrast, floor_mm)
+        labels, contrast_merges = _merge_by_contrast(x, labels, depth_cols, min_contrast, floor_mm,
+                                                     peak_noise_mm)
         labels, k = _compact(labels)
         stats["merged_by_contrast"] = contrast_merges
 
