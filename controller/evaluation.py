@@ -25,7 +25,7 @@ from .journal import Journal
 from .learning import evaluate as ev
 from .learning.models import OutOfRange, RegionModel, ServedProfile
 from .learning.support import SUPPORT_NAMES
-from .predict import served_models
+from .predict import newest_phase, served_models
 from .probe import standoff_pose
 
 REACH_CELL_MM = 10.0
@@ -146,11 +146,7 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
             raise InputError("the session has no final region map yet (run or resume it to the end)",
                              path=str(session_dir))
         truth = ground_truth_for(inputs, int(sess["seed"]))
-        regions_rec = None
-        r = 0
-        while j.phase("regions", r) is not None:
-            regions_rec = j.phase("regions", r)
-            r += 1
+        _, regions_rec = newest_phase(j, "regions")
         done = j.steps(statuses=["done"])
         robot_hours = j.robot_time_s()["total"] / 3600.0
         char = [rec for rec in done if rec.phase == "regions"]

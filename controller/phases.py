@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .core.errors import BudgetSpent, SessionAborted
-from .core.geometry import INTERIOR_ANGLES_DEG, scan_direction
+from .core.geometry import INTERIOR_ANGLES_DEG, Pose, scan_direction
 from .journal import StepPlan
 from .learning import profiles as prof
 from .learning.models import RegionModel, ServingLimits, TrainConfig, fit_region_model
@@ -130,9 +130,14 @@ def step_profile(session: "Session", target: ProbeTarget, data: StepData) -> tup
     return measure_step_data(session, target, data).depth_mm, session_grid(session).x_mm
 
 
-def session_grid(session: "Session") -> prof.ProfileGrid:
-    m = session.inputs.plan.model
+def plan_grid(inputs: Any) -> prof.ProfileGrid:
+    """The profile grid a session's plan asks for."""
+    m = inputs.plan.model
     return prof.ProfileGrid(span_mm=m.profile_span_mm, samples=m.profile_samples)
+
+
+def session_grid(session: "Session") -> prof.ProfileGrid:
+    return plan_grid(session.inputs)
 
 
 def measure_step_data(session: "Session", target: ProbeTarget, data: StepData) -> prof.StepMeasurement:
@@ -575,11 +580,23 @@ class ScanGeometry:
     tip_radius_mm: float
 
 
+def scan_geometry(inputs: Any, tcp_to_scanner: Any, base_to_object: Any) -> ScanGeometry:
+    """The scan geometry of a session's inputs with the scanner mount and the object's
+    placement given (a live cell's, or the journal's word: :func:`registered_placement`)."""
+    return ScanGeometry(plan_grid(inputs), tcp_to_scanner, base_to_object, inputs.cell.tool.tip_radius_mm)
+
+
+def registered_placement(j: Any) -> Pose | None:
+    """Where the object was last registered (after it moved), as the journal records it;
+    None when it never was."""
+    events = j.events(kind="object_registered")
+    return Pose.from_list(events[-1]["record"]["base_to_object"]) if events else None
+
+
 def session_geometry(session: "Session") -> ScanGeometry:
     cell = session.cell
     assert cell is not None
-    return ScanGeometry(session_grid(session), cell.tcp_to_scanner, cell.base_to_object,
-                        session.inputs.cell.tool.tip_radius_mm)
+    return scan_geometry(session.inputs, cell.tcp_to_scanner, cell.base_to_object)
 
 
 def region_dataset(ctx: PhaseContext, region: int) -> RegionSteps:

@@ -15,23 +15,9 @@ from typing import Any
 from .core.atomic import atomic_write_json
 from .core.config import load_session_inputs
 from .core.errors import InputError
-from .core.geometry import Pose
 from .journal import Journal
-from .learning.profiles import ProfileGrid
-from .phases import ScanGeometry, collect_region_steps, fit_region, region_train_config
-from .predict import MANIFEST, RETRAINED_DIR, newest_models_round
-
-
-def journal_geometry(j: Journal, inputs: Any) -> ScanGeometry:
-    """The scan geometry the session used: the cell's scanner mount and tip, the object where
-    it was last registered (the journal's word) or where the cell file puts it."""
-    m = inputs.plan.model
-    b2o = inputs.cell.object.base_to_object.pose()
-    events = j.events(kind="object_registered")
-    if events:
-        b2o = Pose.from_list(events[-1]["record"]["base_to_object"])
-    return ScanGeometry(ProfileGrid(span_mm=m.profile_span_mm, samples=m.profile_samples),
-                        inputs.cell.tool.tcp_to_scanner.pose(), b2o, inputs.cell.tool.tip_radius_mm)
+from .phases import collect_region_steps, fit_region, region_train_config, registered_placement, scan_geometry
+from .predict import MANIFEST, RETRAINED_DIR, newest_models_round, newest_phase
 
 
 def retrain_session(session_dir: Path) -> list[str]:
@@ -42,9 +28,7 @@ def retrain_session(session_dir: Path) -> list[str]:
         prov = j.provenance()
         inputs = load_session_inputs(prov["plan"]["path"], prov["cell"]["path"])
         seed = int(j.session()["seed"])
-        r, rec = 0, None
-        while (nxt := j.phase("regions", r)) is not None:
-            rec, r = nxt, r + 1
+        _, rec = newest_phase(j, "regions")
         if rec is None:
             raise InputError("the session has no regions yet: nothing to train", path=str(session_dir))
         labels = dict(zip(rec.arrays["labelled_targets"].tolist(), rec.arrays["labels"].tolist()))
@@ -52,7 +36,10 @@ def retrain_session(session_dir: Path) -> list[str]:
         models_round, models_outputs = newest_models_round(j)
         # The averaged scans' noise the session measured, as the run used it.
         noise = float((models_outputs or {}).get("noise_mm") or 0.0)
-        geometry = journal_geometry(j, inputs)
+        # The scan geometry the session used: the cell's scanner mount, the object where it
+        # was last registered or else where the cell file puts it.
+        geometry = scan_geometry(inputs, inputs.cell.tool.tcp_to_scanner.pose(),
+                                 registered_placement(j) or inputs.cell.object.base_to_object.pose())
         data = {region: collect_region_steps(j, labels, region, geometry) for region in range(n_regions)}
     finally:
         j.close()

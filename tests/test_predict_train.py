@@ -78,3 +78,30 @@ def test_the_export_carries_what_predict_serves(killed_before_models, tmp_path: 
         codes = model["weights"]["support_codes"]
         assert codes.ndim == 3 and codes.shape[-1] == model["weights"]["x_mm"].size
         assert model["meta"]["serving"]["depth_max_mm"] > 0.0
+
+
+def test_train_reads_the_placement_and_the_rounds_the_journal_last_recorded() -> None:
+    """train maps old scans with the object where it was last registered (the journal's
+    word, as a resumed session does), else where the cell file puts it; the newest round
+    of a phase is the last of an unbroken count from 0."""
+    from elastoprobe.controller.core.geometry import Pose
+    from elastoprobe.controller.phases import registered_placement
+    from elastoprobe.controller.predict import newest_phase
+
+    class Journal:
+        def __init__(self, placements: list[list[float]], rounds: int) -> None:
+            self.placements, self.rounds = placements, rounds
+
+        def events(self, kind: str) -> list[dict]:
+            assert kind == "object_registered"
+            return [{"record": {"base_to_object": p}} for p in self.placements]
+
+        def phase(self, name: str, round_: int) -> object | None:
+            return f"{name} {round_}" if round_ < self.rounds else None
+
+    moved = [[100.0, 0.0, 0.0, 0.0, 0.0, 0.0], [120.0, 5.0, 0.0, 0.0, 0.0, 0.1]]
+    assert registered_placement(Journal([], 0)) is None
+    placed = registered_placement(Journal(moved, 0))
+    assert isinstance(placed, Pose) and np.allclose(placed.to_list(), Pose.from_list(moved[-1]).to_list())
+    assert newest_phase(Journal([], 3), "regions") == (2, "regions 2")
+    assert newest_phase(Journal([], 0), "models") == (-1, None)

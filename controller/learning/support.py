@@ -275,7 +275,7 @@ def complete_targets(steps: RegionSteps, tip_radius_mm: float) -> CompletedTarge
             fill = ~np.isfinite(depth[k]) & np.isfinite(mirrored)
             depth[k, fill] = mirrored[fill]
             support[k, fill] = MIRRORED
-    if not mirror.admitted:
+    else:
         # Nothing supports the unseen side: rather than hold the last seen depth flat out to
         # the grid's end, guess that the dent falls off beyond the tip as it does on the seen
         # side (the row reflected about the tip), flagged unsupported.
