@@ -114,7 +114,8 @@ def prepare_configs(out_dir: Path, host: str, plan: Path, cell: Path,
 def run_session(plan: Path, cell: Path, out: Path, seed: int, dry_run: bool, timeout_s: float) -> dict[str, Any]:
     """One ``elastoprobe run`` in a subprocess; its exit code and wall time."""
     cmd = [sys.executable, "-m", "elastoprobe.controller.cli", "run", str(plan), "--cell", str(cell),
-           "--seed", str(seed), "--out", str(out), "--quiet"] + (["--dry-run"] if dry_run else [])
+           "--seed", str(seed), "--out", str(out), "--quiet"] + (["--dry-run"] if dry_run else
+                                                                 ["--allow-stale-calibration"])
     t0 = time.monotonic()
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
     return {"exit_code": proc.returncode, "wall_s": round(time.monotonic() - t0, 1),

@@ -402,14 +402,21 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
         steps = j.steps()
         status = {r.step_id: r.status for r in steps}
         step_phase = {r.step_id: r.phase for r in steps}
+        # How far each run's robot clock got (its last transition or fault): a killed run
+        # that went on past a fault's match window had its chance to see it.
+        last_t_of_run = {int(r[0]): float(r[1]) for r in j._q(
+            "SELECT run_id, MAX(t) FROM (SELECT run_id, t_robot_s AS t FROM transitions "
+            "UNION ALL SELECT run_id, t_robot_s AS t FROM faults) WHERE t IS NOT NULL GROUP BY run_id")}
     finally:
         j.close()
     paused_fault_ids = _paused_fault_ids(children, faults, run_of_fault, run_of_pid)
     injected = [r for r in records if r.get("event") == "injected"]
-    effects = {(r["kind"], tuple(r["key"] or ()), r["plan"], r["pid"]) for r in records if r.get("event") == "effect"}
+    effect_at = {(r["kind"], tuple(r["key"] or ()), r["plan"], r["pid"]): r["t_s"]
+                 for r in records if r.get("event") == "effect"}
+    effects = set(effect_at)
     claimed: set[int] = set()
     fates: dict[tuple, list[dict[str, Any]]] = {}    # identity (kind, step key, plan) -> its firings
-    for rec in sorted(injected, key=lambda r: (run_of_pid.get(r["pid"], 10**9), r["t_s"])):
+    for rec in judging_order(injected, run_of_pid):
         ident = (rec["kind"], tuple(rec["key"] or ()), rec["plan"])
         run_id = run_of_pid.get(rec["pid"])
         match = journaled_match(rec, run_id, faults, run_of_fault, claimed)
@@ -417,6 +424,8 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
                                 "t_s": round(rec["t_s"], 3), "phase": phase_of_key(ident[1], step_phase)}
         if rec.get("follows"):
             fate["follows"] = rec["follows"]
+        if (rec["kind"], ident[1], rec["plan"], rec["pid"]) in effect_at:
+            fate["effect_t_s"] = round(effect_at[(rec["kind"], ident[1], rec["plan"], rec["pid"])], 3)
         if match is not None:
             claimed.add(match.fault_id)
             fate.update(fault_id=match.fault_id, seen_as=match.kind, step=match.step_id, action=match.policy_action,
@@ -442,7 +451,7 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
             # It struck while the controller recovered from an earlier fault: recovery
             # failed and the session paused cleanly, naming the earlier fault.
             fate.update(fate="paused", journaled=False, paused_recovering_from=during)
-        elif _killed_run(run_id, children, run_of_pid):
+        elif lost_to_kill(rec, run_id, children, run_of_pid, last_t_of_run):
             fate["fate"] = "lost_to_kill"     # the process died before journaling it
         else:
             fate["fate"] = "undetected"
@@ -459,9 +468,37 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
         fates[ident] = earlier
         if rec.get("follows") and fate["fate"] in ("recovered", "paused") and "fault_id" in fate:
             _supersede(fates, rec["follows"], ident[1], run_id, fate["fault_id"])
+    all_fates = [f for group in fates.values() for f in group]
+    share_burst(all_fates)
     other = [f for f in faults if f.fault_id not in claimed]
-    return {"fates": [f for group in fates.values() for f in group], "raw_injections": len(injected),
+    return {"fates": all_fates, "raw_injections": len(injected),
             "journaled_other": _histogram(f.kind for f in other)}
+
+
+SCANNER_KINDS = ("scanner_timeout", "scanner_short_burst")
+
+
+def share_burst(fates: list[dict[str, Any]]) -> None:
+    """Two scanner faults that spoiled the same burst (their first effect at the same robot
+    instant in the same run) show as one: the burst came short, one scanner fault is
+    journaled and retried. The one left unmatched is judged by that fault, not undetected."""
+    seen = {(f["run_id"], f["effect_t_s"]): f for f in fates
+            if f["kind"] in SCANNER_KINDS and "effect_t_s" in f and "fault_id" in f}
+    for f in fates:
+        if f["kind"] in SCANNER_KINDS and f["fate"] == "undetected" and "effect_t_s" in f:
+            other = seen.get((f["run_id"], f["effect_t_s"]))
+            if other is not None and other["fate"] in ("recovered", "paused"):
+                f.update(fate=other["fate"], same_burst_as=other["fault_id"])
+
+
+def judging_order(injected: list[dict[str, Any]], run_of_pid: dict[int, int]) -> list[dict[str, Any]]:
+    """The order in which injections claim journaled faults: by run, then by robot time.
+
+    A moved object may be seen many contacts later (its match window is open-ended), so it
+    claims a journaled fault only after every fault of its run with a closed window has
+    claimed its own: else it takes the slip fault a later slip caused, and that slip is
+    judged undetected while the move, never seen, is judged recovered."""
+    return sorted(injected, key=lambda r: (run_of_pid.get(r["pid"], 10**9), r["kind"] == "object_moved", r["t_s"]))
 
 
 def _supersede(fates: dict[tuple, list[dict[str, Any]]], kind: str, key: tuple, run_id: int | None,
@@ -556,6 +593,17 @@ def _paused_during_recovery(rec: dict[str, Any], run_id: int | None, faults: lis
 def _killed_run(run_id: int | None, children: list[ChildRun], run_of_pid: dict[int, int]) -> bool:
     """Whether the child that made journal run ``run_id`` was SIGKILLed."""
     return any(run_of_pid.get(c.pid) == run_id and c.returncode == -9 for c in children)
+
+
+def lost_to_kill(rec: dict[str, Any], run_id: int | None, children: list[ChildRun], run_of_pid: dict[int, int],
+                 last_t_of_run: dict[int, float]) -> bool:
+    """Whether an unjournaled injection died with its process: the run was SIGKILLed before
+    its robot clock passed the end of the injection's match window. A run that went on
+    longer had the time to see it, and did not: that is undetected, whatever killed it later."""
+    if not _killed_run(run_id, children, run_of_pid):
+        return False
+    last_t = last_t_of_run.get(run_id) if run_id is not None else None
+    return last_t is None or last_t < rec["t_s"] + MATCH_WINDOW_S
 
 
 def _histogram(items: Any) -> dict[str, int]:

@@ -1,23 +1,33 @@
-"""Driving a cell for calibration through the controller's own probe primitives.
+"""A cell's toolhead set up for calibration, and the few moves the routines compose from it.
 
-:class:`CellDriver` wraps :class:`~elastoprobe.controller.probe.ProbeExecutor`: every
-move is validated (IK along the straight path, tool shapes against the obstacle mesh,
-keep-outs, workspace) before it is sent, every wait polls trips and status bits, and
-F/T samples and poses are logged as the executor logs them. Failures surface as
-``ProbeFault`` / ``MotionRefused`` from the controller.
+The routines drive the arm through :class:`~elastoprobe.controller.toolhead.Toolhead`, the
+public motion primitives the probe executor uses too: every move is validated (IK along
+the straight path, tool shapes against the obstacle mesh, keep-outs, workspace) before it
+is sent, every wait polls trips and status bits. Failures surface as ``ProbeFault`` /
+``MotionRefused`` from the controller. :class:`Rig` adds the simulator's noise keys of
+each measurement (real cells ignore them).
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 from elastoprobe.controller.core.collision import SceneChecker, boxes_from_cell, shapes_from_cell
-from elastoprobe.controller.core.devices import Cell, MotionState, Scan, WrenchBlock
+from elastoprobe.controller.core.devices import Cell
 from elastoprobe.controller.core.errors import MotionRefused
 from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.controller.core.kinematics import ur5e
 from elastoprobe.controller.core.validation import PathValidator
-from elastoprobe.controller.machine import SessionMachine
-from elastoprobe.controller.probe import ProbeExecutor, ProbeFault, ProbeSettings
+from elastoprobe.controller.toolhead import MotionSettings, Toolhead
+
+
+# Touch-offs press a rigid sphere: under a 5 mm tip acetal is some 500-900 N/mm between 0.4
+# and 2 N, so the force rises at stiffness x speed. At 2 mm/s, on the real drivers (loopback,
+# a loaded machine: a stop lands a few ms after the contact threshold) a touch reached the
+# cell's 1500 N/s force-rate limit and tripped; at 1 mm/s the rate at the overshoot is
+# about 40 % of that (the overshoot depth halves too).
+TOUCH_SPEED_MM_S = 1.0
 
 
 def build_validator(cell_spec, cell: Cell, obstacle_mesh_base=None,  # noqa: ANN001 — config.CellSpec, trimesh
@@ -32,111 +42,70 @@ def build_validator(cell_spec, cell: Cell, obstacle_mesh_base=None,  # noqa: ANN
     return PathValidator(model, checker, cell.arm.status().joints_rad, contact_allowance_mm)
 
 
-def probe_settings(cell_spec, speed_mm_s: float | None = None) -> ProbeSettings:  # noqa: ANN001
+def motion_settings(cell_spec, speed_mm_s: float | None = None) -> MotionSettings:  # noqa: ANN001
+    """The cell's speeds, the contact search slowed to at most ``TOUCH_SPEED_MM_S``."""
     lim = cell_spec.limits
-    return ProbeSettings(scans_per_step=1, settle_s=0.0, standoff_mm=20.0, force_rate_n_s=10.0,
-                         force_tolerance_n=0.5, contact_force_n=lim.contact_force_n,
-                         contact_speed_mm_s=min(lim.contact_speed_mm_s, 2.0),
-                         free_speed_mm_s=speed_mm_s or lim.free_speed_mm_s,
-                         free_accel_mm_s2=lim.free_accel_mm_s2, search_distance_mm=lim.search_distance_mm,
-                         tip_radius_mm=cell_spec.tool.tip_radius_mm)
+    return MotionSettings(contact_force_n=lim.contact_force_n,
+                          contact_speed_mm_s=min(lim.contact_speed_mm_s, TOUCH_SPEED_MM_S),
+                          free_speed_mm_s=speed_mm_s or lim.free_speed_mm_s, free_accel_mm_s2=lim.free_accel_mm_s2)
 
 
-class CellDriver:
-    """Validated moves, still F/T averages, touch-offs and scan bursts on a cell."""
+@dataclass
+class Rig:
+    """A toolhead on the cell being calibrated, and the simulator's noise key of each measurement."""
 
-    def __init__(self, cell: Cell, validator: PathValidator, settings: ProbeSettings, travel_z_mm: float) -> None:
-        self.cell = cell
-        self.validator = validator
-        self.settings = settings
-        # The executor's travel height is object_top + clearance: pass it so that travel_to
-        # lifts to ``travel_z_mm``.
-        self.ex = ProbeExecutor(cell, SessionMachine(), settings, validator,
-                                object_top_z_mm=travel_z_mm - settings.clearance_mm)
-        self.step = 0
-        self.seed = 0
+    head: Toolhead
+    seed: int = 0
+    step: int = 0
+
+    @property
+    def cell(self) -> Cell:
+        return self.head.cell
 
     def begin_step(self) -> None:
         """A new step key for the simulator's noise streams (real cells ignore it)."""
         self.step += 1
-        self.cell.begin_step((self.seed, self.step, 0))
-
-    def pose(self) -> Pose:
-        return self.cell.arm.status().tcp_pose
-
-    def move_to(self, target: Pose, speed_mm_s: float | None = None) -> None:
-        """A validated straight move (MotionRefused if the path is not clear)."""
-        here = self.pose()
-        d_mm, d_deg = here.distance_to(target)
-        if d_mm < 0.01 and d_deg < 0.01:
-            return
-        self.validator.validate_path(here, target)
-        self.ex._move(target, speed_mm_s or self.settings.free_speed_mm_s)
-
-    def travel_to(self, target: Pose) -> None:
-        """Up to travel height, across, down (each leg validated), as the controller travels."""
-        self.ex._travel_to(target)
-
-    def hold(self, duration_s: float) -> None:
-        self.ex._hold(duration_s)
-
-    def tare(self) -> None:
-        self.ex._tare()
-
-    def still_wrench(self, settle_s: float, average_s: float) -> tuple[np.ndarray, np.ndarray, int]:
-        """Mean force (N) and torque (N m), sensor frame, over ``average_s`` after ``settle_s`` at rest."""
-        self.hold(settle_s)
-        self.ex._rec.clear()
-        self.hold(average_s)
-        block = WrenchBlock.concat(self.ex._rec.blocks)
-        ok = block.status == 0
-        if ok.sum() < 10:
-            raise ProbeFault("device", f"only {int(ok.sum())} healthy F/T samples while averaging")
-        return block.force_n[ok].mean(axis=0), block.torque_nm[ok].mean(axis=0), int(ok.sum())
-
-    def touch(self, direction: np.ndarray, max_distance_mm: float) -> Pose | None:
-        """Tare, then move along ``direction`` (base, unit) until contact; the TCP pose at rest
-        after the stop, or None when nothing was touched. The path is validated with the tip
-        allowed to touch."""
-        s = self.settings
-        e = np.asarray(direction, dtype=float) / np.linalg.norm(direction)
-        here = self.pose()
-        self.validator.validate_path(here, Pose(here.position_mm + e * max_distance_mm, here.rotation),
-                                     contact_allowed=True)
-        self.tare()
-        motion = self.cell.arm.seek_contact(e, s.contact_speed_mm_s, s.contact_force_n, max_distance_mm)
-        state = self.ex._wait(motion, timeout_s=max_distance_mm / s.contact_speed_mm_s * 2.0 + 5.0)
-        if state == MotionState.NO_CONTACT:
-            return None
-        self.ex._expect(state, MotionState.CONTACT, "seek_contact")
-        self.hold(0.05)
-        return self.pose()
-
-    def back_off(self, direction: np.ndarray, distance_mm: float) -> None:
-        """Slowly back out of a contact along ``-direction`` (contact allowed along the way)."""
-        here = self.pose()
-        e = np.asarray(direction, dtype=float) / np.linalg.norm(direction)
-        away = Pose(here.position_mm - e * distance_mm, here.rotation)
-        self.validator.validate_path(here, away, contact_allowed=True)
-        self.ex._move(away, self.settings.contact_speed_mm_s * 5.0)
-
-    def scan_burst(self, count: int) -> tuple[list[Scan], np.ndarray]:
-        """``count`` profiles at rest and the TCP pose (mm + rotation vector) of each."""
-        return self.ex._scan_burst(count)
+        self.head.cell.begin_step((self.seed, self.step, 0))
 
 
-def try_reach(driver: CellDriver, target: Pose, via: Pose | None = None) -> bool:
+def make_rig(cell_spec, cell: Cell, mesh, seed: int) -> Rig:  # noqa: ANN001 — config.CellSpec, trimesh
+    """A rig on ``cell`` with ``mesh`` (object frame) on its table, travelling 60 mm above it."""
+    mesh_base = mesh.copy()
+    mesh_base.apply_transform(cell.base_to_object.matrix())
+    validator = build_validator(cell_spec, cell, mesh_base)
+    head = Toolhead(cell, motion_settings(cell_spec), validator, travel_z_mm=float(mesh_base.bounds[1][2]) + 60.0)
+    return Rig(head, seed)
+
+
+def touch(head: Toolhead, direction: np.ndarray, max_distance_mm: float) -> Pose | None:
+    """Tare, then move along ``direction`` (base) until contact: the TCP pose at rest after
+    the stop, or None when nothing was touched within ``max_distance_mm``."""
+    e = np.asarray(direction, dtype=float) / np.linalg.norm(direction)
+    head.tare()
+    if not head.seek_contact(e, max_distance_mm):
+        return None
+    head.hold(0.05)
+    return head.pose()
+
+
+def back_off(head: Toolhead, direction: np.ndarray, distance_mm: float) -> None:
+    """Slowly back out of a contact along ``-direction`` (contact allowed along the way)."""
+    e = np.asarray(direction, dtype=float) / np.linalg.norm(direction)
+    head.retract(-e, distance_mm, head.s.contact_speed_mm_s * 5.0)
+
+
+def try_reach(head: Toolhead, target: Pose, via: Pose | None = None) -> bool:
     """Move to ``target`` directly, else via ``via``; False (nothing moved past a refusal) if refused."""
     try:
-        driver.move_to(target)
+        head.move(target)
         return True
     except MotionRefused:
         pass
     if via is None:
         return False
     try:
-        driver.move_to(via)
-        driver.move_to(target)
+        head.move(via)
+        head.move(target)
         return True
     except MotionRefused:
         return False

@@ -1,7 +1,7 @@
 """Calibration procedures: plan reachable poses, drive the cell, collect the data each solver needs.
 
 Each ``collect_*`` works on any :class:`~elastoprobe.controller.core.devices.Cell` through a
-:class:`~.driver.CellDriver` (validated moves, the controller's polling loop). Poses
+:class:`~.driver.Rig` (validated moves, the controller's polling loop). Poses
 the validator refuses (reach, joint limits, collisions, workspace) are skipped and
 listed; the solver then judges whether what remains is enough and well spread.
 
@@ -24,9 +24,9 @@ import numpy as np
 
 from elastoprobe.controller.core.errors import MotionRefused
 from elastoprobe.controller.core.geometry import Pose, probe_tcp_pose, rotvec_to_matrix, scan_points_base
-from elastoprobe.controller.probe import ProbeFault
+from elastoprobe.controller.toolhead import ProbeFault
 
-from .driver import CellDriver, try_reach
+from .driver import Rig, back_off, touch, try_reach
 from .scanner_sphere import SphereProfile
 
 DOWN = np.diag([1.0, -1.0, -1.0])      # tool z pointing down, tool x along base +x
@@ -62,25 +62,25 @@ class FTData(Collected):
     torque_nm: list[np.ndarray] = field(default_factory=list)
 
 
-def collect_ft(driver: CellDriver, centre_mm: np.ndarray, settle_s: float = 0.5, average_s: float = 1.0) -> FTData:
+def collect_ft(rig: Rig, centre_mm: np.ndarray, settle_s: float = 0.5, average_s: float = 1.0) -> FTData:
     """Static F/T readings at spread orientations about ``centre_mm`` (TCP position, base frame)."""
     out = FTData()
-    t0 = driver.cell.clock.now_s()
+    t0 = rig.cell.clock.now_s()
     neutral = Pose(np.asarray(centre_mm, float), DOWN)
-    driver.travel_to(neutral)
-    driver.tare()
+    rig.head.travel_to(neutral)
+    rig.head.tare()
     for tilt, az, heading in FT_ORIENTATIONS:
         target = Pose(np.asarray(centre_mm, float), tool_rotation(tilt, az, heading))
-        if not try_reach(driver, target, via=neutral):
+        if not try_reach(rig.head, target, via=neutral):
             out.skipped.append(f"ft pose tilt {tilt} az {az} heading {heading}: refused")
             continue
-        driver.begin_step()
-        f, t, _ = driver.still_wrench(settle_s, average_s)
-        out.r_base_tcp.append(driver.pose().rotation)
+        rig.begin_step()
+        f, t, _ = rig.head.still_wrench(settle_s, average_s)
+        out.r_base_tcp.append(rig.head.pose().rotation)
         out.force_n.append(f)
         out.torque_nm.append(t)
-    try_reach(driver, neutral)
-    out.robot_time_s = driver.cell.clock.now_s() - t0
+    try_reach(rig.head, neutral)
+    out.robot_time_s = rig.cell.clock.now_s() - t0
     return out
 
 
@@ -117,34 +117,34 @@ def touch_plan(n: int, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
     return plan
 
 
-def collect_touches(driver: CellDriver, centre_mm: np.ndarray, rho_mm: float, n: int = 18, seed: int = 0,
+def collect_touches(rig: Rig, centre_mm: np.ndarray, rho_mm: float, n: int = 18, seed: int = 0,
                     standoff_mm: float = 8.0) -> TouchData:
     """Touch-offs on the reference sphere (centre roughly ``centre_mm``; ``rho_mm`` = sphere + tip radius)."""
     out = TouchData()
-    t0 = driver.cell.clock.now_s()
+    t0 = rig.cell.clock.now_s()
     c = np.asarray(centre_mm, dtype=float)
     for e, rot in touch_plan(n, seed):
         start = Pose(c - e * (rho_mm + standoff_mm), rot)
         try:
-            driver.travel_to(start)
+            rig.head.travel_to(start)
         except (MotionRefused, ProbeFault) as exc:
             out.skipped.append(f"touch from {np.round(e, 2).tolist()}: {exc}")
             continue
-        driver.begin_step()
+        rig.begin_step()
         try:
-            hit = driver.touch(e, standoff_mm + 8.0)
+            hit = touch(rig.head, e, standoff_mm + 8.0)
         except MotionRefused as exc:      # the touching path itself is not clear: next touch
             out.skipped.append(f"touch from {np.round(e, 2).tolist()}: {exc}")
             continue
         if hit is None:
             out.skipped.append(f"touch from {np.round(e, 2).tolist()}: no contact")
-            driver.back_off(e, 1.0)
+            back_off(rig.head, e, 1.0)
             continue
         out.rotations.append(hit.rotation)
         out.positions_mm.append(hit.position_mm)
         out.approach_dirs.append(e)
-        driver.back_off(e, standoff_mm)
-    out.robot_time_s = driver.cell.clock.now_s() - t0
+        back_off(rig.head, e, standoff_mm)
+    out.robot_time_s = rig.cell.clock.now_s() - t0
     return out
 
 
@@ -170,25 +170,25 @@ def scan_plan(n: int, seed: int, sphere_radius_mm: float, tip_radius_mm: float,
     return plan
 
 
-def collect_sphere_scans(driver: CellDriver, centre_mm: np.ndarray, sphere_radius_mm: float, tip_radius_mm: float,
+def collect_sphere_scans(rig: Rig, centre_mm: np.ndarray, sphere_radius_mm: float, tip_radius_mm: float,
                          n: int = 30, seed: int = 0, profiles_per_pose: int = 2) -> SphereScans:
     """Profiles of the reference sphere from ``n`` planned poses (refused ones skipped)."""
     out = SphereScans()
-    t0 = driver.cell.clock.now_s()
+    t0 = rig.cell.clock.now_s()
     c = np.asarray(centre_mm, dtype=float)
     for rot_pose, centre_tcp in scan_plan(n, seed, sphere_radius_mm, tip_radius_mm):
         target = Pose(c - rot_pose.rotation @ centre_tcp, rot_pose.rotation)
         try:
-            driver.travel_to(target)
+            rig.head.travel_to(target)
         except (MotionRefused, ProbeFault) as exc:
             out.skipped.append(f"scan pose at {np.round(target.position_mm, 0).tolist()}: {exc}")
             continue
-        driver.begin_step()
-        driver.hold(0.05)
-        scans, poses = driver.scan_burst(profiles_per_pose)
+        rig.begin_step()
+        rig.head.hold(0.05)
+        scans, poses = rig.head.scan_burst(profiles_per_pose)
         for sc, p6 in zip(scans, poses):
             out.profiles.append(SphereProfile(Pose.from_list(p6), np.column_stack([sc.x_mm, sc.z_mm])))
-    out.robot_time_s = driver.cell.clock.now_s() - t0
+    out.robot_time_s = rig.cell.clock.now_s() - t0
     return out
 
 
@@ -223,17 +223,17 @@ class ObjectCloud(Collected):
     points_base_mm: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
-def sweep_object(driver: CellDriver, lo_mm: np.ndarray, hi_mm: np.ndarray, tcp_to_scanner: Pose,
+def sweep_object(rig: Rig, lo_mm: np.ndarray, hi_mm: np.ndarray, tcp_to_scanner: Pose,
                  spacing_mm: float = 3.0, height_above_mm: float = 40.0, strip_mm: float = 120.0) -> ObjectCloud:
     """Scan the object's bounding box (base frame) in both raster directions; points mapped with
     ``tcp_to_scanner`` (in the frame of the TCP the arm reports). Refused lines are skipped."""
     out = ObjectCloud()
-    t0 = driver.cell.clock.now_s()
-    speed = spacing_mm * driver.cell.scanner.rate_hz
+    t0 = rig.cell.clock.now_s()
+    speed = spacing_mm * rig.cell.scanner.rate_hz
     pts = []
     for start, end in sweep_lines_both_axes(lo_mm, hi_mm, float(hi_mm[2]) + height_above_mm, strip_mm):
         try:
-            scans, poses = driver.ex.scan_while_moving(start, end, speed)
+            scans, poses = rig.head.scan_while_moving(start, end, speed)
         except MotionRefused as exc:
             out.skipped.append(f"line {np.round(start.position_mm, 0).tolist()} -> "
                                f"{np.round(end.position_mm, 0).tolist()}: {exc}")
@@ -242,5 +242,5 @@ def sweep_object(driver: CellDriver, lo_mm: np.ndarray, hi_mm: np.ndarray, tcp_t
             xz = np.stack([np.stack([s.x_mm, s.z_mm], axis=1) for s in scans])
             pts.append(scan_points_base(xz, poses, tcp_to_scanner))
     out.points_base_mm = np.vstack(pts) if pts else np.zeros((0, 3))
-    out.robot_time_s = driver.cell.clock.now_s() - t0
+    out.robot_time_s = rig.cell.clock.now_s() - t0
     return out

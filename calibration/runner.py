@@ -1,12 +1,13 @@
 """``elastoprobe calibrate {ft,tcp,scanner,object}``: build the cell, run one routine, write its section.
 
 :func:`run_calibration` is what the CLI calls. The ``calibrate_*`` functions work on
-any cell (they take a :class:`~.driver.CellDriver`) and return the solver's fit and
-the section to store; :func:`simulated_cell` builds the simulated set-up for a routine:
-for ft, tcp and scanner the cell's object is replaced by the rigid reference sphere
-(an acetal ball of certified radius on the table where the object normally sits), for
-object the cell's own object. The miscalibration a cell file enables is drawn from the
-seed inside the simulator and never shown to the solvers: they see device data only.
+any cell (they take a :class:`~.driver.Rig`, a toolhead on the cell) and return the
+solver's fit and the section to store. :func:`calibration_cell` builds the cell for a
+routine through the cell registry, whatever its kind (simulated, loopback over the real
+protocols, a real ``ur`` arm): for ft, tcp and scanner the rigid reference sphere (an
+acetal ball of certified radius) sits on the table where the object normally sits, for
+object the cell's own object. A simulated cell's miscalibration is drawn from the seed
+inside the simulator and never shown to the solvers: they see device data only.
 """
 from __future__ import annotations
 
@@ -16,14 +17,15 @@ from typing import Any
 
 import numpy as np
 
-from elastoprobe.controller.cellfactory import simulated_calibration_cell
+from elastoprobe.controller.cellfactory import build_calibration_cell
 from elastoprobe.controller.core.calfile import calibration_path, load_calibration, pose_list, write_section
 from elastoprobe.controller.core.config import load_cell
 from elastoprobe.controller.core.devices import Cell
-from elastoprobe.controller.core.errors import CalibrationError
+from elastoprobe.controller.core.errors import CalibrationError, ElastoprobeError
 from elastoprobe.controller.core.geometry import Pose
+from elastoprobe.controller.toolhead import ProbeFault
 
-from .driver import CellDriver, build_validator, probe_settings
+from .driver import Rig, make_rig
 from .ft_payload import PayloadFit, solve_payload
 from .object_registration import ObjectFit, register_object
 from .procedures import collect_ft, collect_sphere_scans, collect_touches, sweep_object
@@ -53,9 +55,9 @@ def sphere_centre_nominal(cell_spec) -> np.ndarray:  # noqa: ANN001 — config.C
 
 
 # ------------------------------------------------------------------------------ routines
-def calibrate_ft(driver: CellDriver, cell_spec) -> Section:  # noqa: ANN001
+def calibrate_ft(rig: Rig, cell_spec) -> Section:  # noqa: ANN001
     centre = np.array([*sphere_centre_nominal(cell_spec)[:2], FT_HEIGHT_MM])
-    data = collect_ft(driver, centre)
+    data = collect_ft(rig, centre)
     tcp_to_sensor = cell_spec.tool.tcp_to_sensor.pose()
     r_sensor = np.stack(data.r_base_tcp) @ tcp_to_sensor.rotation if data.r_base_tcp else np.zeros((0, 3, 3))
     fit: PayloadFit = solve_payload(r_sensor, np.asarray(data.force_n).reshape(-1, 3),
@@ -70,9 +72,9 @@ def calibrate_ft(driver: CellDriver, cell_spec) -> Section:  # noqa: ANN001
                    fit.data_sha256, fit)
 
 
-def calibrate_tcp(driver: CellDriver, cell_spec, seed: int = 0) -> Section:  # noqa: ANN001
+def calibrate_tcp(rig: Rig, cell_spec, seed: int = 0) -> Section:  # noqa: ANN001
     rho = SPHERE_RADIUS_MM + cell_spec.tool.tip_radius_mm
-    data = collect_touches(driver, sphere_centre_nominal(cell_spec), rho, seed=seed)
+    data = collect_touches(rig, sphere_centre_nominal(cell_spec), rho, seed=seed)
     if len(data.rotations) < 3:
         raise CalibrationError(f"tcp: only {len(data.rotations)} touches succeeded ({'; '.join(data.skipped[:3])})")
     fit: TipFit = solve_sphere_touches(np.stack(data.rotations), np.stack(data.positions_mm),
@@ -85,8 +87,8 @@ def calibrate_tcp(driver: CellDriver, cell_spec, seed: int = 0) -> Section:  # n
                                    "robot_time_s": data.robot_time_s}, fit.data_sha256, fit)
 
 
-def calibrate_scanner(driver: CellDriver, cell_spec, seed: int = 0) -> Section:  # noqa: ANN001
-    data = collect_sphere_scans(driver, sphere_centre_nominal(cell_spec), SPHERE_RADIUS_MM,
+def calibrate_scanner(rig: Rig, cell_spec, seed: int = 0) -> Section:  # noqa: ANN001
+    data = collect_sphere_scans(rig, sphere_centre_nominal(cell_spec), SPHERE_RADIUS_MM,
                                 cell_spec.tool.tip_radius_mm, seed=seed)
     nominal = cell_spec.tool.tcp_to_scanner.pose()
     fit: ScannerFit = solve_scanner_sphere(data.profiles, SPHERE_RADIUS_MM, nominal)
@@ -98,36 +100,33 @@ def calibrate_scanner(driver: CellDriver, cell_spec, seed: int = 0) -> Section: 
                                        "robot_time_s": data.robot_time_s}, fit.data_sha256, fit)
 
 
-def calibrate_object(driver: CellDriver, cell_spec, mesh, tcp_to_scanner: Pose,  # noqa: ANN001
+def calibrate_object(rig: Rig, cell_spec, mesh, tcp_to_scanner: Pose,  # noqa: ANN001
                      spacing_mm: float = 3.0, height_above_mm: float = 40.0) -> Section:
     """Sweep the object with the scanner in both raster directions (mapped through
     ``tcp_to_scanner``, in the frame of the TCP the arm reports) and register ``mesh``
     (object frame) onto the cloud."""
-    nominal = driver.cell.base_to_object
+    nominal = rig.cell.base_to_object
     mesh_base = mesh.copy()
     mesh_base.apply_transform(nominal.matrix())
     lo, hi = mesh_base.bounds
-    data = sweep_object(driver, lo, hi, tcp_to_scanner, spacing_mm, height_above_mm)
+    data = sweep_object(rig, lo, hi, tcp_to_scanner, spacing_mm, height_above_mm)
     fit: ObjectFit = register_object(mesh, data.points_base_mm, nominal)
     result = {"base_to_object": pose_list(fit.base_to_object), "correction": pose_list(fit.correction)}
     return Section("object", result, {"icp": fit.report.to_dict(), "skipped": data.skipped,
                                       "robot_time_s": data.robot_time_s}, fit.data_sha256, fit)
 
 
-# ------------------------------------------------------------------------------ simulated set-up
-def simulated_cell(cell_spec, cell_path: str | Path, seed: int, kind: str):  # noqa: ANN001, ANN201
-    """(simulated cell, obstacle mesh in the object frame) for a routine: the reference sphere
-    for ft/tcp/scanner, the cell's object for object (through the cell registry)."""
-    return simulated_calibration_cell(cell_spec, cell_path, seed, None if kind == "object" else SPHERE_RADIUS_MM)
-
-
-def make_driver(cell_spec, cell: Cell, mesh, seed: int) -> CellDriver:  # noqa: ANN001
-    mesh_base = mesh.copy()
-    mesh_base.apply_transform(cell.base_to_object.matrix())
-    validator = build_validator(cell_spec, cell, mesh_base)
-    driver = CellDriver(cell, validator, probe_settings(cell_spec), travel_z_mm=float(mesh_base.bounds[1][2]) + 60.0)
-    driver.seed = seed
-    return driver
+# ------------------------------------------------------------------------------ set-up
+def calibration_cell(cell_spec, cell_path: str | Path, seed: int, kind: str, cell_doc=None):  # noqa: ANN001, ANN201
+    """(cell, what is on its table: mesh in the object frame) for a routine, from the cell
+    registry: the reference sphere for ft/tcp/scanner, the cell's object for object. The
+    caller closes the cell. ``cell_doc``: the cell's YAML (where an error in its object file is
+    reported), read from ``cell_path`` if not given."""
+    if cell_doc is None:
+        _, cell_doc = load_cell(cell_path)
+    built = build_calibration_cell(cell_spec, cell_doc, cell_path, seed,
+                                   None if kind == "object" else SPHERE_RADIUS_MM)
+    return built.cell, built.object_mesh
 
 
 def scanner_mount_for_object(cell_spec, cal_file: Path | None) -> tuple[Pose, str]:  # noqa: ANN001
@@ -142,16 +141,33 @@ def scanner_mount_for_object(cell_spec, cal_file: Path | None) -> tuple[Pose, st
 
 def run_on_cell(kind: str, cell_spec, cell: Cell, mesh, seed: int,  # noqa: ANN001
                 tcp_to_scanner: Pose | None = None) -> Section:
-    """Run one routine on a built cell (``mesh``: the object's or the reference sphere's, object frame)."""
-    driver = make_driver(cell_spec, cell, mesh, seed)
+    """Run one routine on a built cell (``mesh``: the object's or the reference sphere's, object frame).
+
+    A fault (ProbeFault: a trip, a protective stop, a lost link) stops the routine; the arm is
+    then unloaded and lifted to travel height as a session parks after one (not if an
+    operator, an emergency stop or a lost link has it), and the fault is raised."""
+    rig = make_rig(cell_spec, cell, mesh, seed)
+    try:
+        return _run_routine(kind, rig, cell_spec, mesh, seed, tcp_to_scanner)
+    except ProbeFault:
+        rig.head.acknowledged_trip = cell.arm.trip()
+        try:
+            rig.head.safe_retract()
+        except (ProbeFault, ElastoprobeError):
+            pass                    # best effort: the fault raised below is what the operator must see
+        raise
+
+
+def _run_routine(kind: str, rig: Rig, cell_spec, mesh, seed: int,  # noqa: ANN001
+                 tcp_to_scanner: Pose | None) -> Section:
     if kind == "ft":
-        return calibrate_ft(driver, cell_spec)
+        return calibrate_ft(rig, cell_spec)
     if kind == "tcp":
-        return calibrate_tcp(driver, cell_spec, seed)
+        return calibrate_tcp(rig, cell_spec, seed)
     if kind == "scanner":
-        return calibrate_scanner(driver, cell_spec, seed)
+        return calibrate_scanner(rig, cell_spec, seed)
     if kind == "object":
-        return calibrate_object(driver, cell_spec, mesh, tcp_to_scanner or cell_spec.tool.tcp_to_scanner.pose())
+        return calibrate_object(rig, cell_spec, mesh, tcp_to_scanner or cell_spec.tool.tcp_to_scanner.pose())
     raise CalibrationError(f"unknown calibration {kind!r} (one of {', '.join(KINDS)})")
 
 
@@ -161,23 +177,21 @@ def run_calibration(kind: str, cell_path: Path, seed: int = 0, out_path: Path | 
     Writes ``out_path`` if given, else the cell's ``calibration_file``; if neither, nothing
     is written (the summary says so). Returns a JSON-ready summary: kind, cell, seed,
     written path, result, fit (residuals, conditioning, skipped poses, robot time).
-    Raises CalibrationError for a refused fit, InputError for a bad cell file.
+    Raises CalibrationError for a refused fit or a fault on the cell, InputError for a bad cell file.
     """
     if kind not in KINDS:
         raise CalibrationError(f"unknown calibration {kind!r} (one of {', '.join(KINDS)})")
     cell_path = Path(cell_path)
-    cell_spec, _ = load_cell(cell_path)
+    cell_spec, cell_doc = load_cell(cell_path)
     target = Path(out_path) if out_path is not None else calibration_path(cell_spec, cell_path)
-    if cell_spec.kind != "simulated":
-        raise CalibrationError(f"cell {cell_spec.name!r} is a {cell_spec.kind} cell: driving real devices for "
-                               f"calibration needs the hardware cell factory, which is not wired in yet; the "
-                               f"routines (calibration.runner.run_on_cell) accept any Cell once it is")
-    cell, mesh = simulated_cell(cell_spec, cell_path, seed, kind)
     mount, mount_source = (None, None)
     if kind == "object":
         mount, mount_source = scanner_mount_for_object(cell_spec, target)
+    cell, mesh = calibration_cell(cell_spec, cell_path, seed, kind, cell_doc)
     try:
         section = run_on_cell(kind, cell_spec, cell, mesh, seed, mount)
+    except ProbeFault as exc:    # the arm is stopped; closing the cell stops its devices
+        raise CalibrationError(f"{kind}: stopped by a {exc.kind} fault: {exc.message}; nothing was written") from exc
     finally:
         cell.close()
     written = None

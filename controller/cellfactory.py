@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import trimesh
 
 from .core.calfile import believed_cell, check_calibration
 from .core.config import SessionInputs
@@ -43,20 +44,7 @@ def load_object_model(inputs: SessionInputs) -> ObjectModel:
     path = inputs.object_file()
     where = (inputs.plan_doc, ("simulated_object",)) if inputs.plan.simulated_object and inputs.cell.kind != "ur" \
         else (inputs.cell_doc, ("object", "file"))
-    if path.suffix.lower() in (".yaml", ".yml"):
-        from elastoprobe.sim.objects import load_object
-
-        sim_object = load_object(path)
-        model = ObjectModel(mesh=sim_object.mesh, simulated=sim_object, warnings=list(sim_object.load_warnings))
-    else:
-        try:
-            mesh = read_mesh(path)
-        except ValueError as exc:
-            raise where[0].error(where[1], f"{path}: {exc}") from None
-        findings = mesh_findings(mesh)
-        if findings.errors:
-            raise where[0].error(where[1], f"{path}: " + "; ".join(findings.errors))
-        model = ObjectModel(mesh=mesh, warnings=[f"{path}: {w}" for w in findings.warnings])
+    model = read_object_model(path, where[0], where[1])
     limits = inputs.cell.limits
     vertices_base = inputs.cell.object.base_to_object.pose().apply(model.mesh.vertices)
     problem = bounds_problem(vertices_base, limits.workspace.min_mm, limits.workspace.max_mm)
@@ -77,6 +65,25 @@ def load_object_model(inputs: SessionInputs) -> ObjectModel:
     if model.simulated is not None and inputs.cell.kind != "ur":    # simulated and loopback cells
         check_physics(inputs, model.simulated)
     return model
+
+
+def read_object_model(path: Path, doc: Any, keys: tuple[str, ...]) -> ObjectModel:
+    """An object file as it is: a simulated object (objects/*.yaml, through the simulator's
+    loader) or a mesh, checked; a bad one is an InputError at ``keys`` of ``doc`` (the YAML
+    that named it)."""
+    if path.suffix.lower() in (".yaml", ".yml"):
+        from elastoprobe.sim.objects import load_object
+
+        sim_object = load_object(path)
+        return ObjectModel(mesh=sim_object.mesh, simulated=sim_object, warnings=list(sim_object.load_warnings))
+    try:
+        mesh = read_mesh(path)
+    except ValueError as exc:
+        raise doc.error(keys, f"{path}: {exc}") from None
+    findings = mesh_findings(mesh)
+    if findings.errors:
+        raise doc.error(keys, f"{path}: " + "; ".join(findings.errors))
+    return ObjectModel(mesh=mesh, warnings=[f"{path}: {w}" for w in findings.warnings])
 
 
 def check_physics(inputs: SessionInputs, sim_object: Any) -> None:
@@ -120,12 +127,12 @@ def build_cell(inputs: SessionInputs, seed: int, dry_run: bool = False,
 
     model = model or load_object_model(inputs)
     if kind != "loopback":
-        return BuiltCell(cell=build_real_cell(inputs, model.mesh), object_mesh=model.mesh)
+        return BuiltCell(cell=build_real_cell(inputs.cell, inputs.limits), object_mesh=model.mesh)
     from elastoprobe.sim.servers.loopback import LoopbackServers
 
     servers = LoopbackServers(inputs.cell_path, inputs.object_file(), seed).start()
     try:
-        real = build_real_cell(inputs, model.mesh, addresses=servers.addresses(),
+        real = build_real_cell(inputs.cell, inputs.limits, addresses=servers.addresses(),
                                ground_truth=ground_truth_for(inputs, seed, model), servers=servers)
     except BaseException:
         servers.stop()
@@ -183,17 +190,51 @@ def check_real_cell_ready(inputs: SessionInputs, allow_stale_calibration: bool =
                          path=str(inputs.cell_path))
 
 
-def simulated_calibration_cell(cell_spec: Any, cell_path: str | Path, seed: int,
-                               reference_sphere_radius_mm: float | None) -> tuple[Cell, Any]:
-    """(simulated cell, obstacle mesh in the object frame) for a calibration routine: the cell
-    file's world with the rigid reference sphere of ``reference_sphere_radius_mm`` in the
-    object's place (ft, tcp, scanner routines), or with the cell's own object (None)."""
-    from elastoprobe.sim.cell import SimCell, params_from_cell
-    from elastoprobe.sim.objects import reference_sphere
+def reference_sphere_mesh(radius_mm: float) -> Any:
+    """Calibration's reference sphere (object frame, mm): radius ``radius_mm``, resting on the
+    table (z = 0) at the object's placement."""
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=float(radius_mm))
+    mesh.apply_translation([0.0, 0.0, float(radius_mm)])
+    return mesh
 
+
+def build_calibration_cell(cell_spec: Any, cell_doc: Any, cell_path: str | Path, seed: int,
+                           reference_sphere_radius_mm: float | None) -> BuiltCell:
+    """The cell a calibration routine runs on, built by kind as a session's is, and what is
+    on its table (object frame): the rigid reference sphere of ``reference_sphere_radius_mm``
+    in the object's place (the ft, tcp and scanner routines), or the cell's own object (None).
+
+    ``cell_spec`` is the cell FILE (calibration measures against its nominal frames), within
+    the cell's own safety limits. A simulated cell puts the sphere into its world; a loopback
+    cell starts its served world with the sphere in it; on a ``ur`` cell the operator has set
+    the sphere down. The last two run the same real drivers (``drivers/real_cell.py``)."""
+    kind = cell_spec.kind
     obj_path = Path(cell_path).parent / cell_spec.object.file
-    params = params_from_cell(cell_spec, obj_path, seed=seed)
+    if kind == "simulated":
+        from elastoprobe.sim.cell import SimCell, params_from_cell
+        from elastoprobe.sim.objects import reference_sphere
+
+        params = params_from_cell(cell_spec, obj_path, seed=seed)
+        if reference_sphere_radius_mm is not None:
+            params.object = reference_sphere(reference_sphere_radius_mm)
+        sim = SimCell(params)
+        return BuiltCell(cell=sim, object_mesh=sim.world.obj.mesh)
     if reference_sphere_radius_mm is not None:
-        params.object = reference_sphere(reference_sphere_radius_mm)
-    cell = SimCell(params)
-    return cell, cell.world.obj.mesh
+        mesh = reference_sphere_mesh(reference_sphere_radius_mm)
+    else:
+        mesh = read_object_model(obj_path, cell_doc, ("object", "file")).mesh
+    from .drivers.real_cell import build_real_cell
+
+    limits = cell_spec.limits.safety()
+    if kind != "loopback":
+        return BuiltCell(cell=build_real_cell(cell_spec, limits), object_mesh=mesh)
+    from elastoprobe.sim.servers.loopback import LoopbackServers
+
+    servers = LoopbackServers(Path(cell_path), None, seed,
+                              reference_sphere_radius_mm=reference_sphere_radius_mm).start()
+    try:
+        real = build_real_cell(cell_spec, limits, addresses=servers.addresses(), servers=servers)
+    except BaseException:
+        servers.stop()
+        raise
+    return BuiltCell(cell=real, object_mesh=mesh)

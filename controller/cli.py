@@ -172,7 +172,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .core.config import load_session_inputs
 
     inputs = load_session_inputs(args.plan, args.cell)
-    if inputs.cell.kind == "ur" and not args.dry_run:
+    if inputs.cell.kind != "simulated" and not args.dry_run:       # ur and loopback: the real drivers
         from .cellfactory import check_real_cell_ready
         check_real_cell_ready(inputs, allow_stale_calibration=args.allow_stale_calibration)
     seed = args.seed if args.seed is not None else inputs.plan.seed
@@ -453,7 +453,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     ca = sub.add_parser("calibrate", help="calibrate the F/T payload, probe tip, scanner mount or object pose")
     ca.add_argument("kind", choices=["ft", "tcp", "scanner", "object"])
-    ca.add_argument("--cell", help="cell file (default: the simulated cell)")
+    ca.add_argument("--cell", help="cell file (default: the simulated cell); a loopback or ur cell is calibrated "
+                                   "on its real drivers (ft, tcp and scanner need the reference sphere on the table "
+                                   "where the object sits)")
     ca.add_argument("--seed", type=_seed, default=0)
     ca.add_argument("--out", help="calibration file to write (default: the cell's calibration_file)")
     ca.add_argument("--json", action="store_true", help="one-line JSON")

@@ -23,7 +23,7 @@ from .acquire import SweepResult, SweepSettings, acquire_cloud, line_footprint_m
 from .core.atomic import json_default
 from .core.collision import shapes_from_cell
 from .core.config import SessionInputs, effective_motion_limits
-from .core.devices import Cell
+from .core.devices import Cell, Trip, same_trip
 from .core.errors import BudgetSpent, DeviceError, DiskError, ElastoprobeError, MotionRefused, SessionAborted
 from .core.geometry import Pose
 from .journal import Journal, JournalCorruption, JournalError, SessionMeta, StepRecord, StepResult
@@ -98,6 +98,12 @@ def _json_default(o: Any) -> Any:
         return json_default(o)
     except TypeError:
         return str(o)
+
+
+# Faults that are, or may be, a lost connection to the robot (a command's DeviceError):
+# their recovery waits for it to come back; for any other fault, the connection lost
+# while recovering is a second fault.
+CONNECTION_FAULT_KINDS = frozenset({"connection", "device"})
 
 
 class Session:
@@ -719,6 +725,12 @@ class Session:
         """
         assert self.cell is not None
         arm = self.cell.arm
+        if fault.kind not in CONNECTION_FAULT_KINDS and not arm.status().connected:
+            # The connection dropped after this fault was seen: a fault of its own.
+            self._journal_recovery_fault(fault, "connection", "lost the connection to the robot", None)
+            if self._await_connection() is None:
+                return "connection waiting to recover: the arm did not reconnect within 10 s"
+            return "connection waiting to recover: lost the connection to the robot"
         status = self._await_connection()
         if status is None:
             return "the arm did not reconnect within 10 s"
@@ -726,6 +738,12 @@ class Session:
             return "the emergency stop is still engaged (release it at the cell, then resume)"
         if status.protective_stop and not arm.recover_protective_stop():
             return "the protective stop could not be cleared from the dashboard"
+        # The guard keeps checking while the controller waits for the connection or the
+        # dashboard: a trip latched since this fault (a stalled or frozen F/T stream, a
+        # spike) is a fault of its own, not part of this one, and is never re-armed unseen.
+        failed = self._trip_since(fault, "waiting to recover")
+        if failed is not None:
+            return failed
         self.executor.acknowledged_trip = arm.trip()
         try:
             self.executor.safe_retract()
@@ -734,21 +752,43 @@ class Session:
             # that follows names both.
             self._stop_arm()
             kind = exc.kind if isinstance(exc, ProbeFault) else "device"
-            assert self.journal is not None
-            self.journal.record_fault(kind, f"during recovery from {fault.kind}: {exc}",
-                                      t_robot_s=self.cell.clock.now_s(), policy_action="pause",
-                                      raw=exc.trip.raw if isinstance(exc, ProbeFault) and exc.trip else None)
-            self._log("recovery_failed", kind=kind, message=str(exc), during=fault.kind)
+            self._journal_recovery_fault(fault, kind, str(exc), exc.trip if isinstance(exc, ProbeFault) else None)
             return f"{kind} while retracting: {exc}"
         finally:
             self.executor.acknowledged_trip = None
         # Re-arm only after the state change (retracted), below the hysteresis level.
         for _ in range(50):
+            failed = self._trip_since(fault, "after retracting")
+            if failed is not None:
+                return failed
             if arm.rearm():
                 return None
             self.cell.clock.sleep_s(0.1)
             self.cell.ft.read_block()
         return "the force limits could not be re-armed within 5 s of retracting (the F/T still reads over them)"
+
+    def _trip_since(self, fault: ProbeFault, when: str) -> str | None:
+        """If the arm's guard holds a trip other than the one ``fault`` reported (latched
+        while recovering from it), journal it and say why recovery failed; else None."""
+        assert self.cell is not None
+        try:
+            trip = self.cell.arm.trip()
+        except DeviceError as exc:
+            self._journal_recovery_fault(fault, "device", str(exc), None)
+            return f"device {when}: {exc}"
+        if trip is None or same_trip(trip, fault.trip):
+            return None
+        self._stop_arm()
+        self._journal_recovery_fault(fault, trip.kind, trip.message, trip)
+        return f"{trip.kind} {when}: {trip.message}"
+
+    def _journal_recovery_fault(self, fault: ProbeFault, kind: str, message: str, trip: Trip | None) -> None:
+        """Journal a fault met while recovering from ``fault`` (the pause that follows names both)."""
+        assert self.journal is not None and self.cell is not None
+        self.journal.record_fault(kind, f"during recovery from {fault.kind}: {message}",
+                                  t_robot_s=self.cell.clock.now_s(), policy_action="pause",
+                                  raw=trip.raw if trip is not None else None)
+        self._log("recovery_failed", kind=kind, message=message, during=fault.kind)
 
     # ------------------------------------------------------------------ operator, budget, progress
     def _check_operator(self) -> None:

@@ -124,15 +124,39 @@ def test_check_calibration_flags_missing_old_and_partial(tmp_path: Path) -> None
 
 def test_run_calibration_tcp_on_the_miscalibrated_cell(tmp_path: Path) -> None:
     """End to end: the tip is found to 0.1 mm of the simulator's hidden truth, and written."""
-    from elastoprobe.calibration.runner import run_calibration, simulated_cell
+    from elastoprobe.calibration.runner import run_calibration, calibration_cell
 
     out = tmp_path / "cal.json"
     summary = run_calibration("tcp", MIS, seed=5, out_path=out)
     assert summary["written"] == str(out)
     spec, _ = load_cell(MIS)
-    cell, _ = simulated_cell(spec, MIS, 5, "tcp")
+    cell, _ = calibration_cell(spec, MIS, 5, "tcp")
     true_tip = cell._true_geometry(cell.params)["tip_offset"]
     assert np.linalg.norm(true_tip) > 1.9                      # the cell really is off by 2 mm
     assert np.linalg.norm(np.array(summary["result"]["tip_offset_mm"]) - true_tip) < 0.1
     corr = load_calibration(out)
     assert np.allclose(corr.flange_to_tcp.position_mm, np.array([0.0, 0.0, 160.0]) + true_tip, atol=0.1)
+
+
+def test_a_fault_mid_routine_parks_the_arm_and_writes_nothing(tmp_path: Path) -> None:
+    """A force spike trips the guard during a touch-off: the routine ends in a CalibrationError
+    naming the fault, the arm is lifted clear (as a session parks), nothing is written."""
+    from elastoprobe.calibration.runner import calibration_cell, run_calibration, run_on_cell
+    from elastoprobe.controller.core.errors import CalibrationError
+    from elastoprobe.controller.toolhead import ProbeFault
+
+    root = Path(__file__).resolve().parent.parent
+    text = (root / "config" / "cells" / "sim.yaml").read_text()
+    text = text.replace("file: ../objects/", f"file: {root / 'config' / 'objects'}/")
+    cell_path = tmp_path / "cell.yaml"
+    cell_path.write_text(text + "  faults:\n    - {kind: force_spike, step: 3}\n")
+    out = tmp_path / "cal.json"
+    with pytest.raises(CalibrationError, match="tcp: stopped by a force"):
+        run_calibration("tcp", cell_path, seed=1, out_path=out)
+    assert not out.exists()
+    spec, _ = load_cell(cell_path)
+    cell, mesh = calibration_cell(spec, cell_path, 1, "tcp")
+    with pytest.raises(ProbeFault):
+        run_on_cell("tcp", spec, cell, mesh, 1)
+    top_z = float(cell.base_to_object.apply(mesh.vertices)[:, 2].max())
+    assert cell.arm.status().tcp_pose.position_mm[2] >= top_z + 60.0 - 0.5      # lifted to travel height

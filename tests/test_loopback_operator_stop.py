@@ -93,7 +93,7 @@ def test_a_dashboard_stop_mid_probe_pauses_the_session_and_the_arm_waits_for_res
     plan, cell = copy_loopback_configs(tmp_path, HOST)
     out = tmp_path / "session"
     run = subprocess.Popen([sys.executable, "-c", CLI, "run", str(plan), "--cell", str(cell), "--seed", "1",
-                            "--out", str(out), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            "--out", str(out), "--quiet", "--allow-stale-calibration"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     watch = ArmWatch(HOST)
     try:
         # Mid-probe: the probe presses the ball (the first contact comes after the sweep).

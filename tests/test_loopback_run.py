@@ -19,7 +19,8 @@ from test_loopback_rig import copy_loopback_configs
 def test_loopback_plan_runs_end_to_end_on_the_real_drivers(tmp_path: Path) -> None:
     plan, cell = copy_loopback_configs(tmp_path, "127.0.0.191")
     out = tmp_path / "session"
-    code = main(["run", str(plan), "--cell", str(cell), "--seed", "1", "--out", str(out), "--quiet"])
+    code = main(["run", str(plan), "--cell", str(cell), "--seed", "1", "--out", str(out), "--quiet",
+                 "--allow-stale-calibration"])
     assert code == 0
     events = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     kinds = [e["event"] for e in events]

@@ -262,10 +262,10 @@ def test_a_device_error_while_planning_the_travel_is_a_retried_fault_not_an_inte
     # Seen on the loopback cell: the UR link's child died during a status read that plans
     # the travel to a standoff (it was restarted with the arm stopped); the DeviceError
     # escaped the contact and the session ended in an internal error (exit 1).
-    from elastoprobe.controller import probe
+    from elastoprobe.controller import probe, toolhead
     from elastoprobe.controller.core.errors import DeviceError
 
-    original_sync, original_probe = probe.ProbeExecutor._sync_validator, probe.ProbeExecutor.probe
+    original_sync, original_probe = toolhead.Toolhead.sync_validator, probe.ProbeExecutor.probe
     state = {"calls": 0, "in_contact": False, "died_in_contact": False}
 
     def contact(self: Any, *args: Any, **kwargs: Any) -> None:
@@ -282,7 +282,7 @@ def test_a_device_error_while_planning_the_travel_is_a_retried_fault_not_an_inte
             raise DeviceError("hardware status: DeviceError: UR link child died during state; restarted, arm stopped")
         original_sync(self)
 
-    monkeypatch.setattr(probe.ProbeExecutor, "_sync_validator", dies_in_the_sweep_and_in_a_contact)
+    monkeypatch.setattr(toolhead.Toolhead, "sync_validator", dies_in_the_sweep_and_in_a_contact)
     monkeypatch.setattr(probe.ProbeExecutor, "probe", contact)
     plan = plan_for(copy_cell(SIM_CELL, tmp_path, "device-error-cell"), tmp_path, edits=dict(SURVEY_EDITS))
     out = tmp_path / "session"

@@ -144,3 +144,52 @@ def test_a_stop_of_a_stopped_arm_claims_no_journaled_fault_and_phases_come_from_
     assert soak.phase_of_key((1, soak.SWEEP_KEY, 3), {}) == "sweeping"
     assert soak.phase_of_key((1, soak.LEARN_KEY - 2, 0), {}) == "learning"
     assert soak.phase_of_key((1, 12, 0), {12: "regions"}) == "characterize"
+
+
+def test_a_moved_object_does_not_take_the_slip_fault_a_later_slip_caused() -> None:
+    # The night of issue #15 met it: the object moved at 594 s (never seen), a slip fired at
+    # 628 s and the slip monitor journaled it at once; the moved object, matched first with
+    # its open-ended window, took that slip fault: the move was called recovered and the
+    # slip undetected.
+    from elastoprobe.controller.journal import FaultRecord
+
+    slip_fault = FaultRecord(fault_id=82, kind="slip", t_robot_s=628.85, t_wall_utc="", step_id=441,
+                             message="tip slipped 6.00 mm along the surface (limit 6.0 mm)",
+                             policy_action="retry", raw=None)
+    moved = {"pid": 7, "kind": "object_moved", "t_s": 594.111, "key": [1, 438, 0], "plan": 10}
+    slip = {"pid": 7, "kind": "slip", "t_s": 628.473, "key": [1, 441, 0], "plan": 7}
+    claimed: set[int] = set()
+    got = {}
+    for rec in soak.judging_order([moved, slip], {7: 12}):
+        match = soak.journaled_match(rec, 12, [slip_fault], {82: 12}, claimed)
+        if match is not None:
+            claimed.add(match.fault_id)
+        got[rec["kind"]] = match
+    assert got == {"slip": slip_fault, "object_moved": None}
+
+
+def test_a_fault_unseen_long_before_its_process_was_killed_is_undetected_not_lost_to_kill() -> None:
+    # A frozen stream re-armed unseen at 238 s of a run SIGKILLed minutes later was judged
+    # "lost_to_kill" (harmless): the run had lived far past its match window.
+    killed = soak.ChildRun([], 101, -9, "delay 257.3 s", 1.0, 1.0, [])
+    frozen = {"kind": "ft_frozen", "t_s": 238.17}
+    assert soak.lost_to_kill(frozen, 14, [killed], {101: 14}, {14: 511.5}) is False
+    assert soak.lost_to_kill(frozen, 14, [killed], {101: 14}, {14: 240.0}) is True
+    paused = soak.ChildRun([], 101, 3, None, 1.0, 1.0, [])
+    assert soak.lost_to_kill(frozen, 14, [paused], {101: 14}, {14: 240.0}) is False
+
+
+def test_two_scanner_faults_on_one_burst_are_judged_by_the_one_fault_they_showed_as() -> None:
+    # The night met it: a short burst and a timeout drawn for the same retry both struck one
+    # burst (0 of 40 profiles); the controller journaled one scanner fault and retried, and
+    # the judge called the second injection undetected.
+    short = {"kind": "scanner_short_burst", "key": [1, 757, 1], "run_id": 27, "t_s": 155.45,
+             "effect_t_s": 163.43, "fault_id": 143, "fate": "recovered"}
+    timeout = {"kind": "scanner_timeout", "key": [1, 757, 1], "run_id": 27, "t_s": 156.134,
+               "effect_t_s": 163.43, "fate": "undetected"}
+    elsewhere = {"kind": "scanner_timeout", "key": [1, 800, 0], "run_id": 27, "t_s": 700.0,
+                 "effect_t_s": 705.0, "fate": "undetected"}
+    fates = [short, timeout, elsewhere]
+    soak.share_burst(fates)
+    assert timeout["fate"] == "recovered" and timeout["same_burst_as"] == 143
+    assert elsewhere["fate"] == "undetected"

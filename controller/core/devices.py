@@ -160,6 +160,14 @@ class Trip:
     raw: WrenchBlock | None = field(default=None, repr=False)
 
 
+def same_trip(a: Trip | None, b: Trip | None) -> bool:
+    """Whether two reports name the same latched crossing (kind and instant): a driver in
+    another process hands back a fresh copy of its trip on every call."""
+    if a is None or b is None:
+        return a is b
+    return a.kind == b.kind and a.t_s == b.t_s
+
+
 @runtime_checkable
 class Arm(Protocol):
     """A 6-axis arm carrying the probe, with its safety path armed from the F/T stream: the

@@ -88,22 +88,23 @@ def hardware_config(cell: Any, limits: Any, *, robot_host: str | None = None, ft
                           joint_limits_rad=joint_limits, link=link, force_loop=cell.force_loop.gains())
 
 
-def build_real_cell(inputs: Any, object_mesh: Any, *, addresses: dict[str, Any] | None = None,
+def build_real_cell(cell: Any, limits: Any, *, addresses: dict[str, Any] | None = None,
                     ground_truth: GroundTruth | None = None, servers: Any = None) -> RealCell:
     """A ``RealCell`` for a ``ur`` or ``loopback`` cell (see the module docstring).
 
-    ``object_mesh``: the object's checked mesh (cellfactory.load_object_model); ``addresses``:
-    a served world's ``robot_host``, ``ft_host``, ``rdt_port``, ``calinfo_port`` and
-    ``scanner_url`` in place of the cell file's; ``servers``: what to ``stop()`` when the cell
-    closes. On failure nothing started here is left running (the caller stops ``servers``)."""
-    cell = inputs.cell
+    ``cell``: the validated ``CellSpec`` (as the controller believes it); ``limits``: the
+    ``SafetyLimits`` the hardware process enforces (a session's are tightened by its plan,
+    calibration runs within the cell's own); ``addresses``: a served world's ``robot_host``,
+    ``ft_host``, ``rdt_port``, ``calinfo_port`` and ``scanner_url`` in place of the cell
+    file's; ``servers``: what to ``stop()`` when the cell closes. On failure nothing started
+    here is left running (the caller stops ``servers``)."""
     if cell.kind not in ("ur", "loopback"):
         raise ValueError(f"build_real_cell handles kinds 'ur' and 'loopback', not {cell.kind!r}")
     addresses = dict(addresses or {})
     scanner_url = addresses.pop("scanner_url", cell.scanner.url)
     hardware = None
     try:
-        hardware = HardwareProcess(hardware_config(cell, inputs.limits, **addresses)).start()
+        hardware = HardwareProcess(hardware_config(cell, limits, **addresses)).start()
         scanner = SerialLineScanner(scanner_url, RealClock(), timeout_s=2.0)
     except BaseException:
         if hardware is not None:

@@ -19,9 +19,12 @@ from .serve import read_state, serve_child_main
 class LoopbackServers:
     """``sim serve`` in a spawned child process that dies with this one (PR_SET_PDEATHSIG)."""
 
-    def __init__(self, cell_path: Path, object_path: Path | None, seed: int, lifetime_s: float = 4 * 3600.0) -> None:
+    def __init__(self, cell_path: Path, object_path: Path | None, seed: int, lifetime_s: float = 4 * 3600.0,
+                 reference_sphere_radius_mm: float | None = None) -> None:
+        """``reference_sphere_radius_mm``: serve calibration's reference sphere (mm) in the object's place."""
         self.cell_path = Path(cell_path)
         self.object_path = object_path
+        self.reference_sphere_radius_mm = reference_sphere_radius_mm
         self.seed = int(seed)
         self.lifetime_s = lifetime_s
         self.run_dir = Path(tempfile.mkdtemp(prefix="elastoprobe-serve-"))
@@ -32,7 +35,8 @@ class LoopbackServers:
         ctx = mp.get_context("spawn")
         self.proc = ctx.Process(target=serve_child_main, name="elastoprobe-sim-serve", daemon=True,
                                 args=(str(self.cell_path), None if self.object_path is None else str(self.object_path),
-                                      self.seed, str(self.run_dir), self.lifetime_s, os.getpid()))
+                                      self.seed, str(self.run_dir), self.lifetime_s, os.getpid(),
+                                      self.reference_sphere_radius_mm))
         self.proc.start()
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:

@@ -73,9 +73,13 @@ def scanner_transport(url: str) -> tuple[str, str, int]:
 
 def start_servers(cell_spec: Any, cell_path: str | Path, seed: int, *, object_path: str | Path | None = None,
                   lifetime_s: float = DEFAULT_LIFETIME_S, ft_records_per_datagram: int = 1,
-                  unlock_delay_s: float = 5.0) -> ServedCell:
-    """Build the simulated world of ``cell_spec`` and start its three servers (real time)."""
+                  unlock_delay_s: float = 5.0, reference_sphere_radius_mm: float | None = None) -> ServedCell:
+    """Build the simulated world of ``cell_spec`` and start its three servers (real time).
+
+    ``reference_sphere_radius_mm``: calibration's rigid reference sphere (that radius, mm) on
+    the table in the object's place instead of the object."""
     from elastoprobe.sim.cell import SimCell, params_from_cell
+    from elastoprobe.sim.objects import reference_sphere
 
     from .netft_server import NetFTServer
     from .scanner_serial import ScannerPtyServer
@@ -86,7 +90,10 @@ def start_servers(cell_spec: Any, cell_path: str | Path, seed: int, *, object_pa
     obj = Path(object_path) if object_path is not None else cell_path.parent / cell_spec.object.file
     if not cell_spec.robot.host.startswith("127.") or not cell_spec.ft.host.startswith("127."):
         raise ValueError("sim serve runs on loopback only: robot.host and ft.host must be 127.0.0.x")
-    cell = SimCell(untrippable_params(params_from_cell(cell_spec, obj, seed=seed)))
+    params = params_from_cell(cell_spec, obj, seed=seed)
+    if reference_sphere_radius_mm is not None:
+        params.object = reference_sphere(reference_sphere_radius_mm)
+    cell = SimCell(untrippable_params(params))
     backend = WorldBackend(cell)
     ft_spec, sc_spec = cell_spec.ft, cell_spec.scanner
     emulator = netft = scanner = None
@@ -127,7 +134,9 @@ def start_servers(cell_spec: Any, cell_path: str | Path, seed: int, *, object_pa
             if server is not None:
                 server.stop()
         raise
-    state = {"pid": os.getpid(), "seed": int(seed), "cell": str(cell_path), "object": str(obj),
+    served_object = str(obj) if reference_sphere_radius_mm is None else \
+        f"reference sphere, radius {reference_sphere_radius_mm:g} mm"
+    state = {"pid": os.getpid(), "seed": int(seed), "cell": str(cell_path), "object": served_object,
              "robot_host": cell_spec.robot.host, "ft_host": ft_spec.host, "rdt_port": netft.rdt_port,
              "calinfo_port": netft.calinfo_port, "scanner_url": scanner.url, "started_wall_s": time.time()}
     return ServedCell(backend, emulator, netft, scanner, state)
@@ -158,7 +167,8 @@ def read_state(run_dir: str | Path, timeout_s: float = 0.0) -> dict[str, Any] | 
 
 def serve(cell_spec: Any, cell_path: str | Path, seed: int, stop_event: threading.Event | None = None, *,
           run_dir: str | Path | None = None, object_path: str | Path | None = None,
-          lifetime_s: float = DEFAULT_LIFETIME_S, ready: threading.Event | None = None) -> dict[str, Any]:
+          lifetime_s: float = DEFAULT_LIFETIME_S, ready: threading.Event | None = None,
+          reference_sphere_radius_mm: float | None = None) -> dict[str, Any]:
     """Serve the cell's simulated world until ``stop_event`` is set or ``lifetime_s`` passes.
 
     Returns the state (addresses) it served. ``ready`` is set once everything listens (and
@@ -167,7 +177,8 @@ def serve(cell_spec: Any, cell_path: str | Path, seed: int, stop_event: threadin
     # Four busy threads share one GIL (emulator tick, Net F/T, scanner, RTDE sessions): a short
     # switch interval keeps the 1 kHz F/T stream from being starved into bursts.
     sys.setswitchinterval(0.0005)
-    served = start_servers(cell_spec, cell_path, seed, object_path=object_path, lifetime_s=lifetime_s)
+    served = start_servers(cell_spec, cell_path, seed, object_path=object_path, lifetime_s=lifetime_s,
+                           reference_sphere_radius_mm=reference_sphere_radius_mm)
     try:
         if run_dir is not None:
             write_state(run_dir, served.state)
@@ -225,7 +236,7 @@ def _announce(ready: threading.Event, stop: threading.Event, run_dir: str | Path
 
 
 def serve_child_main(cell_path: str, object_path: str | None, seed: int, run_dir: str, lifetime_s: float,
-                     parent_pid: int) -> None:
+                     parent_pid: int, reference_sphere_radius_mm: float | None = None) -> None:
     """Entry of a ``spawn``-ed serve process that dies with its parent (the loopback cell)."""
     from elastoprobe.controller.core.config import load_cell
 
@@ -251,7 +262,8 @@ def serve_child_main(cell_path: str, object_path: str | None, seed: int, run_dir
     threading.Thread(target=watch_parent, daemon=True).start()
     spec, _ = load_cell(cell_path)
     try:
-        serve(spec, cell_path, seed, stop, run_dir=run_dir, object_path=object_path, lifetime_s=lifetime_s)
+        serve(spec, cell_path, seed, stop, run_dir=run_dir, object_path=object_path, lifetime_s=lifetime_s,
+              reference_sphere_radius_mm=reference_sphere_radius_mm)
     except BaseException as exc:  # noqa: BLE001 — leave the reason where the parent looks
         try:
             (Path(run_dir) / "serve.error").write_text(f"{type(exc).__name__}: {exc}")

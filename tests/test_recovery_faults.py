@@ -1,0 +1,68 @@
+"""A fault that strikes while the controller recovers from another one is seen, journaled
+and named in the pause: the guard's trip latched during the wait for the connection or
+the protective-stop unlock is never re-armed unseen (issue #15's soak found an F/T stall
+during a lost connection in the cloud sweep, and a frozen stream during a protective
+stop's recovery, re-armed with the first fault's retry and never journaled; then a
+connection lost just after a protective stop, waited out by the recovery and never
+journaled).
+
+Sessions run in this process on the tiny plan; both faults are placed in the cloud sweep
+(its simulator key, with delays), and an emergency stop later in the sweep bounds the
+session whatever the controller does with them.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from test_session_util import copy_cell, plan_for
+
+from elastoprobe.controller.core.config import load_session_inputs
+from elastoprobe.controller.journal import Journal
+from elastoprobe.controller.phases import SWEEP_STEP_KEY
+from elastoprobe.controller.session import EXIT_PAUSED, Session
+
+REPO = Path(__file__).resolve().parent.parent
+SIM_CELL = REPO / "config" / "cells" / "sim.yaml"
+SEED = 1
+FIRST_AT_S = 3.0        # into the sweep: the arm is travelling or scanning a line
+
+
+@pytest.mark.parametrize("first, second, after_s, seen_as", [
+    # A lost connection lasts 1 s; the stream stalls 0.4 s into it (the stale limit is 30 ms).
+    ("connection_loss", "ft_stall", 0.4, "stale"),
+    # A protective stop is unlocked 5 s after it; the stream freezes 0.5 s into the wait.
+    ("protective_stop", "ft_frozen", 0.5, "frozen"),
+    # The connection drops 0.03 s after a protective stop, as the controller stops the arm.
+    ("protective_stop", "connection_loss", 0.03, "connection"),
+])
+def test_a_fault_during_recovery_is_journaled_and_pauses(tmp_path: Path, first: str, second: str,
+                                                             after_s: float, seen_as: str) -> None:
+    faults = [{"kind": first, "step": SWEEP_STEP_KEY, "delay_s": FIRST_AT_S},
+              {"kind": second, "step": SWEEP_STEP_KEY, "delay_s": FIRST_AT_S + after_s},
+              {"kind": "emergency_stop", "step": SWEEP_STEP_KEY, "delay_s": 40.0}]
+    cell = copy_cell(SIM_CELL, tmp_path, f"recovery-{second}-cell")
+    items = "".join(f"    - {json.dumps(f)}\n" for f in faults)
+    cell.write_text(cell.read_text().rstrip("\n") + "\n  faults:\n" + items)
+    plan = plan_for(cell, tmp_path)
+    out = tmp_path / "session"
+    session = Session(load_session_inputs(plan), out, SEED)
+    code = session.run()
+    injected = [k for k, _ in session.cell.faults.injected]   # type: ignore[union-attr]
+    assert injected[:2] == [first, second], injected
+
+    j = Journal.open_readonly(out)
+    try:
+        journaled = [(f.kind, f.message, f.policy_action) for f in j.faults()]
+        status = j.session()
+    finally:
+        j.close()
+    # The first fault, then the second as a fault of its own, met while recovering; the
+    # session paused on it (the first fault's recovery failed), not on the later e-stop.
+    assert len(journaled) == 2, journaled
+    assert journaled[1][0] == seen_as and journaled[1][1].startswith("during recovery from "), journaled
+    assert journaled[1][2] == "pause", journaled
+    assert code == EXIT_PAUSED and status["status"] == "paused"
+    assert f"{seen_as} waiting to recover" in status["status_reason"], status["status_reason"]
