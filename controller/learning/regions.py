@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -44,6 +44,14 @@ _MAX_ICM_PASSES = 20
 # shallow is about the standard error of an averaged survey profile.
 DEFAULT_LOG_FLOOR_MM = 0.005
 _MAX_ISLAND_PASSES = 10
+# A dent (+ the noise floor) within this many noise floors is not measured: the peak of a
+# profile that flat is the largest of its noisy samples near the contact (about two noises
+# above the dent on the 10-20 samples there), so two such peaks say nothing of which
+# material is stiffer. See _merge_by_contrast.
+MEASURED_DENT_NOISES = 5.0
+# A cluster with fewer points is split off only by a contrast that holds at every measured
+# survey force (see _merge_by_contrast).
+MIN_POINTS_FOR_ONE_FORCE = 3
 
 
 # -- features ----------------------------------------------------------------------------------
@@ -329,19 +337,34 @@ def _merge_by_noise(features: np.ndarray, labels: np.ndarray, noise: np.ndarray,
 
 
 def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: list[int],
-                       min_contrast: float, floor_mm: float = 0.0) -> tuple[np.ndarray, int]:
-    """Merge clusters that are not two materials, closest pair first: their median depths
-    (+ ``floor_mm``, the noise under which a dent is not seen) differ by less than a factor
-    ``min_contrast`` at every survey force (``depth_columns``: the peak-depth features), or
-    the difference does not hold at every force (one is shallower by the contrast at one
-    force, and not clearly shallower, by 3 noises of a difference, at another).
+                       min_contrast: float, floor_mm: float = 0.0,
+                       peak_noise_mm: float | None = None) -> tuple[np.ndarray, int]:
+    """Merge clusters that are not two materials, closest pair first. Two clusters are two
+    materials when, at some survey force at which either dent is measured (deeper than
+    ``MEASURED_DENT_NOISES`` x ``peak_noise_mm``, the scatter of one point's peak depth,
+    default ``floor_mm``, see :func:`peak_depth_noise_mm`), their median depths (+
+    ``floor_mm``) differ by at least a factor ``min_contrast`` and by more than 3 standard
+    errors of the difference of the medians (:func:`_difference_standard_error`), and at no
+    measured force is the other one deeper by more than 3 standard errors; a cluster of
+    fewer than ``MIN_POINTS_FOR_ONE_FORCE`` points must be deeper (or shallower) by 3
+    standard errors at every measured force. ``depth_columns``: the peak-depth features.
 
     The mixture splits one material wherever geometry shifts the visible dent (the rim of
     a pillow, a slope, a tilted ball surface: up to ~30 % deeper in the simulator, where
     the probe's shadow ends closer to the contact); that is not a different elasticity.
-    A stiffer material dents less at every force; two clusters of a stiff material whose
-    visible dents are a few hundredths of a millimetre can differ by 4x at one force
-    (ripple of the profile near the tip) and not at all at the other.
+
+    Why only measured forces count: at a small force a stiff material's peak is the largest
+    of the noisy samples near the contact, not its dent. On generated slab 2001 hard rubber
+    and elastomer read 0.009 and 0.019 mm at 2 N and 0.016 and 0.066 mm at 6.5 N (peak
+    scatter ~0.008 mm), and the mixture cut the hard rubber into clusters by its 2 N noise,
+    some reading as deep as the elastomer there. Requiring the contrast at every force
+    merged the two materials (one region in round 0) or joined half the hard rubber to the
+    elastomer; the contrast at any force, noise included, split the hard rubber in two. Why
+    not only the largest force: a foam's dent saturates (on suite block 1004 sponge and
+    foam read 0.72 and 1.95 mm at 3 N, 2.0 and 2.5 mm at 9 N). A stiffer material dents
+    less at every force, so an order clearly reversed at another force refutes the pair;
+    one merely unresolved there does not. A pair measured at no force is one material as
+    far as the survey can tell.
     """
     merges = 0
     if not depth_columns or min_contrast <= 1.0:
@@ -351,18 +374,31 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     log_c = float(np.log(min_contrast))
     labels, k = _compact(labels)
     med = np.maximum(_region_medians(cols, labels, k), 0.0) + floor
+    spread, count = _robust_spreads(cols, labels, k, floor)
+    peak_noise = floor if peak_noise_mm is None else max(float(peak_noise_mm), floor)
     while k > 1:
         logs = np.log(med)
         signed = logs[:, None, :] - logs[None, :, :]                       # (k,k,F)
         finite = np.isfinite(signed)
-        absd = np.where(finite, np.abs(signed), -np.inf)
-        gap = absd.max(axis=2)
-        at = np.take_along_axis(signed, absd.argmax(axis=2)[:, :, None], axis=2)[:, :, 0]
-        # Shallower at every force by more than 3 noises of a difference (in mm: a dent at
-        # the noise floor is shallower than one 5 noises deep, whatever their ratio says).
-        diff_mm = med[:, None, :] - med[None, :, :]
-        resolved = (np.sign(at)[:, :, None] * diff_mm > 3.0 * np.sqrt(2.0) * floor) | ~finite
-        same = (gap < log_c) | ~resolved.all(axis=2)
+        measured = finite & (np.maximum(med[:, None, :], med[None, :, :]) > MEASURED_DENT_NOISES * peak_noise)
+        seen_at_all = measured.any(axis=2)
+        diff_mm = med[:, None, :] - med[None, :, :]                         # > 0: i deeper
+        margin = 3.0 * _difference_standard_error(spread, count)
+        # i deeper than j by the contrast and by 3 standard errors at some measured force,
+        # and j nowhere clearly deeper (and the other way round).
+        deeper = measured & (diff_mm > margin)
+        shows = np.any(deeper & (signed >= log_c), axis=2)
+        # A cluster of one or two points is one or two measurements: one scattered return can
+        # fake a contrast at one force, so it must be clearly deeper (or shallower) at every
+        # measured force.
+        few = np.minimum(count.min(axis=1)[:, None], count.min(axis=1)[None, :]) < MIN_POINTS_FOR_ONE_FORCE
+        everywhere = np.all(deeper | ~measured, axis=2)
+        shows &= ~few | everywhere
+        shows = (shows & ~np.any(deeper.transpose(1, 0, 2), axis=2)) | (shows.T & ~np.any(deeper, axis=2))
+        # Merge order: the ratio at the measured forces (at all forces for a pair measured at none).
+        absd = np.where(measured, np.abs(signed), -np.inf).max(axis=2)
+        gap = np.where(seen_at_all, absd, np.where(finite, np.abs(signed), -np.inf).max(axis=2))
+        same = ~shows
         same &= np.triu(np.ones((k, k), dtype=bool), 1) & np.isfinite(gap)
         if not same.any():
             break
@@ -376,8 +412,78 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
             merged = np.maximum(np.nanmedian(cols[members], axis=0), 0.0) + floor
         med = np.delete(med, j, axis=0)
         med[i] = merged
+        spread, count = np.delete(spread, j, axis=0), np.delete(count, j, axis=0)
+        one = _robust_spreads(cols[members], np.zeros(int(members.sum()), dtype=np.int64), 1, floor)
+        spread[i], count[i] = one[0][0], one[1][0]
         merges += 1
     return labels, merges
+
+
+def peak_depth_noise_mm(peaks_mm: np.ndarray, edges: np.ndarray, noise_mm: float,
+                        min_pairs: int = 5, max_passes: int = 10) -> float:
+    """The scatter (mm) of one survey point's peak depth among dents that are not measured:
+    at least ``noise_mm`` (the standard error of an averaged profile).
+
+    Neighbours on one material have about the same dent, so half the spread of their
+    difference is the noise: 1.4826 x the median absolute difference over sqrt(2), over the
+    surface-neighbour pairs (``edges`` (E,2)) whose mean peak at the largest force (last
+    column of ``peaks_mm`` (N,F)) is within MEASURED_DENT_NOISES x the current estimate,
+    the largest over the forces; repeated from ``noise_mm`` until it no longer grows (at
+    most ``max_passes``), and only from ``min_pairs`` pairs on. Choosing pairs by their MEAN
+    leaves the distribution of their DIFFERENCE unchanged (the two are independent for two
+    equal-variance Gaussians), so the choice does not shrink the estimate as choosing points
+    by their own level would; a material whose dents are measured at the start never joins.
+
+    Why not ``noise_mm`` alone: it is the scan-to-scan noise over sqrt(scans), and the
+    scanner's correlated floor is common to one step's scans and does not average out; a
+    peak is the deepest of several such samples. On generated slab 2001 the hard rubber's
+    peaks scatter 0.007-0.010 mm against 0.0026 mm from the scans.
+    """
+    pk = np.asarray(peaks_mm, dtype=float)
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    sigma = float(noise_mm)
+    if pk.ndim != 2 or e.shape[0] == 0:
+        return sigma
+    ok = np.all(np.isfinite(pk[e[:, 0]]), axis=1) & np.all(np.isfinite(pk[e[:, 1]]), axis=1)
+    e = e[ok]
+    level = 0.5 * (pk[e[:, 0], -1] + pk[e[:, 1], -1])
+    diff = np.abs(pk[e[:, 0]] - pk[e[:, 1]])
+    for _ in range(max_passes):
+        low = level < MEASURED_DENT_NOISES * sigma
+        if np.count_nonzero(low) < min_pairs:
+            break
+        new = max(float(np.max(1.4826 * np.median(diff[low], axis=0) / np.sqrt(2.0))), float(noise_mm))
+        if new <= sigma * (1.0 + 1e-6):
+            break
+        sigma = new
+    return sigma
+
+
+def _robust_spreads(columns: np.ndarray, labels: np.ndarray, k: int, noise_mm: float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """(spread (k, C) mm, count (k, C)): each region's robust spread of each column (1.4826
+    MAD, at least ``noise_mm``) and its number of finite values."""
+    spread = np.empty((k, columns.shape[1]))
+    count = np.empty((k, columns.shape[1]))
+    for j in range(k):
+        x = columns[labels == j]
+        count[j] = np.sum(np.isfinite(x), axis=0)
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mad = 1.4826 * np.nanmedian(np.abs(x - np.nanmedian(x, axis=0)), axis=0)
+        spread[j] = np.maximum(np.nan_to_num(mad), noise_mm)
+    return spread, count
+
+
+def _difference_standard_error(spread: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """(k, k, C) standard error (mm) of the difference of two regions' medians. Both take the
+    larger of the two spreads (a point's scatter about its material, pooled: a lone point
+    or a small cluster has no spread of its own, and one cut out of a material by the
+    mixture has less than the material), over sqrt(n) and times sqrt(pi / 2) from three
+    points on (a median's efficiency against the mean's)."""
+    pooled = np.maximum(spread[:, None, :], spread[None, :, :])
+    eff = np.where(count >= 3, np.pi / 2.0, 1.0) / np.maximum(count, 1.0)
+    return pooled * np.sqrt(eff[:, None, :] + eff[None, :, :])
 
 
 def _icm(loglik: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray], beta: float,
@@ -402,15 +508,16 @@ def _icm(loglik: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray], b
 
 
 def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.ndarray],
-                    min_island_points: int, log_depth: np.ndarray | None = None,
-                    min_log_gap: float = np.inf) -> tuple[np.ndarray, list[int], list[int]]:
+                    min_island_points: int,
+                    distinct: Callable[[np.ndarray, np.ndarray], bool] | None = None
+                    ) -> tuple[np.ndarray, list[int], list[int]]:
     """Relabel connected same-label components smaller than ``min_island_points`` to the
     majority label of the points bordering them; isolated points (no neighbours) are kept.
 
-    With ``log_depth`` (N,F) (log peak depths): an island whose median differs from the
-    bordering majority region's median by at least ``min_log_gap`` at some force is kept:
-    one probe on a small inclusion is a material, not noise. Returns (labels, relabelled
-    point indices, kept island point indices).
+    With ``distinct(members, region)`` (point indices of the island and of the bordering
+    majority region): an island it calls another material is kept: one probe on a small
+    inclusion is a material, not noise. Returns (labels, relabelled point indices, kept
+    island point indices).
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -439,7 +546,7 @@ def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.n
                 continue
             votes = np.bincount(labels[border])
             new = int(np.argmax(votes))
-            if log_depth is not None and _distinct(log_depth, members, np.flatnonzero(labels == new), min_log_gap):
+            if distinct is not None and distinct(members, np.flatnonzero(labels == new)):
                 kept.update(int(i) for i in members)
                 continue
             labels[members] = new
@@ -448,15 +555,6 @@ def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.n
         if not changed:
             break
     return labels, sorted(set(relabelled)), sorted(kept)
-
-
-def _distinct(log_depth: np.ndarray, members: np.ndarray, region: np.ndarray, min_log_gap: float) -> bool:
-    """True when the members' median log depth differs from the region's by >= ``min_log_gap``
-    at some force."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        gap = np.abs(np.nanmedian(log_depth[members], axis=0) - np.nanmedian(log_depth[region], axis=0))
-    return bool(np.nanmax(np.where(np.isfinite(gap), gap, 0.0), initial=0.0) >= min_log_gap)
 
 
 def _region_medians(columns: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
@@ -554,9 +652,10 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
         z_std, mean, std = _standardise(x)
         proj = _projection(z_std, max_dims)
     z = z_std @ proj.T
-    log_depth = z_std[:, log_cols] if log_cols else None
 
     stats: dict[str, Any] = {}
+    peak_noise_mm = peak_depth_noise_mm(x[:, depth_cols], e, floor_mm) if depth_cols else floor_mm
+    stats["peak_noise_mm"] = peak_noise_mm
     if n >= 4:
         labels, bics = _choose_mixture(z, kmax, seed)
     else:
@@ -568,7 +667,7 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
         # The mixture may put two lone probes of two different inclusions in one component
         # (one component per probe costs more than the likelihood it buys): split every
         # cluster by the materials that the contrast rule alone finds among single points.
-        alone, _ = _merge_by_contrast(x, np.arange(n), depth_cols, min_contrast, floor_mm)
+        alone, _ = _merge_by_contrast(x, np.arange(n), depth_cols, min_contrast, floor_mm, peak_noise_mm)
         labels, k = _compact(labels * (int(alone.max()) + 1) + alone)
     if previous_labels is not None:
         prev = np.asarray(previous_labels, dtype=np.int64).reshape(-1)
@@ -583,7 +682,8 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
         labels, k = _compact(labels)
     stats["merged"] = merges
     if k > 1:
-        labels, contrast_merges = _merge_by_contrast(x, labels, depth_cols, min_contrast, floor_mm)
+        labels, contrast_merges = _merge_by_contrast(x, labels, depth_cols, min_contrast, floor_mm,
+                                                     peak_noise_mm)
         labels, k = _compact(labels)
         stats["merged_by_contrast"] = contrast_merges
 
@@ -593,8 +693,14 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
     if k > 1:
         means, cov, log_prior = _fit_gaussians(z, labels, k, reg)
         labels, icm_changes = _icm(_gauss_loglik(z, means, cov) + log_prior, labels, neighbours, beta)
-        labels, islands, kept = _remove_islands(labels, e, neighbours, min_island_points, log_depth,
-                                                float(np.log(min_contrast)))
+        def distinct(members: np.ndarray, region: np.ndarray) -> bool:
+            # Another material by the same contrast rule that made the regions.
+            both = np.concatenate([members, region])
+            two = np.concatenate([np.zeros(members.size, np.int64), np.ones(region.size, np.int64)])
+            return int(_merge_by_contrast(x[both], two, depth_cols, min_contrast, floor_mm, peak_noise_mm)[0].max()) > 0
+
+        labels, islands, kept = _remove_islands(labels, e, neighbours, min_island_points,
+                                                distinct if log_cols and min_contrast > 1.0 else None)
         labels, bands = _absorb_transition_bands(x, labels, neighbours, depth_cols)
         labels, k = _compact(labels)
     else:
