@@ -226,7 +226,8 @@ def far_field_error_mm(depth_mm: np.ndarray, x_mm: np.ndarray, inner_mm: float, 
     (mm; 1.4826 x the median absolute difference of neighbouring samples over sqrt(2)).
     NaN where fewer than ``min_samples`` samples are seen that far out.
 
-    Where a stiff material's dent has vanished the depth is the measurement's own error:
+    Where a stiff material's dent has faded (an elastic dent falls as 1/r: a few per cent
+    of its peak 15-40 mm out) the depth is the measurement's own error:
     the loaded burst's and the reference burst's correlated shapes (the scanner's floor,
     common to all scans of one burst, so no number of scans averages it out) and each
     sample's independent noise from both. The scatter of the loaded scans about their mean
