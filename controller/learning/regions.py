@@ -10,11 +10,13 @@ slope), and the surface graph (neighbour pairs of the neural-gas units).
 2. The number of regions comes from the data: Gaussian mixtures for k = 1..kmax,
    the one with the lowest BIC wins. Optionally, clusters whose centroids differ by
    less than ``merge_sigmas`` measurement noises in every feature are merged (the
-   mixture may split a material whose features are not Gaussian). Then clusters whose
-   median peak depths differ by less than a factor ``min_contrast`` at every survey
-   force are merged: BIC finds any structure, including the smooth drift of one
-   material's visible dent with the local geometry (rims, slopes, tilt) and with its
-   support (a plate clamped at its edges), which is not a different elasticity. A
+   mixture may split a material whose features are not Gaussian). Then clusters that the
+   contrast rule does not call two materials are merged (:func:`_merge_by_contrast`:
+   median peak depths a factor ``min_contrast`` apart, beyond the measured noise of a
+   peak, at a survey force where a dent is measured): BIC finds any structure,
+   including the smooth drift of one material's visible dent with the local geometry
+   (rims, slopes, tilt) and with its support (a plate clamped at its edges), which is
+   not a different elasticity. A
    homogeneous object gives one region.
 3. Spatial coherence on the surface graph: a few passes of iterated conditional
    modes (each point takes the region maximising its feature log-likelihood plus
