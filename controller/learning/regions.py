@@ -378,8 +378,7 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     labels, k = _compact(labels)
     med = np.maximum(_region_medians(cols, labels, k), 0.0) + floor
     far = np.full((labels.shape[0], 2), np.nan) if far_field_mm is None else np.asarray(far_field_mm, dtype=float)
-    overall = peak_noise_mm(far, floor)
-    noise = np.array([_cluster_noise_mm(far[labels == c], overall, floor) for c in range(k)])
+    noise = np.array([peak_noise_mm(far[labels == c], floor) for c in range(k)])
     count = _finite_counts(cols, labels, k)
     while k > 1:
         logs = np.log(med)
@@ -397,14 +396,9 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
         # A cluster of one or two points is one or two measurements: one scattered return can
         # fake a contrast at one force, so it must be clearly deeper (or shallower) at every
         # measured force.
-        # A dent grows with the force on every material: a small cluster whose peak reads
-        # shallower at a larger force holds a return that is not its dent (suite block 1005:
-        # one probe 0.021 mm at 3 N, 0.009 mm at 9 N), whatever its contrast.
-        small = count.min(axis=1) < MIN_POINTS_FOR_ONE_FORCE
-        valid = ~small | np.all(np.diff(np.where(np.isfinite(med), med, np.inf), axis=1) >= 0.0, axis=1)
-        few = small[:, None] | small[None, :]
+        few = np.minimum(count.min(axis=1)[:, None], count.min(axis=1)[None, :]) < MIN_POINTS_FOR_ONE_FORCE
         everywhere = np.all(deeper | ~measured, axis=2)
-        shows &= ~few | (everywhere & valid[:, None] & valid[None, :])
+        shows &= ~few | everywhere
         shows = (shows & ~np.any(deeper.transpose(1, 0, 2), axis=2)) | (shows.T & ~np.any(deeper, axis=2))
         # Merge order: the ratio at the measured forces (at all forces for a pair measured at none).
         absd = np.where(measured, np.abs(signed), -np.inf).max(axis=2)
@@ -426,7 +420,7 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
         count = np.delete(count, j, axis=0)
         count[i] = np.sum(np.isfinite(cols[members]), axis=0)
         noise = np.delete(noise, j)
-        noise[i] = _cluster_noise_mm(far[members], overall, floor)
+        noise[i] = peak_noise_mm(far[members], floor)
         merges += 1
     return labels, merges
 
@@ -455,14 +449,6 @@ def peak_noise_mm(far_field_mm: np.ndarray, floor_mm: float) -> float:
     common = 1.4826 * float(np.median(np.abs(level)))
     one = float(np.median(scatter)) if scatter.size else 0.0
     return max(float(np.hypot(common, one)), 1e-6)
-
-
-def _cluster_noise_mm(far_field_mm: np.ndarray, overall_mm: float, floor_mm: float) -> float:
-    """One cluster's peak scatter (:func:`peak_noise_mm`), at least ``overall_mm`` (the whole
-    survey's) for a cluster of fewer than ``MIN_POINTS_FOR_ONE_FORCE`` points: one or two
-    far fields are one or two draws of the error, which may happen to be near zero."""
-    own = peak_noise_mm(far_field_mm, floor_mm)
-    return own if far_field_mm.shape[0] >= MIN_POINTS_FOR_ONE_FORCE else max(own, overall_mm)
 
 
 def _finite_counts(columns: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
