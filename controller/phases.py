@@ -466,7 +466,7 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
         known = (dict(zip(before.arrays["labelled_targets"].tolist(), before.arrays["labels"].tolist()))
                  if before is not None else {})
         previous = np.array([known.get(i, -1) for i in ids], dtype=np.int64)
-        # The error of each point's peak, read where its dent has vanished (the far field of
+        # The error of each point's peak, read where its dent has faded (the far field of
         # its profile at the smallest survey force), so the contrast rule knows which dents
         # are measured (regions.peak_noise_mm).
         far = prof.far_field_error_mm(depth[:, 0, :], ctx.grid.x_mm, FEATURE_HALF_WINDOW_MM)

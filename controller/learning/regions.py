@@ -345,9 +345,9 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     materials when, at some survey force at which either dent is measured (deeper than
     ``MEASURED_DENT_NOISES`` x the scatter of one of its points' peak depth, measured from
     its points' far fields ``far_field_mm`` (N,2), see :func:`peak_noise_mm`; ``floor_mm``
-    without them), their median depths (+
-    ``floor_mm``) differ by at least a factor ``min_contrast`` and by more than 3 standard
-    errors of the difference of the medians (:func:`_difference_standard_error`), and at no
+    without them), their median depths (+ ``floor_mm``) differ by at least a factor
+    ``min_contrast`` and by more than 3 standard errors of the difference of the medians
+    (:func:`_difference_standard_error`), and at no
     measured force is the other one deeper by more than 3 standard errors; a cluster of
     fewer than ``MIN_POINTS_FOR_ONE_FORCE`` points must be deeper (or shallower) by 3
     standard errors at every measured force. ``depth_columns``: the peak-depth features.
