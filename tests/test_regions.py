@@ -404,3 +404,18 @@ def test_far_field_error_reads_the_offset_and_sample_noise_beyond_the_dent():
     assert 0.003 < scatter < 0.005
     blind = np.where(np.abs(X_MM) > 15.0, np.nan, depth)
     assert np.all(np.isnan(far_field_error_mm(blind, X_MM, 15.0)))
+
+
+def test_recorded_composite_box_foam_and_hard_rubber_is_two_regions_each_its_material():
+    """Recorded survey of suite composite box 1010 (a foam box, dents 2.2 and 3.2 mm, with a
+    hard-rubber part, 0.012 and 0.031 mm, at 3 and 9 N): the foam's far field reads its own
+    large error (~0.17 mm) and the hard rubber's its small one, so the hard rubber is not
+    taken for noise: two regions, each probe more than 5 mm from the seam in its material."""
+    data = np.load(Path(__file__).parent / "data" / "regions" / "composite_box_1010.npz")
+    names = [str(n) for n in data["names"]]
+    rm = cluster_regions(data["feats"], data["edges"], names, seed=1, noise_mm=float(data["noise_mm"]),
+                         far_field_mm=data["far"])
+    assert rm.n_regions == 2
+    away = data["seam_mm"] > 5.0
+    # Region 0 is the stiffer: the hard rubber (truth 1).
+    assert np.array_equal(rm.labels[away], 1 - data["truth"][away])
