@@ -46,10 +46,10 @@ _MAX_ICM_PASSES = 20
 # shallow is about the standard error of an averaged survey profile.
 DEFAULT_LOG_FLOOR_MM = 0.005
 _MAX_ISLAND_PASSES = 10
-# A dent (+ the noise floor) within this many noise floors is not measured: the peak of a
-# profile that flat is the largest of its noisy samples near the contact (about two noises
-# above the dent on the 10-20 samples there), so two such peaks say nothing of which
-# material is stiffer. See _merge_by_contrast.
+# A dent (+ the noise floor) within this many scatters of a peak (peak_noise_mm) is not
+# measured: the peak of a profile that flat is the largest of its noisy samples near the
+# contact (about two noises above the dent on the 10-20 samples there), so two such peaks
+# say nothing of which material is stiffer. See _merge_by_contrast.
 MEASURED_DENT_NOISES = 5.0
 # A cluster with fewer points is split off only by a contrast that holds at every measured
 # survey force (see _merge_by_contrast).
