@@ -88,7 +88,10 @@ def test_overnight_soak(tmp_path: Path) -> None:
     assert set(result["faults_by_kind"]) == set(soak_kinds())
     assert {"sweeping", "survey", "characterize", "densify", "learning"} <= set(result["faults_by_phase"])
     assert sum(result["faults_during_recovery"].values()) >= 5
-    assert result["kills"] >= 20 and set(result["kills_by_mode"]) == {"delay", "aimed", "learning"}
+    # Kills that landed on a running child (its own exit status says SIGKILL), spread over the
+    # phases: a moment of the child's progress, inside a journal transaction, in learning.
+    assert result["kills"] >= 20 and set(result["kills_by_mode"]) == {"progress", "aimed", "learning"}
+    assert {"survey", "characterize", "learning"} <= set(result["kills_by_phase"])
     assert result["rss_growth_mb_per_h"] is not None
     assert abs(result["rss_growth_mb_per_h"]) <= MAX_RSS_GROWTH_MB_PER_H
 
@@ -191,3 +194,25 @@ def test_two_scanner_faults_on_one_burst_are_judged_by_the_one_fault_they_showed
     soak.share_burst(fates)
     assert timeout["fate"] == "recovered" and timeout["same_burst_as"] == 143
     assert elsewhere["fate"] == "undetected"
+
+
+def _fake_child(tmp_path: Path, code: str, kill: "soak.ProgressKill | None", env: dict | None = None) -> soak.ChildRun:
+    import os
+    import sys
+
+    return soak.run_child([], {**os.environ, **(env or {})}, tmp_path / "no-session", kill, 0.05, 60.0, set(),
+                          tmp_path / "stderr.log", cli=[sys.executable, "-c", code])
+
+
+def test_a_kill_counts_only_when_it_lands_on_a_running_child(tmp_path: Path) -> None:
+    # The night of issue #15 landed 4 kills of 24: most were due after the child had already
+    # exited on a pause. A child that exits before its kill's moment is not killed and no kill
+    # is counted; one still running is killed, and its own status says SIGKILL.
+    gone = _fake_child(tmp_path, "import sys; sys.exit(3)", soak.ProgressKill(0, 3.0))
+    assert (gone.returncode, gone.killed) == (3, None)
+    running = _fake_child(tmp_path, "import time; time.sleep(30)", soak.ProgressKill(0, 0.3))
+    assert running.returncode == -9 and running.killed == "progress 0 steps +0.3 s"
+    # A crash point says which point killed the child (controller/testing.py).
+    aimed = _fake_child(tmp_path, "from elastoprobe.controller.testing import crash_point as c; c('a'); c('a')",
+                        None, {"ELASTOPROBE_JOURNAL_CRASH_AT": f"{soak.LEARNING_POINT},a@2"})
+    assert aimed.returncode == -9 and aimed.killed == "aimed a@2"
