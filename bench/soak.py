@@ -30,8 +30,11 @@ Ground truth, not the controller's word:
 Memory: the child's RSS (/proc/PID/status VmRSS) every ``sample_s`` with the journal's
 robot time; peak_rss_mb is the largest VmHWM sampled from the children (peak since exec).
 rss_growth_mb_per_h is the RSS slope against ROBOT hours over the probing stretches
-(samples where robot time advances; start-up and learning phases excluded): Theil-Sen
-per stretch, averaged weighted by each stretch's robot hours. baseline_rss_mb is the
+(samples where robot time advances; start-up, each child's first 0.1 robot hours of
+warm-up and learning phases excluded): per stretch of at least 9 samples, the median RSS of
+its last third less that of its first third over the hours between them, averaged weighted
+by each stretch's robot hours. rss_growth_across_children_mb_per_h is the slope of each child's
+settled RSS (its median past warm-up) from child to child over the night. baseline_rss_mb is the
 peak RSS of ``elastoprobe check`` on the same plan (the CLI with plan and cell loaded).
 
     python bench/soak.py [--quick | --half] [--seed N] [--keep DIR]
@@ -724,37 +727,94 @@ def step_accounting(session_dir: Path, ever_done: set[int]) -> dict[str, Any]:
             "steps_duplicated": len(duplicated), "steps_duplicated_ids": duplicated[:50]}
 
 
-def rss_growth_mb_per_h(children: list[ChildRun], min_span_h: float = 0.05) -> tuple[float | None, float]:
-    """RSS slope (MB per robot hour) over probing stretches; returns (slope, robot hours used)."""
-    from scipy.stats import theilslopes
+# A child's first robot hour's tenth is its warm-up: a fresh process fills its caches and
+# heap (the simulated contact models, SQLite's page cache, numpy's and glibc's pools) over
+# its first few dozen steps, then levels off. The night of issue #15 had ~50 children
+# between pauses, each living 0.05-0.4 robot hours: their stretches were mostly warm-up,
+# and a rise that stops was read as 11 MB/h. Long-lived children were flat after it (0.0 MB/h
+# over 0.33 h in one, 2.8 MB/h over all stretches past their first 0.1 h).
+WARMUP_ROBOT_H = 0.1
 
-    slopes, weights = [], []
+
+def _probing_stretches(child: ChildRun, warmup_h: float) -> list[list[tuple[float, float]]]:
+    """(robot h, RSS MB) runs where robot time advances within one committed phase, past the
+    child's warm-up (its first ``warmup_h`` robot hours of probing)."""
+    stretches: list[list[tuple[float, float]]] = []
+    stretch: list[tuple[float, float]] = []
+    prev_robot, prev_rss, prev_phases = None, 0.0, None
+    start_h = None
+    for sample in list(child.samples) + [(0.0, 0.0, -1.0, None)]:     # a sentinel closes the last stretch
+        _, rss, robot_s = sample[:3]
+        phases = sample[3] if len(sample) > 3 else None
+        # A stretch is probing only: a learning phase committed between two samples
+        # (its models, maps and torch stay resident) ends it, as start-up does.
+        same_phase = phases == prev_phases or phases is None or prev_phases is None
+        advancing = prev_robot is not None and robot_s > prev_robot and same_phase
+        if advancing and start_h is None:
+            start_h = prev_robot / 3600.0
+        warm = start_h is not None and prev_robot is not None and prev_robot / 3600.0 >= start_h + warmup_h
+        if advancing and warm:
+            if not stretch:
+                stretch.append((prev_robot / 3600.0, prev_rss))
+            stretch.append((robot_s / 3600.0, rss))
+        elif stretch:
+            stretches.append(stretch)
+            stretch = []
+        prev_robot, prev_rss, prev_phases = robot_s, rss, phases
+    return stretches
+
+
+def stretch_growth_mb_per_h(hours: np.ndarray, rss_mb: np.ndarray) -> float:
+    """One stretch's growth: the median RSS of its last third less that of its first third,
+    over the robot hours between the thirds' middles. A leak's steps (an allocator grows its
+    heap by chunks) move it however sparse they are; a sample or two of a passing spike (the
+    moment a pause begins, the end of a re-registration) does not."""
+    k = len(hours) // 3
+    dh = float(np.median(hours[-k:]) - np.median(hours[:k]))
+    return float(np.median(rss_mb[-k:]) - np.median(rss_mb[:k])) / dh if dh > 0 else 0.0
+
+
+def rss_growth_mb_per_h(children: list[ChildRun], min_span_h: float = 0.05, min_samples: int = 9,
+                        warmup_h: float = WARMUP_ROBOT_H) -> tuple[float | None, float]:
+    """RSS growth (MB per robot hour) within processes, over probing stretches past each
+    child's warm-up: :func:`stretch_growth_mb_per_h` per stretch, averaged weighted by its
+    robot hours. The night of issue #15 took a Theil-Sen slope per stretch from the
+    child's start: its ~50 short-lived children were mostly warm-up, and one stretch of
+    0.06 h (7 samples) that began at a re-registration's end read 290 MB/h. Returns
+    (growth, robot hours used)."""
+    growths, weights = [], []
     for c in children:
-        stretch: list[tuple[float, float]] = []
-        prev_robot, prev_rss, prev_phases = None, 0.0, None
-        for sample in list(c.samples) + [(0.0, 0.0, -1.0, None)]:     # a sentinel closes the last stretch
-            _, rss, robot_s = sample[:3]
-            phases = sample[3] if len(sample) > 3 else None
-            # A stretch is probing only: a learning phase committed between two samples
-            # (its models, maps and torch stay resident) ends it, as start-up does.
-            same_phase = phases == prev_phases or phases is None or prev_phases is None
-            advancing = prev_robot is not None and robot_s > prev_robot and same_phase
-            if advancing:
-                if not stretch:
-                    stretch.append((prev_robot / 3600.0, prev_rss))
-                stretch.append((robot_s / 3600.0, rss))
-            elif stretch:
-                span = stretch[-1][0] - stretch[0][0]
-                if span >= min_span_h and len(stretch) >= 5:
-                    h, m = np.array(stretch).T
-                    slopes.append(float(theilslopes(m, h)[0]))
-                    weights.append(span)
-                stretch = []
-            prev_robot, prev_rss, prev_phases = robot_s, rss, phases
-    if not slopes:
+        for stretch in _probing_stretches(c, warmup_h):
+            span = stretch[-1][0] - stretch[0][0]
+            if span >= min_span_h and len(stretch) >= min_samples:
+                h, m = np.array(stretch).T
+                growths.append(stretch_growth_mb_per_h(h, m))
+                weights.append(span)
+    if not growths:
         return None, 0.0
     w = np.array(weights)
-    return float(np.dot(slopes, w) / w.sum()), float(w.sum())
+    return float(np.dot(growths, w) / w.sum()), float(w.sum())
+
+
+def rss_growth_across_children_mb_per_h(children: list[ChildRun],
+                                        warmup_h: float = WARMUP_ROBOT_H) -> tuple[float | None, int]:
+    """RSS slope (MB per robot hour) of the settled level from child to child: each child's
+    median RSS over its probing past warm-up, against its robot time (Theil-Sen). What a
+    session carries from its journal (steps loaded, the object's dents) grows with the
+    night however often it is resumed; this sees it where the per-process slope cannot.
+    Returns (slope, children used)."""
+    from scipy.stats import theilslopes
+
+    level_h, level_mb = [], []
+    for c in children:
+        points = [p for st in _probing_stretches(c, warmup_h) for p in st]
+        if len(points) >= 5:
+            h, m = np.array(points).T
+            level_h.append(float(np.median(h)))
+            level_mb.append(float(np.median(m)))
+    if len(level_h) < 3 or max(level_h) - min(level_h) < 0.5:
+        return None, len(level_h)
+    return float(theilslopes(level_mb, level_h)[0]), len(level_h)
 
 
 # ----------------------------------------------------------------------------- the soak
@@ -792,14 +852,17 @@ def run_soak(cfg: SoakConfig, work_dir: Path) -> dict[str, Any]:
         robot_now_s = (_journal_poll(out) or (0.0,))[0]
         # The rotation's kill is armed once the night has gone far enough since the last one;
         # the learning kill is armed beside it in every child until its quota has landed.
-        if state["kills"] < cfg.kills and robot_now_s >= next_kill_robot_s:
+        learning_kills = state["kills_by_mode"].get("learning", 0)
+        if state["kills"] - learning_kills < cfg.kills - cfg.learning_kills and robot_now_s >= next_kill_robot_s:
             mode = cfg.kill_modes[mode_index % len(cfg.kill_modes)]
             if mode == "aimed":
                 point = rng.choice(sorted(AIMED_NTH))
                 crash_specs.append(f"{point}@{rng.randint(*AIMED_NTH[point])}")
             else:
                 kill = ProgressKill(rng.randint(*cfg.kill_after_steps), rng.uniform(*cfg.kill_jitter_s))
-        if state["kills"] < cfg.kills and state["kills_by_mode"].get("learning", 0) < cfg.learning_kills:
+        # Not in the child right after a learning kill: it would kill the same learning
+        # phase again; the next one gets its turn.
+        if learning_kills < cfg.learning_kills and not (children and children[-1].killed == f"aimed {LEARNING_POINT}"):
             crash_specs.append(LEARNING_POINT)
         if crash_specs:
             child_env["ELASTOPROBE_JOURNAL_CRASH_AT"] = ",".join(crash_specs)
@@ -857,6 +920,7 @@ def summarize(work_dir: Path) -> dict[str, Any]:
     fates = judged["fates"]
     count = lambda what: sum(f["fate"] == what for f in fates)   # noqa: E731
     growth, growth_h = rss_growth_mb_per_h(children)
+    across, across_n = rss_growth_across_children_mb_per_h(children)
     return {
         "robot_hours": round(facts.get("robot_hours", 0.0), 3),
         "faults_injected": len(fates),
@@ -899,6 +963,8 @@ def summarize(work_dir: Path) -> dict[str, Any]:
         "steps_lost_ids": facts.get("steps_lost_ids"), "steps_duplicated_ids": facts.get("steps_duplicated_ids"),
         "journal_problems": state["journal_problems"],
         "rss_growth_robot_hours_used": round(growth_h, 3),
+        "rss_growth_across_children_mb_per_h": None if across is None else round(across, 2),
+        "rss_growth_across_children_used": across_n,
         "min_robot_hours": state["min_robot_hours"],
         "seed": state["seed"], "wall_s": round(state["wall_s"], 1),
         "session_dir": str(out),
