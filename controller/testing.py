@@ -63,8 +63,11 @@ def crash_point(name: str) -> None:
         nth = int(nth_text) if nth_text else 1
         if _crash_counts[name] != nth:
             continue
-        sys.stderr.write(f"crash point {name}@{nth}{'+' + delay_text if delay_text else ''}\n")
-        sys.stderr.flush()
+        try:
+            sys.stderr.write(f"crash point {name}@{nth}{'+' + delay_text if delay_text else ''}\n")
+            sys.stderr.flush()
+        except (OSError, ValueError, AttributeError):   # no stderr to say it on: kill all the same
+            pass
         if delay_text:
             timer = threading.Timer(float(delay_text), os.kill, (os.getpid(), signal.SIGKILL))
             timer.daemon = True
