@@ -37,7 +37,7 @@ by each stretch's robot hours. rss_growth_across_children_mb_per_h is the slope 
 settled RSS (its median past warm-up) from child to child over the night. baseline_rss_mb is the
 peak RSS of ``elastoprobe check`` on the same plan (the CLI with plan and cell loaded).
 
-    python bench/soak.py [--quick | --half] [--seed N] [--keep DIR]
+    python bench/soak.py [--quick | --part 2|4] [--seed N] [--keep DIR]
 
 Prints ONE JSON object.
 """
@@ -156,14 +156,23 @@ FULL = SoakConfig(rates_per_100_steps=FULL_RATES, step_faults=(
     ("emergency_stop", LEARN_KEY, None), ("protective_stop", LEARN_KEY - 1, None),
     ("connection_loss", LEARN_KEY - 2, None), ("force_spike", LEARN_KEY - 3, None),
     ("disk_error", 801, None), ("disk_error", 1601, None)))
-# Half a night, for a machine that cannot give the night its ~1.5 h of wall time: the same
-# faults at the same rates, the same kinds of kill at the same spacing in robot time, on the
-# night's plan at half its size in every phase (survey, characterize, densify rounds), so it
-# still goes through all of them and through every learning phase.
-HALF = replace(FULL, plan_overrides={
-    "name": "soak-half", "sampling.units": 140, "phases.characterize.points_per_region": 4,
-    "phases.densify.points_per_round": 10}, kills=12, learning_kills=3, kill_every_robot_s=900.0,
-    step_faults=tuple(f for f in FULL.step_faults if f[1] != 1601), min_robot_hours=4.0)
+# A part of the night, for a machine that cannot give the night its ~1.5 h of wall time:
+# the same faults at the same rates and the same kinds of kill, on the night's plan cut
+# down in every phase (survey, characterize, densify rounds, the models' training), so it
+# still goes through all of them and through the learning phases. ``--part 2``: half.
+def part_of_night(divisor: int) -> SoakConfig:
+    """The night's soak with its plan, kills and bounds divided by ``divisor`` (2 or 4)."""
+    quarter = divisor >= 4
+    return replace(FULL, plan_overrides={
+        "name": f"soak-1-{divisor}", "sampling.units": 280 // divisor,
+        "phases.characterize.points_per_region": 8 // divisor,
+        "phases.densify.rounds": 2 if quarter else 4, "phases.densify.points_per_round": 10,
+        **({"model.ensemble": 1, "model.max_epochs": 300} if quarter else {})},
+        kills=24 // divisor, learning_kills=max(4 // divisor, 2), kill_every_robot_s=1800.0 / divisor,
+        step_faults=tuple(f for f in FULL.step_faults if f[1] not in (801, 1601)) + (("disk_error", 101, None),),
+        min_robot_hours=8.0 / divisor)
+
+
 QUICK = SoakConfig(
     plan_overrides={
         "name": "soak-quick", "cloud.sweep_spacing_mm": 5.0, "cloud.max_points": 20000,
@@ -976,8 +985,9 @@ def summarize(work_dir: Path) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="the short soak (about a minute) instead of the night")
-    ap.add_argument("--half", action="store_true", help="half a night: the night's faults and kills on its plan "
-                                                          "at half size (every phase)")
+    ap.add_argument("--part", type=int, choices=(2, 4), default=None,
+                    help="half (2) or a quarter (4) of the night: its faults and kills on its plan cut down in "
+                         "every phase")
     ap.add_argument("--seed", type=int, default=None)
     ap.add_argument("--keep", type=Path, default=None, help="work in this directory and keep it")
     ap.add_argument("--judge", type=Path, default=None, help="only re-judge a kept work directory")
@@ -985,7 +995,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.judge is not None:
         print(json.dumps(summarize(a.judge.resolve()), indent=1))
         return 0
-    cfg = QUICK if a.quick else HALF if a.half else FULL
+    cfg = QUICK if a.quick else part_of_night(a.part) if a.part else FULL
     if a.seed is not None:
         cfg = SoakConfig(**{**asdict(cfg), "seed": a.seed})
     work = a.keep if a.keep is not None else Path(tempfile.mkdtemp(prefix="soak-"))
