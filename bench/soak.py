@@ -125,8 +125,9 @@ class SoakConfig:
     kills: int = 24                                 # landed on a live child, every kind together
     learning_kills: int = 4                         # of them, in a learning phase
     # Robot seconds between two kills of the rotation, so they spread over every phase of the
-    # night instead of all landing in its first hour.
-    kill_every_robot_s: float = 1000.0
+    # night instead of all landing in its first hour: its 20 over ~7.2 of its ~8.5 hours
+    # (a kill armed in a child that pauses first waits for the next child).
+    kill_every_robot_s: float = 1300.0
     # A "progress" kill: after the child has committed this many steps of its own (0: during
     # its start-up, resume and re-registration), then a random wall delay within the next
     # step (uniform over kill_jitter_s): a moment read from the child's own progress, so it
@@ -168,7 +169,7 @@ def part_of_night(divisor: int) -> SoakConfig:
         "phases.characterize.points_per_region": 8 // divisor,
         "phases.densify.rounds": 2 if quarter else 4, "phases.densify.points_per_round": 10,
         **({"model.ensemble": 1, "model.max_epochs": 300} if quarter else {})},
-        kills=24 // divisor, learning_kills=max(4 // divisor, 2), kill_every_robot_s=1800.0 / divisor,
+        kills=24 // divisor, learning_kills=max(4 // divisor, 2), kill_every_robot_s=FULL.kill_every_robot_s,
         step_faults=tuple(f for f in FULL.step_faults if f[1] not in (801, 1601)) + (("disk_error", 101, None),),
         min_robot_hours=8.0 / divisor)
 
