@@ -829,30 +829,46 @@ def rss_growth_across_children_mb_per_h(children: list[ChildRun],
 
 
 # ----------------------------------------------------------------------------- the soak
-def run_soak(cfg: SoakConfig, work_dir: Path) -> dict[str, Any]:
-    """Run one soak in ``work_dir`` (created); returns the JSON-able result."""
+def _children_from_state(state: dict[str, Any]) -> list[ChildRun]:
+    return [ChildRun(**{**c, "samples": [tuple(x) for x in c["samples"]]}) for c in state["children"]]
+
+
+def run_soak(cfg: SoakConfig, work_dir: Path, carry_on: bool = False) -> dict[str, Any]:
+    """Run one soak in ``work_dir`` (created); returns the JSON-able result.
+
+    ``carry_on``: go on with the soak kept in ``work_dir`` (its state.json) after its driver
+    stopped (a child exited 1, the driver was stopped): the same session, cell and plan; the
+    kills of the rest are drawn from a generator seeded by the seed and the children so far."""
     t_start = time.monotonic()
     work_dir = work_dir.resolve()
     work_dir.mkdir(parents=True, exist_ok=True)
-    rng = random.Random(cfg.seed)
-    rates = fault_rates(cfg)
-    cell = write_cell(work_dir, f"soak-cell-{os.getpid()}", rates, cfg.estop_clear_after_s, cfg.step_faults,
-                      cfg.follow_ups_per_100_faults)
-    plan = write_plan(work_dir, cell, cfg.plan_overrides)
     out = work_dir / "session"
     fault_log = work_dir / "sim_faults.jsonl"
     env = dict(os.environ)
     env.pop("ELASTOPROBE_JOURNAL_CRASH_AT", None)
     env.update({"ELASTOPROBE_LOCK_DIR": str(work_dir / "locks"), FAULT_LOG_ENV: str(fault_log)})
-    base_rss = baseline_rss_mb(plan, env)
-
-    children: list[ChildRun] = []
-    ever_done: set[int] = set()
-    state: dict[str, Any] = {"seed": cfg.seed, "rates": rates, "follow_ups": cfg.follow_ups_per_100_faults,
-                             "min_robot_hours": cfg.min_robot_hours,
-                             "baseline_rss_mb": base_rss, "kills": 0, "kills_by_mode": {}, "kills_by_phase": {},
-                             "kills_missed": 0, "operator_clears": 0, "journal_problems": [], "wall_s": 0.0}
-    mode_index = 0
+    if carry_on:
+        state = json.loads((work_dir / "state.json").read_text())
+        children = _children_from_state(state)
+        ever_done = set(state.pop("ever_done"))
+        del state["children"]
+        rng = random.Random(cfg.seed * 1000 + len(children))
+        plan = work_dir / "plan.yaml"
+        t_start -= state["wall_s"]
+    else:
+        rng = random.Random(cfg.seed)
+        rates = fault_rates(cfg)
+        cell = write_cell(work_dir, f"soak-cell-{os.getpid()}", rates, cfg.estop_clear_after_s, cfg.step_faults,
+                          cfg.follow_ups_per_100_faults)
+        plan = write_plan(work_dir, cell, cfg.plan_overrides)
+        base_rss = baseline_rss_mb(plan, env)
+        children = []
+        ever_done = set()
+        state = {"seed": cfg.seed, "rates": rates, "follow_ups": cfg.follow_ups_per_100_faults,
+                 "min_robot_hours": cfg.min_robot_hours,
+                 "baseline_rss_mb": base_rss, "kills": 0, "kills_by_mode": {}, "kills_by_phase": {},
+                 "kills_missed": 0, "operator_clears": 0, "journal_problems": [], "wall_s": 0.0}
+    mode_index = state["kills"] - state["kills_by_mode"].get("learning", 0)
     next_kill_robot_s = 0.0
     while len(children) < cfg.max_children:
         resume = (out / "journal.sqlite").exists()
@@ -922,7 +938,7 @@ def run_soak(cfg: SoakConfig, work_dir: Path) -> dict[str, Any]:
 def summarize(work_dir: Path) -> dict[str, Any]:
     """The soak's figures from a work directory (its session, fault record and state.json)."""
     state = json.loads((work_dir / "state.json").read_text())
-    children = [ChildRun(**{**c, "samples": [tuple(x) for x in c["samples"]]}) for c in state["children"]]
+    children = _children_from_state(state)
     ever_done = set(state["ever_done"])
     out = work_dir / "session"
     status, reason = _session_status(out)
@@ -992,6 +1008,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=None)
     ap.add_argument("--keep", type=Path, default=None, help="work in this directory and keep it")
     ap.add_argument("--judge", type=Path, default=None, help="only re-judge a kept work directory")
+    ap.add_argument("--carry-on", type=Path, default=None,
+                    help="go on with the soak kept in this directory (same options as it was started with)")
     a = ap.parse_args(argv)
     if a.judge is not None:
         print(json.dumps(summarize(a.judge.resolve()), indent=1))
@@ -999,6 +1017,9 @@ def main(argv: list[str] | None = None) -> int:
     cfg = QUICK if a.quick else part_of_night(a.part) if a.part else FULL
     if a.seed is not None:
         cfg = SoakConfig(**{**asdict(cfg), "seed": a.seed})
+    if a.carry_on is not None:
+        print(json.dumps(run_soak(cfg, a.carry_on, carry_on=True), indent=1))
+        return 0
     work = a.keep if a.keep is not None else Path(tempfile.mkdtemp(prefix="soak-"))
     try:
         result = run_soak(cfg, work)
