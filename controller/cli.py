@@ -195,8 +195,11 @@ def cmd_resume(args: argparse.Namespace) -> int:
     if not plan_path or not cell_path:
         raise InputError("the journal does not name its plan and cell files", path=str(args.dir))
     inputs = load_session_inputs(plan_path, cell_path)
-    return _run_session(inputs, Path(args.dir), int(session["seed"]), bool(prov.get("dry_run", False)),
-                        resume=True, quiet=args.quiet)
+    dry_run = bool(prov.get("dry_run", False))
+    if inputs.cell.kind != "simulated" and not dry_run:      # the night goes on with the same guard as its start
+        from .cellfactory import check_real_cell_ready
+        check_real_cell_ready(inputs, allow_stale_calibration=args.allow_stale_calibration)
+    return _run_session(inputs, Path(args.dir), int(session["seed"]), dry_run, resume=True, quiet=args.quiet)
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -436,6 +439,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     rs = sub.add_parser("resume", help="continue a paused or killed session where it stopped")
     rs.add_argument("dir", type=_existing_dir)
+    rs.add_argument("--allow-stale-calibration", action="store_true",
+                    help="resume on a real cell even if its calibration is missing or too old")
     rs.add_argument("--quiet", action="store_true")
 
     st = sub.add_parser("status", help="progress, state, faults and ETA of a session")
