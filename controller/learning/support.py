@@ -155,7 +155,7 @@ def tail_exponent(steps: RegionSteps, tip_radius_mm: float, min_samples: int = 8
         d = steps.depth_mm[k]
         if not np.isfinite(d).any():
             continue
-        centre = float(steps.tip_x_mm[k]) if np.isfinite(steps.tip_x_mm[k]) else 0.0
+        centre = _centre(steps.tip_x_mm[k])
         peak = float(np.nanmax(d))
         for side in (-1.0, 1.0):
             r = side * (x - centre)
