@@ -18,6 +18,8 @@ import pytest
 import trimesh
 
 from elastoprobe.controller.cli import main
+from elastoprobe.controller.core.atomic import atomic_write_bytes
+from elastoprobe.controller.core.errors import DiskError
 
 REPO = Path(__file__).resolve().parent.parent
 OBJECTS = REPO / "config" / "objects"
@@ -332,3 +334,25 @@ def _plan_for(tmp: Path, obj: Path, name: str) -> Path:
     _plan(tmp, tmp / "obj.yaml")                  # plan.yaml back to the plain object
     (tmp / name).write_text(text)
     return tmp / name
+
+
+def test_an_output_that_is_a_device_a_pipe_or_a_folder_is_refused_and_left_as_it_was(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Run as root, ``diagram --out /dev/full`` renamed a regular file over the device; the
+    same path with ``/dev/null`` would have broken the machine. Outputs are written only
+    over regular files."""
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    link = tmp_path / "to-null"
+    link.symlink_to("/dev/null")
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    for target in (fifo, link, folder):
+        with pytest.raises(SystemExit) as exc:
+            main(["diagram", "--out", str(target)])
+        assert exc.value.code == 2
+        assert "is not a regular file" in capsys.readouterr().err
+        with pytest.raises(DiskError, match="not a regular file"):
+            atomic_write_bytes(target, b"x")
+    assert fifo.is_fifo() and link.is_symlink() and Path("/dev/null").is_char_device() and folder.is_dir()
+    assert not [p for p in tmp_path.iterdir() if p.name not in {"fifo", "to-null", "folder"}]   # no temporaries left
