@@ -31,6 +31,14 @@ def _existing_dir(value: str) -> Path:
     return p
 
 
+def _output_file(value: str) -> Path:
+    """A file to write: absent, or a regular file to replace (never a device, a pipe or a folder)."""
+    p = Path(value)
+    if p.exists() and not p.is_file():
+        raise argparse.ArgumentTypeError(f"{value}: exists and is not a regular file")
+    return p
+
+
 def _seed(value: str) -> int:
     try:
         v = int(value)
@@ -472,7 +480,7 @@ def build_parser() -> argparse.ArgumentParser:
     ex = sub.add_parser("export", help="export the whole session")
     ex.add_argument("dir", type=_existing_dir)
     ex.add_argument("--format", choices=["hdf5"], required=True)
-    ex.add_argument("--out", help="output file (default DIR/export.h5)")
+    ex.add_argument("--out", type=_output_file, help="output file (default DIR/export.h5)")
 
     tr = sub.add_parser("train", help="refit the region models from the journal's measurements")
     tr.add_argument("dir", type=_existing_dir)
@@ -488,7 +496,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "on its real drivers (ft, tcp and scanner need the reference sphere on the table "
                                    "where the object sits)")
     ca.add_argument("--seed", type=_seed, default=0)
-    ca.add_argument("--out", help="calibration file to write (default: the cell's calibration_file)")
+    ca.add_argument("--out", type=_output_file, help="calibration file to write (default: the cell's calibration_file)")
     ca.add_argument("--json", action="store_true", help="one-line JSON")
 
     sm = sub.add_parser("sim", help="the simulated cell served over the real protocols")
@@ -513,7 +521,7 @@ def build_parser() -> argparse.ArgumentParser:
     so.add_argument("--json", action="store_true", help="print one JSON object")
 
     d = sub.add_parser("diagram", help="write the state machine's Mermaid diagram")
-    d.add_argument("--out", default=str(Path(__file__).resolve().parent.parent / "docs" / "state_machine.md"))
+    d.add_argument("--out", type=_output_file, default=str(Path(__file__).resolve().parent.parent / "docs" / "state_machine.md"))
     return p
 
 
