@@ -669,6 +669,7 @@ def fit_region(steps: RegionSteps, config: TrainConfig, tip_radius_mm: float, me
                            float(min(0.0, values.min()) - 3.0 * noise), float(values.max() + 3.0 * noise),
                            forces, angles, codes)
     info = {"support": completed.counts, "mirror": completed.mirror.to_dict(), "noise_mm": round(noise, 6),
+            "tail_exponent": round(completed.tail_exponent, 4),
             "depth_bounds_mm": [round(limits.depth_min_mm, 6), round(limits.depth_max_mm, 6)],
             "force_range_n": list(limits.force_range_n), "angle_range_deg": list(limits.angle_range_deg)}
     model.meta.update({"support": info})
