@@ -467,9 +467,14 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
         known = (dict(zip(before.arrays["labelled_targets"].tolist(), before.arrays["labels"].tolist()))
                  if before is not None else {})
         previous = np.array([known.get(i, -1) for i in ids], dtype=np.int64)
+        # The error of each point's peak, read where its dent has faded (the far field of
+        # its profile at the smallest survey force), so the contrast rule knows which dents
+        # are measured (regions.peak_noise_mm).
+        far = prof.far_field_error_mm(depth[:, 0, :], ctx.grid.x_mm, FEATURE_HALF_WINDOW_MM)
         rmap = rg.cluster_regions(feats, edges, names, seed=s.seed,
                                   min_contrast=s.inputs.plan.phases.survey.min_contrast,
-                                  noise_mm=measured_noise_mm(ctx), previous_labels=previous)
+                                  noise_mm=measured_noise_mm(ctx), previous_labels=previous,
+                                  far_field_mm=far)
         labels = {i: int(l) for i, l in zip(ids, rmap.labels)}
         chosen, angles_by_target = _characterize_choice(ctx, labels, rmap.n_regions, pts, ids)
         ch = s.inputs.plan.phases.characterize
