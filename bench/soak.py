@@ -30,11 +30,14 @@ Ground truth, not the controller's word:
 Memory: the child's RSS (/proc/PID/status VmRSS) every ``sample_s`` with the journal's
 robot time; peak_rss_mb is the largest VmHWM sampled from the children (peak since exec).
 rss_growth_mb_per_h is the RSS slope against ROBOT hours over the probing stretches
-(samples where robot time advances; start-up and learning phases excluded): Theil-Sen
-per stretch, averaged weighted by each stretch's robot hours. baseline_rss_mb is the
+(samples where robot time advances; start-up, each child's first 0.1 robot hours of
+warm-up and learning phases excluded): per stretch of at least 9 samples, the median RSS of
+its last third less that of its first third over the hours between them, averaged weighted
+by each stretch's robot hours. rss_growth_across_children_mb_per_h is the slope of each child's
+settled RSS (its median past warm-up) from child to child over the night. baseline_rss_mb is the
 peak RSS of ``elastoprobe check`` on the same plan (the CLI with plan and cell loaded).
 
-    python bench/soak.py [--quick] [--seed N] [--keep DIR]
+    python bench/soak.py [--quick | --part 2|4] [--seed N] [--keep DIR]
 
 Prints ONE JSON object.
 """
@@ -53,7 +56,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -84,12 +87,20 @@ SEEN_AS: dict[str, set[str]] = {
 # seconds (a connection loss is seen at the next command; a scanner fault at the end of
 # the burst): the journaled fault follows the injection within this much robot time.
 MATCH_WINDOW_S = 20.0
-# Aimed kills: a SIGKILL inside these journal transactions (controller/journal.py).
-AIMED_POINTS = ("commit_step:half_arrays", "commit_step:before_commit", "begin_step:before_commit",
-                "commit_phase:half_steps", "record_fault:before_commit")
+# Aimed kills: a SIGKILL inside these journal transactions (controller/journal.py), at the
+# n-th pass in the child, n drawn from these ranges: a child lives a few dozen steps between
+# pauses (a fault every ten steps or so, a few of them pause), so a pass far beyond that is
+# never reached; a fault is journaled once or twice per child, a phase committed seldom
+# (then the kill lands as the survey ends and characterization is planned).
+AIMED_NTH: dict[str, tuple[int, int]] = {
+    "commit_step:half_arrays": (1, 12), "commit_step:before_commit": (1, 12),
+    "begin_step:before_commit": (1, 12), "record_fault:before_commit": (1, 2),
+    "commit_phase:half_steps": (1, 1)}
 # A kill in a learning phase: after the first region's model is fitted, before it is saved
-# (controller/phases.py crash points).
+# (controller/phases.py crash points). Armed beside every other kill until its quota has
+# landed: no child knows in advance whether it will live to learn.
 LEARNING_POINT = "models:before_save@1"
+_CRASH_LINE = re.compile(r"^crash point (\S+)", re.MULTILINE)
 # The simulator keys of the sweep and of learning phases (controller/phases.py, session.py).
 SWEEP_KEY = 2**32 - 2
 LEARN_KEY = 2**32 - 1002
@@ -111,11 +122,21 @@ class SoakConfig:
     follow_ups_per_100_faults: dict[str, float] = field(default_factory=lambda: dict(FOLLOW_UPS))
     estop_clear_after_s: float = 60.0               # robot time: the operator walks over
     operator_delay_s: float = 1.0                   # wall: before the operator resumes
-    kills: int = 24
-    kill_delay_s: tuple[float, float] = (20.0, 300.0)
-    # The kind of each kill in turn: a random moment, inside a journal transaction, in learning.
-    kill_modes: tuple[str, ...] = ("delay", "aimed", "delay", "aimed", "learning", "aimed")
-    aimed_nth: tuple[int, int] = (5, 300)
+    kills: int = 24                                 # landed on a live child, every kind together
+    learning_kills: int = 4                         # of them, in a learning phase
+    # Robot seconds between two kills of the rotation, so they spread over every phase of the
+    # night instead of all landing in its first hour: its 20 over ~7.2 of its ~8.5 hours
+    # (a kill armed in a child that pauses first waits for the next child).
+    kill_every_robot_s: float = 1300.0
+    # A "progress" kill: after the child has committed this many steps of its own (0: during
+    # its start-up, resume and re-registration), then a random wall delay within the next
+    # step (uniform over kill_jitter_s): a moment read from the child's own progress, so it
+    # lands on a running child instead of after its exit.
+    kill_after_steps: tuple[int, int] = (0, 6)
+    kill_jitter_s: tuple[float, float] = (0.0, 8.0)
+    # The kind of each rotation kill in turn: a moment of the child's progress, or inside a
+    # journal transaction (AIMED_NTH); learning kills are armed beside them (LEARNING_POINT).
+    kill_modes: tuple[str, ...] = ("progress", "aimed")
     max_children: int = 300
     child_timeout_s: float = 3600.0
     sample_s: float = 2.0
@@ -136,6 +157,23 @@ FULL = SoakConfig(rates_per_100_steps=FULL_RATES, step_faults=(
     ("emergency_stop", LEARN_KEY, None), ("protective_stop", LEARN_KEY - 1, None),
     ("connection_loss", LEARN_KEY - 2, None), ("force_spike", LEARN_KEY - 3, None),
     ("disk_error", 801, None), ("disk_error", 1601, None)))
+# A part of the night, for a machine that cannot give the night its ~1.5 h of wall time:
+# the same faults at the same rates and the same kinds of kill, on the night's plan cut
+# down in every phase (survey, characterize, densify rounds, the models' training), so it
+# still goes through all of them and through the learning phases. ``--part 2``: half.
+def part_of_night(divisor: int) -> SoakConfig:
+    """The night's soak with its plan, kills and bounds divided by ``divisor`` (2 or 4)."""
+    quarter = divisor >= 4
+    return replace(FULL, plan_overrides={
+        "name": f"soak-1-{divisor}", "sampling.units": 280 // divisor,
+        "phases.characterize.points_per_region": 8 // divisor,
+        "phases.densify.rounds": 2 if quarter else 4, "phases.densify.points_per_round": 10,
+        **({"model.ensemble": 1, "model.max_epochs": 300} if quarter else {})},
+        kills=24 // divisor, learning_kills=max(4 // divisor, 2), kill_every_robot_s=FULL.kill_every_robot_s,
+        step_faults=tuple(f for f in FULL.step_faults if f[1] not in (801, 1601)) + (("disk_error", 101, None),),
+        min_robot_hours=8.0 / divisor)
+
+
 QUICK = SoakConfig(
     plan_overrides={
         "name": "soak-quick", "cloud.sweep_spacing_mm": 5.0, "cloud.max_points": 20000,
@@ -154,8 +192,8 @@ QUICK = SoakConfig(
     rates_per_100_steps={"emergency_stop": 1.5, "disk_error": 3.0, "force_spike": 3.0,
                          "protective_stop": 3.0, "scanner_timeout": 3.0, "connection_loss": 3.0},
     follow_ups_per_100_faults={"protective_stop": 20.0},
-    operator_delay_s=0.2, kills=3, kill_delay_s=(6.0, 10.0), kill_modes=("aimed", "delay", "learning"),
-    aimed_nth=(3, 12), max_children=20, child_timeout_s=300.0, sample_s=0.5, min_robot_hours=0.0,
+    operator_delay_s=0.2, kills=3, learning_kills=1, kill_every_robot_s=0.0, kill_after_steps=(1, 4),
+    kill_jitter_s=(0.0, 2.0), kill_modes=("aimed", "progress"), max_children=20, child_timeout_s=300.0, sample_s=0.5, min_robot_hours=0.0,
     # A disk error at a middle force level of a contact that no other fault touches with
     # this seed and a protective stop in the sweep (listed after the rate faults, so their
     # draws are unchanged): the short run is sure to meet them, whatever the rate draws
@@ -230,12 +268,25 @@ class ChildRun:
     args: list[str]
     pid: int
     returncode: int
-    killed: str | None                 # "delay 12.3 s" / "aimed commit_step:half_arrays@7" / None
+    killed: str | None                 # "progress 3 steps +1.2 s" / "aimed commit_step:half_arrays@7" / None
     wall_s: float
     max_rss_mb: float
     samples: list[tuple[float, ...]]   # (wall s since start, RSS MB, robot s, committed phases)
     pause_reason: str | None = None
     stderr_tail: str = ""
+    kill_phase: str | None = None      # where a kill landed: sweeping, survey, ..., learning
+
+
+@dataclass(frozen=True)
+class ProgressKill:
+    """SIGKILL the child ``jitter_s`` wall seconds after it has committed ``after_steps`` steps
+    of its own (0: from its start)."""
+
+    after_steps: int
+    jitter_s: float
+
+    def describe(self) -> str:
+        return f"progress {self.after_steps} steps +{self.jitter_s:.1f} s"
 
 
 def _vm_mb(pid: int, field_name: str = "VmRSS") -> float | None:
@@ -282,26 +333,35 @@ def _save_state(work_dir: Path, state: dict[str, Any], children: list[ChildRun],
     (work_dir / "state.json").write_text(json.dumps(data))
 
 
-def run_child(args: list[str], env: dict[str, str], session_dir: Path, kill_after_s: float | None,
-              sample_s: float, timeout_s: float, ever_done: set[int], log_path: Path) -> ChildRun:
-    """Run the CLI, sampling RSS and the journal; SIGKILL after ``kill_after_s`` if given."""
+def run_child(args: list[str], env: dict[str, str], session_dir: Path, kill: ProgressKill | None,
+              sample_s: float, timeout_s: float, ever_done: set[int], log_path: Path,
+              cli: list[str] = CLI) -> ChildRun:
+    """Run the CLI, sampling RSS and the journal; SIGKILL it at ``kill``'s moment of its progress.
+
+    The kill is sent only to a child not yet reaped (waited for with WNOHANG just before): one
+    that exited first (a pause) is not killed, and its exit code says so. A kill counts as
+    landed only when the child's own status says SIGKILL."""
+    before = _journal_poll(session_dir)
+    done_before = set(before[1]) if before is not None else set()
+    log_offset = log_path.stat().st_size if log_path.exists() else 0
     with open(log_path, "ab") as err:
-        proc = subprocess.Popen(CLI + args, env=env, stdout=subprocess.DEVNULL, stderr=err)
+        proc = subprocess.Popen(cli + args, env=env, stdout=subprocess.DEVNULL, stderr=err)
     t0 = time.monotonic()
     samples: list[tuple[float, ...]] = []
     killed = None
     robot_s = 0.0
     phases = 0
     peak_mb = 0.0
+    kill_at_s = None if kill is None or kill.after_steps > 0 else kill.jitter_s
     while True:
         pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
         if pid != 0:
             break
         t = time.monotonic() - t0
-        if kill_after_s is not None and t >= kill_after_s:
-            os.kill(proc.pid, signal.SIGKILL)
-            killed = f"delay {kill_after_s:.1f} s"
-            kill_after_s = None
+        if kill_at_s is not None and t >= kill_at_s:
+            os.kill(proc.pid, signal.SIGKILL)      # alive a moment ago: wait4 has not reaped it
+            assert kill is not None
+            killed, kill_at_s, kill = kill.describe(), None, None
             continue
         if t > timeout_s:
             os.kill(proc.pid, signal.SIGKILL)
@@ -311,15 +371,28 @@ def run_child(args: list[str], env: dict[str, str], session_dir: Path, kill_afte
         if polled is not None:
             robot_s, phases = polled[0], polled[2]
             ever_done |= polled[1]
+            if kill is not None and kill_at_s is None and len(polled[1] - done_before) >= kill.after_steps:
+                kill_at_s = t + kill.jitter_s
         rss = _vm_rss_mb(proc.pid)
         if rss is not None:
             samples.append((t, rss, robot_s, phases))
             peak_mb = max(peak_mb, _vm_mb(proc.pid, "VmHWM") or rss)
-        time.sleep(sample_s)
+        wait_s = sample_s if kill_at_s is None else min(sample_s, max(kill_at_s - t, 0.0))
+        time.sleep(wait_s)
     proc.returncode = os.waitstatus_to_exitcode(status)
-    tail = log_path.read_bytes()[-3000:].decode("utf-8", "replace") if log_path.exists() else ""
+    own_err = b""
+    if log_path.exists():
+        with open(log_path, "rb") as f:
+            f.seek(log_offset)
+            own_err = f.read()
+    own_text = own_err.decode("utf-8", "replace")
+    if proc.returncode == -signal.SIGKILL and killed is None:
+        points = _CRASH_LINE.findall(own_text)
+        killed = f"aimed {points[-1]}" if points else None
+    elif proc.returncode != -signal.SIGKILL and killed is not None and killed != "timeout":
+        killed = None                                # it had exited on its own: the kill hit nothing
     return ChildRun(args, proc.pid, proc.returncode, killed, time.monotonic() - t0, peak_mb, samples,
-                    stderr_tail=tail)
+                    stderr_tail=own_text[-3000:])
 
 
 def _session_status(session_dir: Path) -> tuple[str | None, str | None]:
@@ -333,6 +406,34 @@ def _session_status(session_dir: Path) -> tuple[str | None, str | None]:
         return s["status"], s.get("status_reason")
     finally:
         j.close()
+
+
+def kill_phase(session_dir: Path, pid: int) -> str | None:
+    """Where the run of process ``pid`` was when it died: learning, the sweep, planning, the
+    phase of the step it was last at (survey, characterize, densify), or start-up."""
+    from elastoprobe.controller.journal import Journal
+
+    if not (session_dir / "journal.sqlite").exists():
+        return None
+    j = Journal.open_readonly(session_dir, check="none")
+    try:
+        run = j._q("SELECT run_id FROM runs WHERE pid = ? ORDER BY run_id DESC LIMIT 1", (pid,))
+        if not run:
+            return "start-up"
+        last = j._q("SELECT to_state FROM transitions WHERE run_id = ? ORDER BY id DESC LIMIT 1",
+                    (run[0][0],))
+        step = j._q("SELECT phase FROM steps WHERE run_id = ? AND started_utc IS NOT NULL "
+                    "ORDER BY started_utc DESC LIMIT 1", (run[0][0],))
+    finally:
+        j.close()
+    if not last:
+        return "start-up"
+    state = last[0][0]
+    if state in ("learning", "sweeping", "planning"):
+        return state
+    if state in ("preflight", "idle"):
+        return "start-up"
+    return PHASE_NAMES.get(step[0][0], step[0][0]) if step else "start-up"
 
 
 def journal_soundness(session_dir: Path) -> list[str]:
@@ -636,84 +737,164 @@ def step_accounting(session_dir: Path, ever_done: set[int]) -> dict[str, Any]:
             "steps_duplicated": len(duplicated), "steps_duplicated_ids": duplicated[:50]}
 
 
-def rss_growth_mb_per_h(children: list[ChildRun], min_span_h: float = 0.05) -> tuple[float | None, float]:
-    """RSS slope (MB per robot hour) over probing stretches; returns (slope, robot hours used)."""
-    from scipy.stats import theilslopes
+# A child's first 0.1 robot hours are its warm-up: a fresh process fills its caches and
+# heap (the simulated contact models, SQLite's page cache, numpy's and glibc's pools) over
+# its first few dozen steps, then levels off. The night of issue #15 had ~50 children
+# between pauses, each living 0.05-0.4 robot hours: their stretches were mostly warm-up,
+# and a rise that stops was read as 11.3 MB/h. Re-judged with the warm-up counted it reads
+# 9.6 MB/h, past 0.05 h 5.1, past 0.1 h 3.9, past 0.15 h 1.7 (its longest stretch, 0.33 h,
+# was flat): a rise that levels off.
+WARMUP_ROBOT_H = 0.1
 
-    slopes, weights = [], []
+
+def _probing_stretches(child: ChildRun, warmup_h: float) -> list[list[tuple[float, float]]]:
+    """(robot h, RSS MB) runs where robot time advances within one committed phase, past the
+    child's warm-up (its first ``warmup_h`` robot hours of probing)."""
+    stretches: list[list[tuple[float, float]]] = []
+    stretch: list[tuple[float, float]] = []
+    prev_robot, prev_rss, prev_phases = None, 0.0, None
+    start_h = None
+    for sample in list(child.samples) + [(0.0, 0.0, -1.0, None)]:     # a sentinel closes the last stretch
+        _, rss, robot_s = sample[:3]
+        phases = sample[3] if len(sample) > 3 else None
+        # A stretch is probing only: a learning phase committed between two samples
+        # (its models, maps and torch stay resident) ends it, as start-up does.
+        same_phase = phases == prev_phases or phases is None or prev_phases is None
+        advancing = prev_robot is not None and robot_s > prev_robot and same_phase
+        if advancing and start_h is None:
+            start_h = prev_robot / 3600.0
+        warm = start_h is not None and prev_robot is not None and prev_robot / 3600.0 >= start_h + warmup_h
+        if advancing and warm:
+            if not stretch:
+                stretch.append((prev_robot / 3600.0, prev_rss))
+            stretch.append((robot_s / 3600.0, rss))
+        elif stretch:
+            stretches.append(stretch)
+            stretch = []
+        prev_robot, prev_rss, prev_phases = robot_s, rss, phases
+    return stretches
+
+
+def stretch_growth_mb_per_h(hours: np.ndarray, rss_mb: np.ndarray) -> float:
+    """One stretch's growth: the median RSS of its last third less that of its first third,
+    over the robot hours between the thirds' middles. A leak's steps (an allocator grows its
+    heap by chunks) move it however sparse they are; a sample or two of a passing spike (the
+    moment a pause begins, the end of a re-registration) does not."""
+    k = len(hours) // 3
+    dh = float(np.median(hours[-k:]) - np.median(hours[:k]))
+    return float(np.median(rss_mb[-k:]) - np.median(rss_mb[:k])) / dh if dh > 0 else 0.0
+
+
+def rss_growth_mb_per_h(children: list[ChildRun], min_span_h: float = 0.05, min_samples: int = 9,
+                        warmup_h: float = WARMUP_ROBOT_H) -> tuple[float | None, float]:
+    """RSS growth (MB per robot hour) within processes, over probing stretches past each
+    child's warm-up: :func:`stretch_growth_mb_per_h` per stretch, averaged weighted by its
+    robot hours. The night of issue #15 took a Theil-Sen slope per stretch from the
+    child's start: its ~50 short-lived children were mostly warm-up, and one stretch of
+    0.06 h (7 samples) that began at a re-registration's end read 290 MB/h. Returns
+    (growth, robot hours used)."""
+    growths, weights = [], []
     for c in children:
-        stretch: list[tuple[float, float]] = []
-        prev_robot, prev_rss, prev_phases = None, 0.0, None
-        for sample in list(c.samples) + [(0.0, 0.0, -1.0, None)]:     # a sentinel closes the last stretch
-            _, rss, robot_s = sample[:3]
-            phases = sample[3] if len(sample) > 3 else None
-            # A stretch is probing only: a learning phase committed between two samples
-            # (its models, maps and torch stay resident) ends it, as start-up does.
-            same_phase = phases == prev_phases or phases is None or prev_phases is None
-            advancing = prev_robot is not None and robot_s > prev_robot and same_phase
-            if advancing:
-                if not stretch:
-                    stretch.append((prev_robot / 3600.0, prev_rss))
-                stretch.append((robot_s / 3600.0, rss))
-            elif stretch:
-                span = stretch[-1][0] - stretch[0][0]
-                if span >= min_span_h and len(stretch) >= 5:
-                    h, m = np.array(stretch).T
-                    slopes.append(float(theilslopes(m, h)[0]))
-                    weights.append(span)
-                stretch = []
-            prev_robot, prev_rss, prev_phases = robot_s, rss, phases
-    if not slopes:
+        for stretch in _probing_stretches(c, warmup_h):
+            span = stretch[-1][0] - stretch[0][0]
+            if span >= min_span_h and len(stretch) >= min_samples:
+                h, m = np.array(stretch).T
+                growths.append(stretch_growth_mb_per_h(h, m))
+                weights.append(span)
+    if not growths:
         return None, 0.0
     w = np.array(weights)
-    return float(np.dot(slopes, w) / w.sum()), float(w.sum())
+    return float(np.dot(growths, w) / w.sum()), float(w.sum())
+
+
+def rss_growth_across_children_mb_per_h(children: list[ChildRun],
+                                        warmup_h: float = WARMUP_ROBOT_H) -> tuple[float | None, int]:
+    """RSS slope (MB per robot hour) of the settled level from child to child: each child's
+    median RSS over its probing past warm-up, against its robot time (Theil-Sen). What a
+    session carries from its journal (steps loaded, the object's dents) grows with the
+    night however often it is resumed; this sees it where the per-process slope cannot.
+    Returns (slope, children used)."""
+    from scipy.stats import theilslopes
+
+    level_h, level_mb = [], []
+    for c in children:
+        points = [p for st in _probing_stretches(c, warmup_h) for p in st]
+        if len(points) >= 5:
+            h, m = np.array(points).T
+            level_h.append(float(np.median(h)))
+            level_mb.append(float(np.median(m)))
+    if len(level_h) < 3 or max(level_h) - min(level_h) < 0.5:
+        return None, len(level_h)
+    return float(theilslopes(level_mb, level_h)[0]), len(level_h)
 
 
 # ----------------------------------------------------------------------------- the soak
-def run_soak(cfg: SoakConfig, work_dir: Path) -> dict[str, Any]:
-    """Run one soak in ``work_dir`` (created); returns the JSON-able result."""
+def _children_from_state(state: dict[str, Any]) -> list[ChildRun]:
+    return [ChildRun(**{**c, "samples": [tuple(x) for x in c["samples"]]}) for c in state["children"]]
+
+
+def run_soak(cfg: SoakConfig, work_dir: Path, carry_on: bool = False) -> dict[str, Any]:
+    """Run one soak in ``work_dir`` (created); returns the JSON-able result.
+
+    ``carry_on``: go on with the soak kept in ``work_dir`` (its state.json) after its driver
+    stopped (a child exited 1, the driver was stopped): the same session, cell and plan; the
+    kills of the rest are drawn from a generator seeded by the seed and the children so far."""
     t_start = time.monotonic()
     work_dir = work_dir.resolve()
     work_dir.mkdir(parents=True, exist_ok=True)
-    rng = random.Random(cfg.seed)
-    rates = fault_rates(cfg)
-    cell = write_cell(work_dir, f"soak-cell-{os.getpid()}", rates, cfg.estop_clear_after_s, cfg.step_faults,
-                      cfg.follow_ups_per_100_faults)
-    plan = write_plan(work_dir, cell, cfg.plan_overrides)
     out = work_dir / "session"
     fault_log = work_dir / "sim_faults.jsonl"
     env = dict(os.environ)
     env.pop("ELASTOPROBE_JOURNAL_CRASH_AT", None)
     env.update({"ELASTOPROBE_LOCK_DIR": str(work_dir / "locks"), FAULT_LOG_ENV: str(fault_log)})
-    base_rss = baseline_rss_mb(plan, env)
-
-    children: list[ChildRun] = []
-    ever_done: set[int] = set()
-    state: dict[str, Any] = {"seed": cfg.seed, "rates": rates, "follow_ups": cfg.follow_ups_per_100_faults,
-                             "min_robot_hours": cfg.min_robot_hours,
-                             "baseline_rss_mb": base_rss, "kills": 0, "kills_by_mode": {}, "operator_clears": 0,
-                             "journal_problems": [], "wall_s": 0.0}
-    kills_left = cfg.kills
-    mode_index, learning_misses = 0, 0
+    if carry_on:
+        state = json.loads((work_dir / "state.json").read_text())
+        children = _children_from_state(state)
+        ever_done = set(state.pop("ever_done"))
+        del state["children"]
+        rng = random.Random(cfg.seed * 1000 + len(children))
+        plan = work_dir / "plan.yaml"
+        t_start -= state["wall_s"]
+    else:
+        rng = random.Random(cfg.seed)
+        rates = fault_rates(cfg)
+        cell = write_cell(work_dir, f"soak-cell-{os.getpid()}", rates, cfg.estop_clear_after_s, cfg.step_faults,
+                          cfg.follow_ups_per_100_faults)
+        plan = write_plan(work_dir, cell, cfg.plan_overrides)
+        base_rss = baseline_rss_mb(plan, env)
+        children = []
+        ever_done = set()
+        state = {"seed": cfg.seed, "rates": rates, "follow_ups": cfg.follow_ups_per_100_faults,
+                 "min_robot_hours": cfg.min_robot_hours,
+                 "baseline_rss_mb": base_rss, "kills": 0, "kills_by_mode": {}, "kills_by_phase": {},
+                 "kills_missed": 0, "operator_clears": 0, "journal_problems": [], "wall_s": 0.0}
+    mode_index = state["kills"] - state["kills_by_mode"].get("learning", 0)
+    next_kill_robot_s = 0.0
     while len(children) < cfg.max_children:
         resume = (out / "journal.sqlite").exists()
         args = (["resume", str(out), "--quiet"] if resume else
                 ["run", str(plan), "--out", str(out), "--seed", str(cfg.seed), "--quiet"])
-        child_env, kill_after, aimed, mode = dict(env), None, None, None
-        if kills_left > 0:
+        child_env, kill, mode = dict(env), None, None
+        crash_specs = []
+        robot_now_s = (_journal_poll(out) or (0.0,))[0]
+        # The rotation's kill is armed once the night has gone far enough since the last one;
+        # the learning kill is armed beside it in every child until its quota has landed.
+        learning_kills = state["kills_by_mode"].get("learning", 0)
+        if state["kills"] - learning_kills < cfg.kills - cfg.learning_kills and robot_now_s >= next_kill_robot_s:
             mode = cfg.kill_modes[mode_index % len(cfg.kill_modes)]
             if mode == "aimed":
-                aimed = f"{rng.choice(AIMED_POINTS)}@{rng.randint(*cfg.aimed_nth)}"
-            elif mode == "learning":
-                aimed = LEARNING_POINT
+                point = rng.choice(sorted(AIMED_NTH))
+                crash_specs.append(f"{point}@{rng.randint(*AIMED_NTH[point])}")
             else:
-                kill_after = rng.uniform(*cfg.kill_delay_s)
-            if aimed is not None:
-                child_env["ELASTOPROBE_JOURNAL_CRASH_AT"] = aimed
-        child = run_child(args, child_env, out, kill_after, cfg.sample_s, cfg.child_timeout_s, ever_done,
+                kill = ProgressKill(rng.randint(*cfg.kill_after_steps), rng.uniform(*cfg.kill_jitter_s))
+        # Not in the child right after a learning kill: it would kill the same learning
+        # phase again; the next one gets its turn.
+        if learning_kills < cfg.learning_kills and not (children and children[-1].killed == f"aimed {LEARNING_POINT}"):
+            crash_specs.append(LEARNING_POINT)
+        if crash_specs:
+            child_env["ELASTOPROBE_JOURNAL_CRASH_AT"] = ",".join(crash_specs)
+        child = run_child(args, child_env, out, kill, cfg.sample_s, cfg.child_timeout_s, ever_done,
                           work_dir / "children.stderr")
-        if child.returncode == -9 and child.killed is None and aimed is not None:
-            child.killed = f"aimed {aimed}"
         session_status, reason = _session_status(out)
         child.pause_reason = reason if child.returncode == 3 else None
         # The operator answers the session's state, not how its process ended: a kill that
@@ -724,20 +905,21 @@ def run_soak(cfg: SoakConfig, work_dir: Path) -> dict[str, Any]:
         state["journal_problems"] += [f"after child {len(children)}: {p}" for p in journal_soundness(out)]
         stop = False
         if child.returncode == -9 and child.killed not in (None, "timeout"):
+            landed = ("learning" if child.killed == f"aimed {LEARNING_POINT}" else
+                      "aimed" if child.killed.startswith("aimed") else "progress")
+            child.kill_phase = kill_phase(out, child.pid)
             state["kills"] += 1
-            state["kills_by_mode"][mode] = state["kills_by_mode"].get(mode, 0) + 1
-            kills_left -= 1
-            mode_index += 1
+            state["kills_by_mode"][landed] = state["kills_by_mode"].get(landed, 0) + 1
+            state["kills_by_phase"][child.kill_phase or "?"] = state["kills_by_phase"].get(child.kill_phase or "?", 0) + 1
+            if landed != "learning":
+                mode_index += 1
+                next_kill_robot_s = (_journal_poll(out) or (0.0,))[0] + cfg.kill_every_robot_s
             if estop_paused:
                 time.sleep(cfg.operator_delay_s)
                 state["operator_clears"] += 1
         elif child.returncode == 3:
-            if mode == "learning":
-                # It paused before it reached a learning phase: try again, but after three
-                # misses (no learning left in the night) go on to the next kind of kill.
-                learning_misses += 1
-                if learning_misses >= 3:
-                    mode_index, learning_misses = mode_index + 1, 0
+            if mode is not None:
+                state["kills_missed"] += 1       # it paused before its kill's moment came
             # The operator plays their part whatever kill was armed (a pause on an e-stop
             # while a learning kill waited was left uncounted, and the short run's judge
             # then missed its operator release).
@@ -756,7 +938,7 @@ def run_soak(cfg: SoakConfig, work_dir: Path) -> dict[str, Any]:
 def summarize(work_dir: Path) -> dict[str, Any]:
     """The soak's figures from a work directory (its session, fault record and state.json)."""
     state = json.loads((work_dir / "state.json").read_text())
-    children = [ChildRun(**{**c, "samples": [tuple(x) for x in c["samples"]]}) for c in state["children"]]
+    children = _children_from_state(state)
     ever_done = set(state["ever_done"])
     out = work_dir / "session"
     status, reason = _session_status(out)
@@ -765,6 +947,7 @@ def summarize(work_dir: Path) -> dict[str, Any]:
     fates = judged["fates"]
     count = lambda what: sum(f["fate"] == what for f in fates)   # noqa: E731
     growth, growth_h = rss_growth_mb_per_h(children)
+    across, across_n = rss_growth_across_children_mb_per_h(children)
     return {
         "robot_hours": round(facts.get("robot_hours", 0.0), 3),
         "faults_injected": len(fates),
@@ -790,6 +973,8 @@ def summarize(work_dir: Path) -> dict[str, Any]:
                             for p in sorted({f["phase"] for f in fates})},
         "faults_during_recovery": _histogram(f["fate"] for f in fates if f.get("follows")),
         "kills_by_mode": state.get("kills_by_mode", {}),
+        "kills_by_phase": state.get("kills_by_phase", {}),
+        "kills_missed": state.get("kills_missed", 0),
         "fault_injections_raw": judged.get("raw_injections", 0),
         "faults_journaled_not_injected": judged.get("journaled_other", {}),
         "fault_rates_per_100_steps": state["rates"],
@@ -798,13 +983,15 @@ def summarize(work_dir: Path) -> dict[str, Any]:
         "children": len(children), "resumes": max(len(children) - 1, 0),
         "operator_clears": state["operator_clears"],
         "exit_codes": [c.returncode for c in children],
-        "kill_moments": [c.killed for c in children if c.killed],
+        "kill_moments": [f"{c.killed} ({c.kill_phase})" for c in children if c.killed],
         "pauses": [c.pause_reason for c in children if c.returncode == 3],
         "steps_planned": facts.get("steps_planned"), "steps_done": facts.get("steps_done"),
         "steps_skipped": facts.get("steps_skipped"),
         "steps_lost_ids": facts.get("steps_lost_ids"), "steps_duplicated_ids": facts.get("steps_duplicated_ids"),
         "journal_problems": state["journal_problems"],
         "rss_growth_robot_hours_used": round(growth_h, 3),
+        "rss_growth_across_children_mb_per_h": None if across is None else round(across, 2),
+        "rss_growth_across_children_used": across_n,
         "min_robot_hours": state["min_robot_hours"],
         "seed": state["seed"], "wall_s": round(state["wall_s"], 1),
         "session_dir": str(out),
@@ -815,16 +1002,24 @@ def summarize(work_dir: Path) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="the short soak (about a minute) instead of the night")
+    ap.add_argument("--part", type=int, choices=(2, 4), default=None,
+                    help="half (2) or a quarter (4) of the night: its faults and kills on its plan cut down in "
+                         "every phase")
     ap.add_argument("--seed", type=int, default=None)
     ap.add_argument("--keep", type=Path, default=None, help="work in this directory and keep it")
     ap.add_argument("--judge", type=Path, default=None, help="only re-judge a kept work directory")
+    ap.add_argument("--carry-on", type=Path, default=None,
+                    help="go on with the soak kept in this directory (same options as it was started with)")
     a = ap.parse_args(argv)
     if a.judge is not None:
         print(json.dumps(summarize(a.judge.resolve()), indent=1))
         return 0
-    cfg = QUICK if a.quick else FULL
+    cfg = QUICK if a.quick else part_of_night(a.part) if a.part else FULL
     if a.seed is not None:
         cfg = SoakConfig(**{**asdict(cfg), "seed": a.seed})
+    if a.carry_on is not None:
+        print(json.dumps(run_soak(cfg, a.carry_on, carry_on=True), indent=1))
+        return 0
     work = a.keep if a.keep is not None else Path(tempfile.mkdtemp(prefix="soak-"))
     try:
         result = run_soak(cfg, work)

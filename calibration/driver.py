@@ -22,12 +22,18 @@ from elastoprobe.controller.core.validation import PathValidator
 from elastoprobe.controller.toolhead import MotionSettings, Toolhead
 
 
-# Touch-offs press a rigid sphere: under a 5 mm tip acetal is some 500-900 N/mm between 0.4
-# and 2 N, so the force rises at stiffness x speed. At 2 mm/s, on the real drivers (loopback,
-# a loaded machine: a stop lands a few ms after the contact threshold) a touch reached the
-# cell's 1500 N/s force-rate limit and tripped; at 1 mm/s the rate at the overshoot is
-# about 40 % of that (the overshoot depth halves too).
+# Touch-offs press a rigid sphere: under a 5 mm tip acetal (Hertz) goes from the 0.4 N contact
+# threshold to the cell's 45 N limit in 0.027 mm of travel, so the stop must land within that
+# travel's time. At 2 mm/s, on the real drivers (loopback, a loaded machine) a touch reached the
+# cell's 1500 N/s force-rate limit; at 1 mm/s (27 ms to land the stop) a loaded 2-core CI
+# machine still reached 46 N. So a touch crosses the free air at TOUCH_SPEED_MM_S and only the
+# last TOUCH_SLOW_ZONE_MM before the expected surface, and anything beyond it, at
+# SLOW_TOUCH_SPEED_MM_S: 91 ms to land the stop, with the force rate at the limit about half the
+# cell's rate limit. The slow zone is the placement error the touch-offs are there to find
+# (a few mm before calibration); a surface nearer than that is met at the free-air speed.
 TOUCH_SPEED_MM_S = 1.0
+SLOW_TOUCH_SPEED_MM_S = 0.3
+TOUCH_SLOW_ZONE_MM = 3.0
 
 
 def build_validator(cell_spec, cell: Cell, obstacle_mesh_base=None,  # noqa: ANN001 — config.CellSpec, trimesh
@@ -43,7 +49,8 @@ def build_validator(cell_spec, cell: Cell, obstacle_mesh_base=None,  # noqa: ANN
 
 
 def motion_settings(cell_spec, speed_mm_s: float | None = None) -> MotionSettings:  # noqa: ANN001
-    """The cell's speeds, the contact search slowed to at most ``TOUCH_SPEED_MM_S``."""
+    """The cell's speeds, the contact search slowed to at most ``TOUCH_SPEED_MM_S`` (the
+    slow leg of a touch goes slower still: :func:`touch`)."""
     lim = cell_spec.limits
     return MotionSettings(contact_force_n=lim.contact_force_n,
                           contact_speed_mm_s=min(lim.contact_speed_mm_s, TOUCH_SPEED_MM_S),
@@ -77,12 +84,20 @@ def make_rig(cell_spec, cell: Cell, mesh, seed: int) -> Rig:  # noqa: ANN001 —
     return Rig(head, seed)
 
 
-def touch(head: Toolhead, direction: np.ndarray, max_distance_mm: float) -> Pose | None:
+def touch(head: Toolhead, direction: np.ndarray, max_distance_mm: float,
+          expected_mm: float | None = None) -> Pose | None:
     """Tare, then move along ``direction`` (base) until contact: the TCP pose at rest after
-    the stop, or None when nothing was touched within ``max_distance_mm``."""
+    the stop, or None when nothing was touched within ``max_distance_mm``. ``expected_mm``:
+    where the surface should be along the way (nominal geometry); the travel up to
+    TOUCH_SLOW_ZONE_MM before it is crossed faster (None: the whole way slowly)."""
     e = np.asarray(direction, dtype=float) / np.linalg.norm(direction)
     head.tare()
-    if not head.seek_contact(e, max_distance_mm):
+    fast_mm = 0.0 if expected_mm is None else min(max(expected_mm - TOUCH_SLOW_ZONE_MM, 0.0), max_distance_mm)
+    if fast_mm > 0.0 and head.seek_contact(e, fast_mm):
+        head.hold(0.05)
+        return head.pose()
+    rest_mm = max_distance_mm - fast_mm
+    if rest_mm <= 0.0 or not head.seek_contact(e, rest_mm, SLOW_TOUCH_SPEED_MM_S):
         return None
     head.hold(0.05)
     return head.pose()

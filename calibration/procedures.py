@@ -132,7 +132,7 @@ def collect_touches(rig: Rig, centre_mm: np.ndarray, rho_mm: float, n: int = 18,
             continue
         rig.begin_step()
         try:
-            hit = touch(rig.head, e, standoff_mm + 8.0)
+            hit = touch(rig.head, e, standoff_mm + 8.0, expected_mm=standoff_mm)
         except MotionRefused as exc:      # the touching path itself is not clear: next touch
             out.skipped.append(f"touch from {np.round(e, 2).tolist()}: {exc}")
             continue

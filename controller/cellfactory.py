@@ -12,13 +12,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import trimesh
 
 from .core.calfile import check_calibration
 from .core.config import CellSpec, SessionInputs
 from .core.devices import Cell
 from .core.errors import InputError
 from .core.meshcheck import bounds_problem, mesh_findings, read_mesh
+from .core.meshes import sphere_on_table
 
 
 @dataclass
@@ -196,14 +196,6 @@ def check_real_cell_ready(inputs: SessionInputs, allow_stale_calibration: bool =
                          path=str(inputs.cell_path))
 
 
-def reference_sphere_mesh(radius_mm: float) -> Any:
-    """Calibration's reference sphere (object frame, mm): radius ``radius_mm``, resting on the
-    table (z = 0) at the object's placement."""
-    mesh = trimesh.creation.icosphere(subdivisions=4, radius=float(radius_mm))
-    mesh.apply_translation([0.0, 0.0, float(radius_mm)])
-    return mesh
-
-
 def build_calibration_cell(cell_spec: Any, cell_doc: Any, cell_path: str | Path, seed: int,
                            reference_sphere_radius_mm: float | None) -> BuiltCell:
     """The cell a calibration routine runs on, built by kind as a session's is, and what is
@@ -226,7 +218,7 @@ def build_calibration_cell(cell_spec: Any, cell_doc: Any, cell_path: str | Path,
         sim = SimCell(params)
         return BuiltCell(cell=sim, object_mesh=sim.world.obj.mesh)
     if reference_sphere_radius_mm is not None:
-        mesh = reference_sphere_mesh(reference_sphere_radius_mm)
+        mesh = sphere_on_table(reference_sphere_radius_mm)
     else:
         mesh = read_object_model(obj_path, cell_doc, ("object", "file")).mesh
     from .drivers.real_cell import build_real_cell

@@ -31,6 +31,14 @@ def _existing_dir(value: str) -> Path:
     return p
 
 
+def _output_file(value: str) -> Path:
+    """A file to write: absent, or a regular file to replace (never a device, a pipe or a folder)."""
+    p = Path(value)
+    if p.exists() and not p.is_file():
+        raise argparse.ArgumentTypeError(f"{value}: exists and is not a regular file")
+    return p
+
+
 def _seed(value: str) -> int:
     try:
         v = int(value)
@@ -195,8 +203,11 @@ def cmd_resume(args: argparse.Namespace) -> int:
     if not plan_path or not cell_path:
         raise InputError("the journal does not name its plan and cell files", path=str(args.dir))
     inputs = load_session_inputs(plan_path, cell_path)
-    return _run_session(inputs, Path(args.dir), int(session["seed"]), bool(prov.get("dry_run", False)),
-                        resume=True, quiet=args.quiet)
+    dry_run = bool(prov.get("dry_run", False))
+    if inputs.cell.kind != "simulated" and not dry_run:      # the night goes on with the same guard as its start
+        from .cellfactory import check_real_cell_ready
+        check_real_cell_ready(inputs, allow_stale_calibration=args.allow_stale_calibration)
+    return _run_session(inputs, Path(args.dir), int(session["seed"]), dry_run, resume=True, quiet=args.quiet)
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -436,6 +447,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     rs = sub.add_parser("resume", help="continue a paused or killed session where it stopped")
     rs.add_argument("dir", type=_existing_dir)
+    rs.add_argument("--allow-stale-calibration", action="store_true",
+                    help="resume on a real cell even if its calibration is missing or too old")
     rs.add_argument("--quiet", action="store_true")
 
     st = sub.add_parser("status", help="progress, state, faults and ETA of a session")
@@ -467,7 +480,7 @@ def build_parser() -> argparse.ArgumentParser:
     ex = sub.add_parser("export", help="export the whole session")
     ex.add_argument("dir", type=_existing_dir)
     ex.add_argument("--format", choices=["hdf5"], required=True)
-    ex.add_argument("--out", help="output file (default DIR/export.h5)")
+    ex.add_argument("--out", type=_output_file, help="output file (default DIR/export.h5)")
 
     tr = sub.add_parser("train", help="refit the region models from the journal's measurements")
     tr.add_argument("dir", type=_existing_dir)
@@ -483,7 +496,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "on its real drivers (ft, tcp and scanner need the reference sphere on the table "
                                    "where the object sits)")
     ca.add_argument("--seed", type=_seed, default=0)
-    ca.add_argument("--out", help="calibration file to write (default: the cell's calibration_file)")
+    ca.add_argument("--out", type=_output_file, help="calibration file to write (default: the cell's calibration_file)")
     ca.add_argument("--json", action="store_true", help="one-line JSON")
 
     sm = sub.add_parser("sim", help="the simulated cell served over the real protocols")
@@ -508,7 +521,7 @@ def build_parser() -> argparse.ArgumentParser:
     so.add_argument("--json", action="store_true", help="print one JSON object")
 
     d = sub.add_parser("diagram", help="write the state machine's Mermaid diagram")
-    d.add_argument("--out", default=str(Path(__file__).resolve().parent.parent / "docs" / "state_machine.md"))
+    d.add_argument("--out", type=_output_file, default=str(Path(__file__).resolve().parent.parent / "docs" / "state_machine.md"))
     return p
 
 

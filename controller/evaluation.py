@@ -198,10 +198,19 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         return ev.profile_face_mask(truth, point, normal, t, x)
 
     full = {"held_out_angles": FullSpan(), "held_out_forces": FullSpan(), "held_out_points": FullSpan()}
+    # The same per region: an object's figures can hide one region's misses behind another's
+    # fits (and each region has its own noise and its own depth to be judged against).
+    full_by_region: dict[int, dict[str, FullSpan]] = {
+        r: {k: FullSpan() for k in full} for r in models}
+
+    def tally(kind: str, label: int, served: ServedProfile, truth_row: np.ndarray, face: np.ndarray) -> None:
+        full[kind].add(served, truth_row, face)
+        full_by_region[label][kind].add(served, truth_row, face)
     deepest_true: dict[int, float] = {}
 
     # Noise floor and held-out angles/forces at the characterized points.
     noise_pred, noise_true, noise_roi = [], [], []
+    noise_label: list[int] = []
     ha_pred, ha_true, ha_roi, hf_pred, hf_true, hf_roi = [], [], [], [], [], []
     points_done: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for rec, res in measured:
@@ -210,6 +219,7 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         noise_pred.append(res.profile_depth_mm)
         noise_true.append(truth.true_profile_mm(p, n, np.asarray(rec.plan.t), f, rec.plan.angle_deg, x))
         label_of_step = target_labels.get(rec.plan.target_index, -1)
+        noise_label.append(label_of_step)
         deepest_true[label_of_step] = max(deepest_true.get(label_of_step, 0.0), float(np.nanmax(noise_true[-1])))
         noise_roi.append(roi(target_labels.get(rec.plan.target_index), rec.plan.angle_deg, noise_true[-1]))
         points_done[rec.plan.target_index] = (p, n)
@@ -227,7 +237,7 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
                 ha_pred.append(served.depth_mm)
                 ha_true.append(true_profile(p, n, f, a))
                 ha_roi.append(roi(label, a, ha_true[-1]))
-                full["held_out_angles"].add(served, ha_true[-1], face)
+                tally("held_out_angles", label, served, ha_true[-1], face)
         for f in _held_out_forces(list(ch.forces_n)):
             for a in ch.angles_deg:
                 served = serve_or_refuse(m, f, a, full["held_out_forces"])
@@ -236,7 +246,7 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
                 hf_pred.append(served.depth_mm)
                 hf_true.append(true_profile(p, n, f, a))
                 hf_roi.append(roi(label, a, hf_true[-1]))
-                full["held_out_forces"].add(served, hf_true[-1], face)
+                tally("held_out_forces", label, served, hf_true[-1], face)
 
     # Held-out points: unprobed cloud points, interior of their predicted region, facing up.
     rng = np.random.default_rng(seed)
@@ -265,7 +275,7 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
                     hp_pred.append(served.depth_mm)
                     hp_true.append(true_profile(pts[k], normals[k], f, a))
                     hp_roi.append(roi(label, a, hp_true[-1]))
-                    full["held_out_points"].add(served, hp_true[-1], face)
+                    tally("held_out_points", label, served, hp_true[-1], face)
 
     def rmse(pred_list: list[np.ndarray], true_list: list[np.ndarray], roi_list: list[np.ndarray]) -> float | None:
         if not pred_list:
@@ -273,6 +283,13 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         return ev.profile_rmse_mm(np.array(pred_list), np.array(true_list), np.array(roi_list))
 
     peak = float(np.nanmax(np.array(noise_true))) if noise_true else None
+
+    def region_figures(r: int) -> dict[str, Any]:
+        mine = [k for k, lab in enumerate(noise_label) if lab == r]
+        floor = rmse([noise_pred[k] for k in mine], [noise_true[k] for k in mine], [noise_roi[k] for k in mine])
+        return {"noise_floor_mm": _num(floor), "peak_depth_mm": _num(deepest_true.get(r)),
+                "profile_rmse_full_mm": {k: _num(v.rmse()) for k, v in full_by_region[r].items()},
+                "profile_max_abs_error_mm": {k: _num(v.max_abs()) for k, v in full_by_region[r].items()}}
     mirror_admitted = {str(r): m.meta.get("support", {}).get("mirror", {}).get("admitted")
                        for r, m in sorted(models.items())}
     mirror = [ev.mirror_residual(m, np.array(ch.forces_n), np.array([a for a in ch.angles_deg if a < 90.0]))
@@ -293,7 +310,9 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
                              "physical bounds) where the object's true surface continues from the contact, tip "
                              "and shadow included; queries predict refuses (outside a region's trained "
                              "ranges) are counted, not scored; served_support_fraction and the RMSE by "
-                             "support: held-out angles",
+                             "support: held-out angles; profile_full_by_region: the full-span figures per region beside "
+                             "that region's own noise floor and deepest true dent",
+        "profile_full_by_region": {str(r): region_figures(r) for r in sorted(models)},
         "profile_full_scored_fraction": {k: _num(v.scored_fraction()) for k, v in full.items()},
         "held_out_queries_refused": {k: v.refused for k, v in full.items()},
         "served_support_fraction": full["held_out_angles"].support_fractions(),

@@ -8,6 +8,7 @@ together; the session runs the planned steps between them.
 """
 from __future__ import annotations
 
+import datetime as _dt
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -466,9 +467,14 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
         known = (dict(zip(before.arrays["labelled_targets"].tolist(), before.arrays["labels"].tolist()))
                  if before is not None else {})
         previous = np.array([known.get(i, -1) for i in ids], dtype=np.int64)
+        # The error of each point's peak, read where its dent has faded (the far field of
+        # its profile at the smallest survey force), so the contrast rule knows which dents
+        # are measured (regions.peak_noise_mm).
+        far = prof.far_field_error_mm(depth[:, 0, :], ctx.grid.x_mm, FEATURE_HALF_WINDOW_MM)
         rmap = rg.cluster_regions(feats, edges, names, seed=s.seed,
                                   min_contrast=s.inputs.plan.phases.survey.min_contrast,
-                                  noise_mm=measured_noise_mm(ctx), previous_labels=previous)
+                                  noise_mm=measured_noise_mm(ctx), previous_labels=previous,
+                                  far_field_mm=far)
         labels = {i: int(l) for i, l in zip(ids, rmap.labels)}
         chosen, angles_by_target = _characterize_choice(ctx, labels, rmap.n_regions, pts, ids)
         ch = s.inputs.plan.phases.characterize
@@ -563,6 +569,23 @@ def registered_placement(j: Any) -> Pose | None:
     return Pose.from_list(events[-1]["record"]["base_to_object"]) if events else None
 
 
+def placement_at(registrations: list[dict[str, Any]], started_utc: str | None, current: Pose) -> Pose:
+    """Where the object was believed to be when a step started: the last registration
+    (``object_registered`` events, oldest first) at or before ``started_utc``; before the
+    first one, the placement that one replaced. ``current`` when it never moved (or the
+    step has no start time). A step's stored scans are base-frame poses: measured again
+    with a later placement, they fall beside the target (the object moved since)."""
+    if not registrations or started_utc is None:
+        return current
+    started = _dt.datetime.fromisoformat(started_utc)
+    placed = Pose.from_list(registrations[0]["record"]["previous"])
+    for event in registrations:
+        if _dt.datetime.fromisoformat(event["t_wall_utc"]) > started:
+            break
+        placed = Pose.from_list(event["record"]["base_to_object"])
+    return placed
+
+
 def session_geometry(session: "Session") -> ScanGeometry:
     cell = session.cell
     assert cell is not None
@@ -651,6 +674,7 @@ def fit_region(steps: RegionSteps, config: TrainConfig, tip_radius_mm: float, me
                            float(min(0.0, values.min()) - 3.0 * noise), float(values.max() + 3.0 * noise),
                            forces, angles, codes)
     info = {"support": completed.counts, "mirror": completed.mirror.to_dict(), "noise_mm": round(noise, 6),
+            "tail_exponent": round(completed.tail_exponent, 4),
             "depth_bounds_mm": [round(limits.depth_min_mm, 6), round(limits.depth_max_mm, 6)],
             "force_range_n": list(limits.force_range_n), "angle_range_deg": list(limits.angle_range_deg)}
     model.meta.update({"support": info})
@@ -818,12 +842,14 @@ def measured_noise_mm(ctx: PhaseContext, max_steps: int = 20) -> float:
     j, cell = s.journal, s.cell
     assert j is not None and cell is not None
     stds, counts = [], []
+    registrations = j.events(kind="object_registered")
     for rec in _done_steps(j, SURVEY_PHASES)[:max_steps]:
         res = j.step_result(rec.step_id)
         tgt = ctx.targets[rec.plan.target_index]
-        scans = prof.step_scan_points(res.scans_xz_mm, res.scan_pose, cell.tcp_to_scanner, cell.base_to_object)
-        refs = prof.step_scan_points(res.reference_xz_mm, res.reference_pose, cell.tcp_to_scanner,
-                                     cell.base_to_object)
+        # With the placement of its time: the first steps were measured before any move.
+        placed = placement_at(registrations, rec.started_utc, cell.base_to_object)
+        scans = prof.step_scan_points(res.scans_xz_mm, res.scan_pose, cell.tcp_to_scanner, placed)
+        refs = prof.step_scan_points(res.reference_xz_mm, res.reference_pose, cell.tcp_to_scanner, placed)
         _, count, std = prof.average_profiles(prof.scan_depths(scans, tgt.point_mm, tgt.normal, tgt.t,
                                                                 ctx.grid, refs))
         stds.append(std)

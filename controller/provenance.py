@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from .core.errors import InputError
+from .core.inputfiles import MAX_MESH_BYTES, check_input_file, read_input_bytes
 
 # Distributions whose versions change results (numerics, training, robot protocol, machine).
 TRACKED_PACKAGES: tuple[str, ...] = (
@@ -40,6 +41,7 @@ def sha256_text(text: str) -> str:
 def sha256_file(path: str | os.PathLike[str]) -> str:
     """Hex sha256 of a file's bytes, read in 1 MiB chunks."""
     h = hashlib.sha256()
+    check_input_file(path, MAX_MESH_BYTES)
     with open(path, "rb") as f:
         while chunk := f.read(_CHUNK):
             h.update(chunk)
@@ -49,7 +51,7 @@ def sha256_file(path: str | os.PathLike[str]) -> str:
 def _input_file(path: str | os.PathLike[str], what: str) -> dict[str, Any]:
     p = Path(path)
     try:
-        data = p.read_bytes()
+        data = read_input_bytes(p)
     except OSError as exc:
         raise InputError(f"cannot read the {what} file: {exc.strerror or exc}", path=str(p)) from None
     try:

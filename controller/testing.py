@@ -8,7 +8,10 @@ Crash points (kill -9 tests, tests/test_session_resume.py and bench/soak.py):
 ``ELASTOPROBE_JOURNAL_CRASH_AT=name[@n][+delay_s]`` SIGKILLs this process the n-th time
 (default the first) it passes the point ``name``: at once, or ``delay_s`` seconds later from a
 timer (to land inside long work such as the report). One meaning for every point: exactly the
-n-th pass, counted per process (a resumed process counts anew). The points:
+n-th pass, counted per process (a resumed process counts anew). Several points, comma-separated,
+are armed together: whichever comes first kills (the soak arms a learning point beside a journal
+one, as a child may pause before it reaches either). Before the kill one line
+``crash point NAME@N`` goes to stderr, so a driver knows which point landed. The points:
 
 - in the journal's transactions (controller/journal.py): ``commit_phase:after_phase_row``,
   ``commit_phase:half_steps``, ``commit_phase:before_commit``, ``begin_step:before_commit``,
@@ -27,6 +30,7 @@ from __future__ import annotations
 import os
 import signal
 import sqlite3
+import sys
 import threading
 from typing import TYPE_CHECKING, Any, Callable
 
@@ -44,22 +48,32 @@ _crash_counts: dict[str, int] = {}
 def crash_point(name: str) -> None:
     """SIGKILL this process here if ``ELASTOPROBE_JOURNAL_CRASH_AT`` names this point and this
     is its n-th pass (see the module's docstring)."""
-    spec = os.environ.get(CRASH_AT_ENV)
-    if not spec:
+    specs = os.environ.get(CRASH_AT_ENV)
+    if not specs:
         return
-    head, _, delay_text = spec.partition("+")
-    point, _, nth_text = head.partition("@")
-    if point != name:
-        return
-    _crash_counts[name] = _crash_counts.get(name, 0) + 1
-    if _crash_counts[name] != (int(nth_text) if nth_text else 1):
-        return
-    if delay_text:
-        timer = threading.Timer(float(delay_text), os.kill, (os.getpid(), signal.SIGKILL))
-        timer.daemon = True
-        timer.start()
-    else:
-        os.kill(os.getpid(), signal.SIGKILL)
+    counted = False
+    for spec in specs.split(","):
+        head, _, delay_text = spec.strip().partition("+")
+        point, _, nth_text = head.partition("@")
+        if point != name:
+            continue
+        if not counted:     # one pass of the point, however many specs name it
+            _crash_counts[name] = _crash_counts.get(name, 0) + 1
+            counted = True
+        nth = int(nth_text) if nth_text else 1
+        if _crash_counts[name] != nth:
+            continue
+        try:
+            sys.stderr.write(f"crash point {name}@{nth}{'+' + delay_text if delay_text else ''}\n")
+            sys.stderr.flush()
+        except (OSError, ValueError, AttributeError):   # no stderr to say it on: kill all the same
+            pass
+        if delay_text:
+            timer = threading.Timer(float(delay_text), os.kill, (os.getpid(), signal.SIGKILL))
+            timer.daemon = True
+            timer.start()
+        else:
+            os.kill(os.getpid(), signal.SIGKILL)
 
 
 def play_disk_error(cell: Cell, journal: Journal, step_id: int, retry: int,

@@ -187,17 +187,19 @@ class Toolhead:
         self._send_move(Pose(pose.position_mm + up * lift_mm, pose.rotation), self.s.free_speed_mm_s)
 
     # ------------------------------------------------------------------ force
-    def seek_contact(self, direction: np.ndarray, max_distance_mm: float) -> bool:
-        """Move along the unit vector ``direction`` (base frame) at the contact speed until the force reaches
-        the contact force: True at rest in contact, False when ``max_distance_mm`` passed with
-        nothing touched. The whole path is validated first, the tip allowed to touch."""
+    def seek_contact(self, direction: np.ndarray, max_distance_mm: float, speed_mm_s: float | None = None) -> bool:
+        """Move along the unit vector ``direction`` (base frame) at ``speed_mm_s`` (default: the
+        contact speed; never faster) until the force reaches the contact force: True at rest in
+        contact, False when ``max_distance_mm`` passed with nothing touched. The whole path is
+        validated first, the tip allowed to touch."""
         e = np.asarray(direction, dtype=float)
         here = self.pose()
         self.validator.validate_path(here, Pose(here.position_mm + e * max_distance_mm, here.rotation),
                                      contact_allowed=True)
         s = self.s
-        motion = self.cell.arm.seek_contact(e, s.contact_speed_mm_s, s.contact_force_n, max_distance_mm)
-        state = self._wait(motion, timeout_s=max_distance_mm / s.contact_speed_mm_s * 2.0 + 5.0)
+        speed = s.contact_speed_mm_s if speed_mm_s is None else min(float(speed_mm_s), s.contact_speed_mm_s)
+        motion = self.cell.arm.seek_contact(e, speed, s.contact_force_n, max_distance_mm)
+        state = self._wait(motion, timeout_s=max_distance_mm / speed * 2.0 + 5.0)
         if state == MotionState.NO_CONTACT:
             return False
         self._expect(state, MotionState.CONTACT, "seek_contact")

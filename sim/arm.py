@@ -575,13 +575,22 @@ class SimArm:
         return ArmPlan(self._path.positions(u), self._path.rotations(u), du, self._path.speed_scale)
 
     def _sim_event(self, ts_us: np.ndarray, samples) -> int | None:
-        """Index of the first sample that ends a contact search (the supervisor's threshold), or None."""
+        """Index of the first sample that ends a contact search, or None: the supervisor's
+        threshold, or the search distance reached (the arm stops from that sample, as the
+        real arm's loop stops it from its next cycle, not a sub-chunk later beyond the
+        validated line)."""
         if self.supervisor.search is None:
             return None
+        law = self._law
+        ends = None
+        if law.kind == "ramp" and law.end_us is not None:
+            k = int(np.searchsorted(ts_us, law.end_us))
+            ends = k if k < ts_us.size else None
         mags = samples.magnitudes_n()
-        if mags is None:
-            return None
-        return self.supervisor.first_contact(mags)
+        hit = None if mags is None else self.supervisor.first_contact(mags)
+        if hit is None or (ends is not None and ends < hit):
+            return ends
+        return hit
 
     def _sim_on_event(self, t_us: int) -> None:
         """The contact search met its threshold at the last committed sample: stop, CONTACT."""

@@ -33,6 +33,7 @@ from pydantic import Field, StringConstraints
 from elastoprobe.controller.core.errors import InputError, InputErrors
 from elastoprobe.controller.core.geometry import push_direction, unit
 from elastoprobe.controller.core.meshcheck import drop_degenerate_faces, mesh_findings, read_mesh
+from elastoprobe.controller.core.meshes import sphere_on_table
 from elastoprobe.controller.core.yamlio import Spec, YamlDoc, load_validated
 
 from .materials import Material, MaterialSpec, material_from_spec
@@ -428,8 +429,7 @@ class BallObject(SimObject):
     def __init__(self, name: str, radius_mm: float, material: Material, subdivisions: int = 4) -> None:
         self.radius_mm = float(radius_mm)
         self.centre_mm = np.array([0.0, 0.0, self.radius_mm])
-        mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=self.radius_mm)
-        mesh.apply_translation(self.centre_mm)
+        mesh = sphere_on_table(self.radius_mm, subdivisions)
         super().__init__(name, mesh, np.zeros(len(mesh.faces), dtype=int), [material.name], [material])
 
     def closest_surface(self, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

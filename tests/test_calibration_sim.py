@@ -1,4 +1,5 @@
-"""All four routines on the miscalibrated simulated cell, judged against the simulator's hidden truth."""
+"""All four routines on the miscalibrated simulated cell, judged against the simulator's hidden truth;
+a touch-off's two speeds."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -6,8 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from elastoprobe.calibration.runner import calibration_cell, run_on_cell
+from elastoprobe.calibration.driver import (SLOW_TOUCH_SPEED_MM_S, TOUCH_SLOW_ZONE_MM, TOUCH_SPEED_MM_S, make_rig,
+                                            touch)
+from elastoprobe.calibration.runner import SPHERE_RADIUS_MM, calibration_cell, run_on_cell, sphere_centre_nominal
 from elastoprobe.controller.core.config import load_cell
+from elastoprobe.controller.core.geometry import Pose
 
 MIS = Path(__file__).resolve().parent.parent / "config" / "cells" / "sim_miscalibrated.yaml"
 
@@ -35,3 +39,37 @@ def test_all_routines_recover_the_hidden_miscalibration() -> None:
     obj = run_on_cell("object", spec, cell, mesh, seed, tcp_to_scanner=sc.tcp_to_scanner).solved
     v = np.asarray(mesh.vertices)
     assert np.max(np.linalg.norm(obj.base_to_object.apply(v) - true_place.apply(v), axis=1)) < 1.0
+
+
+SIM = Path(__file__).resolve().parent.parent / "config" / "cells" / "sim.yaml"
+
+
+@pytest.mark.parametrize("standoff_mm", [8.0, 1.5])
+def test_a_touch_meets_the_rigid_sphere_at_the_slow_speed_unless_it_is_nearer_than_expected(standoff_mm: float) -> None:
+    """The stop after a contact lands late on a loaded machine and a rigid sphere's force climbs
+    to the limit within 0.03 mm: the touch crosses free air fast and the expected surface
+    slowly. A surface within the slow zone is met at the free-air speed."""
+    spec, _ = load_cell(SIM)
+    cell, mesh = calibration_cell(spec, SIM, 0, "tcp")
+    rig = make_rig(spec, cell, mesh, 0)
+    speeds: list[float] = []
+    seek = cell.arm.seek_contact
+
+    def recorded(direction, speed_mm_s, contact_force_n, max_distance_mm):  # noqa: ANN001, ANN202
+        speeds.append(speed_mm_s)
+        return seek(direction, speed_mm_s, contact_force_n, max_distance_mm)
+
+    cell.arm.seek_contact = recorded
+    centre = sphere_centre_nominal(spec)
+    rho = SPHERE_RADIUS_MM + spec.tool.tip_radius_mm
+    down = np.array([0.0, 0.0, -1.0])
+    rig.head.travel_to(Pose(centre - down * (rho + standoff_mm), np.diag([1.0, -1.0, -1.0])))
+    hit = touch(rig.head, down, standoff_mm + 8.0, expected_mm=8.0)
+    assert hit is not None and abs(np.linalg.norm(hit.position_mm - centre) - rho) < 0.1
+    assert speeds[0] == TOUCH_SPEED_MM_S
+    if standoff_mm > TOUCH_SLOW_ZONE_MM:
+        assert speeds == [TOUCH_SPEED_MM_S, SLOW_TOUCH_SPEED_MM_S]
+    else:
+        assert speeds == [TOUCH_SPEED_MM_S]       # met in the free-air leg, no slow leg after it
+    peak_n = float(np.abs(rig.head.recorder.wrench().force_n).max())
+    assert peak_n < spec.limits.max_force_n / 2

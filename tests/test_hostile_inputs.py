@@ -8,6 +8,7 @@ validation itself is bounded whatever the path.
 """
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -17,6 +18,8 @@ import pytest
 import trimesh
 
 from elastoprobe.controller.cli import main
+from elastoprobe.controller.core.atomic import atomic_write_bytes
+from elastoprobe.controller.core.errors import DiskError
 
 REPO = Path(__file__).resolve().parent.parent
 OBJECTS = REPO / "config" / "objects"
@@ -280,3 +283,76 @@ def test_the_shipped_objects_give_no_mesh_warning(capsys: pytest.CaptureFixture[
     for plan in ("demo.yaml", "rubber_ball.yaml", "user_object.yaml"):
         assert main(["check", str(REPO / "config" / "plans" / plan)]) == 0
         assert "warning" not in capsys.readouterr().err
+
+
+def _special_files(tmp: Path) -> dict[str, Path]:
+    fifo = tmp / "fifo.yaml"
+    os.mkfifo(fifo)
+    huge = tmp / "huge.yaml"
+    with open(huge, "wb") as f:
+        f.truncate(64 * 1024 * 1024 * 1024)         # sparse: 64 GiB that take no disk
+    return {"device": Path("/dev/zero"), "pipe": fifo, "huge": huge}
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("special", ["device", "pipe", "huge"])
+def test_a_device_a_pipe_or_a_huge_file_named_as_an_input_file_is_refused_without_reading_it(
+        tmp_path: Path, special: str, capsys: pytest.CaptureFixture) -> None:
+    """/dev/zero named as the cell was read until memory ran out; a pipe blocks its reader; a
+    64 GiB file would be read whole. Plan, cell, object, mesh and calibration file: each
+    refused at once, exit 2, named."""
+    bad = _special_files(tmp_path)[special]
+    obj = _user_object(tmp_path)
+    plan = _plan(tmp_path, obj)
+    cases = {"plan": (["check", str(bad)], str(bad)),
+             "cell": (["check", str(plan), "--cell", str(bad)], str(bad))}
+    obj_text = obj.read_text()
+    mesh_obj = tmp_path / "mesh_obj.yaml"
+    mesh_obj.write_text(obj_text.replace("file: user_object.ply", f"file: {bad}"))
+    cases["mesh"] = (["check", str(_plan_for(tmp_path, mesh_obj, "mesh_plan.yaml"))], "mesh_obj.yaml:12:9")
+    cell = tmp_path / "cell.yaml"
+    cell.write_text((REPO / "config" / "cells" / "sim_miscalibrated.yaml").read_text()
+                    .replace("calibration_file: sim_miscalibrated.calibration.json", f"calibration_file: {bad}")
+                    .replace("file: ../objects/", f"file: {OBJECTS}/"))
+    cases["calibration"] = (["check", str(plan), "--cell", str(cell)],
+                            "more than the" if special == "huge" else "not a regular file")
+    for what, (args, named) in cases.items():
+        capsys.readouterr()
+        code = main(args)
+        err = capsys.readouterr().err
+        if what == "calibration":        # a calibration problem is reported, the cell is still valid
+            assert named in err + capsys.readouterr().out, (what, err)
+            continue
+        assert code == 2, (what, err)
+        assert named in err and "Traceback" not in err, (what, err)
+        assert ("more than the" if special == "huge" else "not a regular file") in err, (what, err)
+
+
+def _plan_for(tmp: Path, obj: Path, name: str) -> Path:
+    """A plan like :func:`_plan`'s for ``obj``, written to ``name``."""
+    text = _plan(tmp, obj).read_text()
+    _plan(tmp, tmp / "obj.yaml")                  # plan.yaml back to the plain object
+    (tmp / name).write_text(text)
+    return tmp / name
+
+
+def test_an_output_that_is_a_device_a_pipe_or_a_folder_is_refused_and_left_as_it_was(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Run as root, ``diagram --out /dev/full`` renamed a regular file over the device; the
+    same path with ``/dev/null`` would have broken the machine. Outputs are written only
+    over regular files."""
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    link = tmp_path / "to-null"
+    link.symlink_to("/dev/null")
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    for target in (fifo, link, folder):
+        with pytest.raises(SystemExit) as exc:
+            main(["diagram", "--out", str(target)])
+        assert exc.value.code == 2
+        assert "is not a regular file" in capsys.readouterr().err
+        with pytest.raises(DiskError, match="not a regular file"):
+            atomic_write_bytes(target, b"x")
+    assert fifo.is_fifo() and link.is_symlink() and Path("/dev/null").is_char_device() and folder.is_dir()
+    assert not [p for p in tmp_path.iterdir() if p.name not in {"fifo", "to-null", "folder"}]   # no temporaries left

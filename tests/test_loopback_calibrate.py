@@ -76,7 +76,7 @@ def test_a_touch_off_on_the_served_reference_sphere_over_the_real_protocols(tmp_
         rho = SPHERE_RADIUS_MM + spec.tool.tip_radius_mm
         down = np.array([0.0, 0.0, -1.0])
         rig.head.travel_to(Pose(centre - down * (rho + 8.0), np.diag([1.0, -1.0, -1.0])))
-        hit = touch(rig.head, down, 16.0)
+        hit = touch(rig.head, down, 16.0, expected_mm=8.0)
         assert hit is not None
         # The tip centre rests on the sphere grown by the tip radius (the cell is not miscalibrated).
         assert abs(np.linalg.norm(hit.position_mm - centre) - rho) < 0.1

@@ -127,9 +127,16 @@ def test_a_dashboard_stop_mid_probe_pauses_the_session_and_the_arm_waits_for_res
     assert "stopped by the operator" in session["status_reason"]
     assert "pendant or the dashboard" in session["status_reason"]
     assert "operator_stop" in [e["event"] for e in events]
+    # A real cell resumes behind the same calibration guard it ran behind: refused, untouched.
+    refused = subprocess.run([sys.executable, "-c", CLI, "resume", str(out), "--quiet"], capture_output=True,
+                             text=True, timeout=120)
+    assert refused.returncode == 2 and "calibration is not current" in refused.stderr, refused.stderr
+    assert "Traceback" not in refused.stderr
+    with Journal.open_readonly(out) as j:
+        assert j.session()["status"] == "paused"
     # Resume: the session finishes (the arm's program is started by the new link, not before).
-    resumed = subprocess.run([sys.executable, "-c", CLI, "resume", str(out), "--quiet"], capture_output=True,
-                             text=True, timeout=600)
+    resumed = subprocess.run([sys.executable, "-c", CLI, "resume", str(out), "--quiet", "--allow-stale-calibration"],
+                             capture_output=True, text=True, timeout=600)
     assert resumed.returncode == 0, resumed.stderr
     with Journal.open_readonly(out) as j:
         assert j.session()["status"] == "done"

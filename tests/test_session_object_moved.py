@@ -78,3 +78,26 @@ def test_a_still_object_is_not_taken_for_moved(tmp_path: Path) -> None:
     events = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert not [e for e in events if e["event"] == "fault" and e["kind"] == "object_moved"]
     assert not [e for e in events if e["event"] in ("registration_rejected", "object_registered")]
+
+
+def test_a_step_is_measured_again_with_the_placement_of_its_time() -> None:
+    # The quarter night of bench/soak.py (seed 1) met it: the object moved twice during
+    # characterization, and the first learning phase re-measured the first survey steps'
+    # scans with the latest placement: they fell 10 mm beside their targets, no sample was
+    # seen by two scans, and the session ended in an internal error (exit 1).
+    from elastoprobe.controller.phases import placement_at
+
+    original, first, second = (Pose.from_list([400.0 + dx, 0.0, 0.0, 0.0, 0.0, 0.0]) for dx in (0.0, -7.0, -0.5))
+    registrations = [
+        {"t_wall_utc": "2026-11-26T03:29:09.944+00:00",
+         "record": {"previous": original.to_list(), "base_to_object": first.to_list()}},
+        {"t_wall_utc": "2026-11-26T03:30:13.737+00:00",
+         "record": {"previous": first.to_list(), "base_to_object": second.to_list()}}]
+    current = second
+    at = lambda utc: placement_at(registrations, utc, current).position_mm[0]   # noqa: E731
+    assert at("2026-11-26T03:10:00.000001+00:00") == 400.0            # before any move: the original
+    assert at("2026-11-26T03:29:09.944+00:00") == 393.0               # the moment it was registered
+    assert at("2026-11-26T03:29:55.5+00:00") == 393.0
+    assert at("2026-11-26T03:31:00+00:00") == 399.5
+    assert placement_at([], "2026-11-26T03:31:00+00:00", current) is current
+    assert placement_at(registrations, None, current) is current

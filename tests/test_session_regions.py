@@ -84,3 +84,21 @@ def _assert_evaluation_places_the_mislabelled(one_dir: Path, two_dir: Path) -> N
     # boundaries drawn across the scored top, where box and pillow never meet.
     assert one["worst_region_iou"] == 0.0 and one["per_region_iou"]["cardboard"] == 0.0
     assert two["region_map_error"] < one["region_map_error"] and 0.0 < two["coverage"] <= 1.0
+    _assert_region_figures_make_up_the_object_s(two)
+
+
+def _assert_region_figures_make_up_the_object_s(ev: dict) -> None:
+    """Per region, the full-span figures and what they are judged against (the region's own
+    noise floor and deepest true dent) add up to the object's."""
+    regions = ev["profile_full_by_region"]
+    assert sorted(regions) == sorted(ev["served_bounds"])
+    assert max(r["peak_depth_mm"] for r in regions.values()) == ev["peak_depth_mm"]
+    assert all(r["noise_floor_mm"] > 0.0 for r in regions.values())
+    for kind, whole in ev["profile_rmse_full_mm"].items():
+        if whole is None:
+            continue
+        parts = [r["profile_rmse_full_mm"][kind] for r in regions.values() if r["profile_rmse_full_mm"][kind] is not None]
+        assert min(parts) - 1e-6 <= whole <= max(parts) + 1e-6, (kind, whole, parts)
+        worst = [r["profile_max_abs_error_mm"][kind] for r in regions.values()
+                 if r["profile_max_abs_error_mm"][kind] is not None]
+        assert max(worst) == ev["profile_max_abs_error_mm"][kind]

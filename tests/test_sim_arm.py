@@ -71,16 +71,25 @@ def test_move_takes_trapezoid_time_and_reports_progress():
     assert not cell.arm.status().is_moving
 
 
-def test_seek_contact_in_free_air_ends_no_contact_after_the_distance():
+@pytest.mark.parametrize("speed_mm_s, distance_mm", [(10.0, 20.0), (1.0, 5.0), (0.3, 2.0)])
+def test_seek_contact_in_free_air_ends_no_contact_after_the_distance(speed_mm_s: float, distance_mm: float) -> None:
+    """It stops at its distance, not at the end of the controller's poll (10 ms later, beyond
+    the line the arm validated: a protective stop)."""
     cell = make_cell()
     home = cell.arm.status().tcp_pose
     hold(cell, 0.1)
     cell.ft.tare()
+    tick(cell, dt=0.0047)            # the search's end falls between two polls
     start = cell.arm.status().tcp_pose.position_mm
-    motion = cell.arm.seek_contact(np.array([0.0, 0.0, -1.0]), 10.0, 0.4, 20.0)
+    oblique = np.array([0.3, -0.2, -1.0]) / np.linalg.norm([0.3, -0.2, -1.0])   # positions round
+    motion = cell.arm.seek_contact(oblique, speed_mm_s, 0.4, distance_mm)
     assert wait(cell, motion) == MotionState.NO_CONTACT
-    travelled = float(np.linalg.norm(cell.arm.status().tcp_pose.position_mm - start))
-    assert abs(travelled - 20.0) < 1e-6
+    hold(cell, 0.1)
+    status = cell.arm.status()
+    assert not status.protective_stop
+    travelled = float(np.linalg.norm(status.tcp_pose.position_mm - start))
+    # The distance, then the stop's deceleration: well within the travel of one 10 ms poll.
+    assert distance_mm - 1e-6 < travelled < distance_mm + speed_mm_s * 0.005
     assert home.rotation.shape == (3, 3)
 
 

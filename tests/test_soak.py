@@ -18,6 +18,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from bench import soak
@@ -88,9 +89,14 @@ def test_overnight_soak(tmp_path: Path) -> None:
     assert set(result["faults_by_kind"]) == set(soak_kinds())
     assert {"sweeping", "survey", "characterize", "densify", "learning"} <= set(result["faults_by_phase"])
     assert sum(result["faults_during_recovery"].values()) >= 5
-    assert result["kills"] >= 20 and set(result["kills_by_mode"]) == {"delay", "aimed", "learning"}
+    # Kills that landed on a running child (its own exit status says SIGKILL), spread over the
+    # phases: a moment of the child's progress, inside a journal transaction, in learning.
+    assert result["kills"] >= 20 and set(result["kills_by_mode"]) == {"progress", "aimed", "learning"}
+    assert {"survey", "characterize", "learning"} <= set(result["kills_by_phase"])
     assert result["rss_growth_mb_per_h"] is not None
     assert abs(result["rss_growth_mb_per_h"]) <= MAX_RSS_GROWTH_MB_PER_H
+    assert result["rss_growth_across_children_mb_per_h"] is not None
+    assert abs(result["rss_growth_across_children_mb_per_h"]) <= MAX_RSS_GROWTH_MB_PER_H
 
 
 def soak_kinds() -> tuple[str, ...]:
@@ -191,3 +197,61 @@ def test_two_scanner_faults_on_one_burst_are_judged_by_the_one_fault_they_showed
     soak.share_burst(fates)
     assert timeout["fate"] == "recovered" and timeout["same_burst_as"] == 143
     assert elsewhere["fate"] == "undetected"
+
+
+def _fake_child(tmp_path: Path, code: str, kill: "soak.ProgressKill | None", env: dict | None = None) -> soak.ChildRun:
+    import os
+    import sys
+
+    return soak.run_child([], {**os.environ, **(env or {})}, tmp_path / "no-session", kill, 0.05, 60.0, set(),
+                          tmp_path / "stderr.log", cli=[sys.executable, "-c", code])
+
+
+def test_a_kill_counts_only_when_it_lands_on_a_running_child(tmp_path: Path) -> None:
+    # The night of issue #15 landed 4 kills of 24: most were due after the child had already
+    # exited on a pause. A child that exits before its kill's moment is not killed and no kill
+    # is counted; one still running is killed, and its own status says SIGKILL.
+    gone = _fake_child(tmp_path, "import sys; sys.exit(3)", soak.ProgressKill(0, 3.0))
+    assert (gone.returncode, gone.killed) == (3, None)
+    running = _fake_child(tmp_path, "import time; time.sleep(30)", soak.ProgressKill(0, 0.3))
+    assert running.returncode == -9 and running.killed == "progress 0 steps +0.3 s"
+    # A crash point says which point killed the child (controller/testing.py).
+    aimed = _fake_child(tmp_path, "from elastoprobe.controller.testing import crash_point as c; c('a'); c('a')",
+                        None, {"ELASTOPROBE_JOURNAL_CRASH_AT": f"{soak.LEARNING_POINT},a@2"})
+    assert aimed.returncode == -9 and aimed.killed == "aimed a@2"
+
+
+def _child_samples(start_h: float, span_h: float, rss_at: Any) -> soak.ChildRun:
+    """A child sampled every 8 robot seconds: start-up at one robot time, then probing."""
+    hours = start_h + np.arange(0.0, span_h, 8.0 / 3600.0)
+    samples = [(0.0, 150.0, start_h * 3600.0, 2), (1.0, 190.0, start_h * 3600.0, 2)]
+    samples += [(2.0 + k, float(rss_at(h - start_h)), h * 3600.0, 2) for k, h in enumerate(hours)]
+    samples.append((3.0 + len(hours), 260.0, hours[-1] * 3600.0 + 30.0, 2))   # the pause: a spike
+    return soak.ChildRun([], 1, 3, None, 1.0, 1.0, samples)
+
+
+def test_rss_growth_sees_a_leak_in_sparse_steps_and_not_a_warm_up_or_a_pause_spike() -> None:
+    # A leak of 6 MB per robot hour that the heap takes in 0.5 MB chunks, over children of
+    # 0.3 robot hours (a warm-up of 4 MB in each first): well over the 5 MB/h bound.
+    def leak(h: float) -> float:
+        return 200.0 + 4.0 * min(h / 0.08, 1.0) + 0.5 * np.floor(6.0 * h / 0.5)
+    leaky = [_child_samples(0.4 * k, 0.3, leak) for k in range(12)]
+    growth, used_h = soak.rss_growth_mb_per_h(leaky)
+    assert growth is not None and used_h > 1.5
+    assert growth > 5.0, growth
+
+    # The same children without the leak: a warm-up that levels off and a spike where each
+    # pauses. The per-stretch Theil-Sen slope from the child's start read these as growth.
+    def settled(h: float) -> float:
+        return 200.0 + 4.0 * min(h / 0.08, 1.0)
+    flat = [_child_samples(0.4 * k, 0.3, settled) for k in range(12)]
+    growth, _ = soak.rss_growth_mb_per_h(flat)
+    assert growth is not None and abs(growth) < 0.5, growth
+    across, used = soak.rss_growth_across_children_mb_per_h(flat)
+    assert used == 12 and across is not None and abs(across) < 0.5
+
+    # What a session carries from child to child (its level rises with the night) is seen
+    # across children even though each child alone is flat.
+    carried = [_child_samples(0.4 * k, 0.3, lambda h, k=k: settled(h) + 8.0 * 0.4 * k) for k in range(12)]
+    across, _ = soak.rss_growth_across_children_mb_per_h(carried)
+    assert across is not None and abs(across - 8.0) < 0.5

@@ -165,3 +165,66 @@ def test_support_table_takes_the_common_code_and_fills_levels_from_the_nearest()
     assert table[0, 0].tolist() == [0, 4]
     assert table[0, 1].tolist() == [0, 4]          # 45 deg at 8 N: nearest level at 45 deg
     assert table[1, 1].tolist() == [2, 2]
+
+
+def power_dent(x: np.ndarray, depth: float, power: float, centre: float = 0.0) -> np.ndarray:
+    """A dent that is ``depth`` under the tip and falls off as (R / r) ** power beyond it."""
+    return depth * (R / np.maximum(np.abs(x - centre), R)) ** power
+
+
+def power_region(power: float, seen_half_width_mm: float, seed: int = 2) -> tuple[sp.RegionSteps, np.ndarray]:
+    """Two points, normal pushes at three forces, dents falling off as a power of the
+    distance from the tip; the scanner sees the line beyond the tip out to
+    ``seen_half_width_mm`` only (the rest of the grid is missing, as past a scanner's field)."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for pid in (0, 1):
+        for f in (2.0, 8.0, 16.0):
+            peak = 0.4 * f ** (2.0 / 3.0)
+            truth = power_dent(X, peak, power)
+            seen = (np.abs(X) > R + 1.0) & (np.abs(X) < seen_half_width_mm)
+            meas = np.where(seen, truth + rng.normal(0.0, 0.005, X.shape), np.nan)
+            rows.append((f, f, 90.0, meas, pid, 0.0, peak, rng.normal(0.0, 0.005, X.shape), truth))
+    f, lvl, a, d, p, tx, td, rh, truth = (np.array(v) for v in zip(*rows))
+    return sp.RegionSteps(X, f, lvl, a, d, p.astype(np.int64), tx, td, rh), truth
+
+
+def test_tail_exponent_is_the_measured_tails_own_power() -> None:
+    for power in (0.3, 1.0, 2.0):
+        steps, _ = power_region(power, seen_half_width_mm=35.0)
+        assert abs(sp.tail_exponent(steps, R) - power) < 0.1 * power + 0.02, power
+    # Nothing measured beyond the contact: no decay is claimed.
+    steps, _ = power_region(1.0, seen_half_width_mm=2.0 * R)
+    assert sp.tail_exponent(steps, R) == 0.0
+
+
+def test_unsupported_tails_fall_off_as_the_measured_ones_and_stay_flagged() -> None:
+    """Past the scanner's field the targets decay towards the undeformed surface as the
+    region's measured tails do, instead of holding the last seen depth out to the grid's
+    end (which overstated a dent's far tail by up to the whole last seen depth)."""
+    steps, truth = power_region(1.5, seen_half_width_mm=20.0)
+    done = sp.complete_targets(steps, R)
+    assert abs(done.tail_exponent - 1.5) < 0.2
+    far = np.abs(X) > 21.0
+    assert np.all(done.support[:, far] == sp.UNSUPPORTED)
+    err = np.abs(done.depth_mm - truth)[:, far]
+    flat_err = np.abs(np.nanmax(np.where(np.abs(X) < 20.0, steps.depth_mm, np.nan)[:, np.abs(X) > 19.0], axis=1)[:, None]
+                      - truth[:, far])
+    assert err.max() < 0.1 * flat_err.max()
+    assert err.max() < 0.05 * float(truth.max())
+    # Monotone towards the ends, never below the undeformed surface.
+    ends = done.depth_mm[:, X > 21.0]
+    assert np.all(np.diff(ends, axis=1) <= 1e-12) and np.all(ends > 0.0)
+
+
+def test_fill_gaps_decays_beyond_its_ends_only() -> None:
+    v = np.full(X.shape, np.nan)
+    v[[100, 140, 160]] = [3.0, 5.0, 2.0]
+    out = sp.fill_gaps(X, v, centre_mm=0.0, exponent=1.0, near_mm=R)
+    inner = slice(100, 161)
+    assert np.array_equal(out[inner], sp.fill_gaps(X, v)[inner])
+    r = np.maximum(np.abs(X), R)
+    assert np.allclose(out[161:], 2.0 * r[160] / r[161:])
+    # The left end lies on the tip's near side of the grid's centre: it decays only where
+    # the distance from the tip grows past its own.
+    assert np.all(out[:100] <= 3.0) and np.all(out[:100] > 0.0)

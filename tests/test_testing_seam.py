@@ -45,6 +45,21 @@ def test_a_crash_point_kills_at_exactly_its_nth_pass() -> None:
     assert _child("a@3", ["a", "a"]) == (0, ["a", "a"])                # never reached: no kill
 
 
+def test_several_crash_points_armed_together_kill_at_the_first_one_reached() -> None:
+    assert _child("b@2,a@2", ["a", "b", "a", "b"]) == (-9, ["a", "b"])   # a's 2nd pass comes first
+    assert _child("a@9,b", ["a", "b"]) == (-9, ["a"])
+    assert _child("a@2,a@3", ["a", "a"]) == (-9, ["a"])                   # one count per pass
+    assert _child("a@3,b@2", ["a", "b", "a"]) == (0, ["a", "b", "a"])       # neither reached
+
+
+def test_a_crash_point_says_which_point_killed() -> None:
+    env = dict(os.environ)
+    env[CRASH_AT_ENV] = "x@1,a@2"
+    proc = subprocess.run([sys.executable, "-c", CHILD.format(idle_s=0.0), "a", "a"], env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == -9 and "crash point a@2" in proc.stderr
+
+
 def test_a_delayed_crash_point_kills_later_and_only_its_nth_pass_arms_it() -> None:
     # The 2nd pass arms a timer; the process goes on (3rd pass printed) and dies in its idle time.
     code, passed = _child("a@2+0.5", ["a", "a", "a"], idle_s=60.0)

@@ -19,6 +19,7 @@ import dataclasses
 import json
 import os
 import shutil
+import stat
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -77,6 +78,16 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes, mode: int = 0o
     """
     target = Path(path)
     directory = target.parent if str(target.parent) else Path(".")
+    try:
+        existing = os.stat(target)
+    except FileNotFoundError:
+        existing = None
+    except OSError as exc:
+        raise DiskError.from_os_error(exc, str(target)) from None
+    if existing is not None and not stat.S_ISREG(existing.st_mode):
+        # A rename over a device or a folder entry would replace it (as root, /dev/null itself).
+        raise DiskError.from_os_error(OSError(errno.EINVAL, "the target exists and is not a regular file"),
+                                      str(target))
     try:
         fd, tmp_name = tempfile.mkstemp(prefix=_tmp_prefix(target), suffix=_TMP_SUFFIX, dir=directory)
     except OSError as exc:

@@ -31,6 +31,7 @@ import numpy as np
 from .atomic import atomic_write_json
 from .errors import CalibrationError
 from .geometry import Pose
+from .inputfiles import read_input_bytes, read_input_text
 
 FORMAT = "elastoprobe-calibration"
 FORMAT_VERSION = 1
@@ -68,7 +69,7 @@ def read_document(path: str | Path) -> dict[str, Any]:
     """The parsed file, checked for format and version; CalibrationError otherwise."""
     p = Path(path)
     try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
+        doc = json.loads(read_input_text(p))
     except FileNotFoundError:
         raise CalibrationError(f"{p}: calibration file not found") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -303,7 +304,7 @@ def believed_cell(cell_spec, cell_path: str | Path,  # noqa: ANN001, ANN201 — 
         problems.append("the controller believes the cell file's nominal geometry")
         return cell_spec, CalibrationState(path, (), tuple(problems), None)
     try:
-        data = path.read_bytes()
+        data = read_input_bytes(path)
         doc = read_document(path)
         if doc.get("cell") != cell_spec.name:
             raise CalibrationError(f"{path}: calibrated for cell {doc.get('cell')!r}, not {cell_spec.name!r}")

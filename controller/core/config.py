@@ -19,7 +19,7 @@ from pydantic import Field, field_validator, model_validator
 
 from .calfile import believed_cell
 from .errors import InputError, InputErrors
-from .faultkinds import InjectedFault
+from .faultkinds import POLICY_FAULT_KINDS, InjectedFault
 from .forceloop import ForceLoopGains
 from .geometry import NINE_ANGLES_DEG, Pose, rotvec_to_matrix
 from .safety import SafetyLimits
@@ -404,12 +404,9 @@ class FaultPolicySpec(Spec):
     @field_validator("kinds")
     @classmethod
     def _known(cls, v: dict[str, FaultActionSpec]) -> dict[str, FaultActionSpec]:
-        known = {"force", "torque", "lateral_force", "force_rate", "frozen", "ft_status", "stale", "slip",
-                 "workspace", "protective_stop", "emergency_stop", "connection", "no_contact",
-                 "object_moved", "scanner", "motion_refused", "device"}
         for k in v:
-            if k not in known:
-                raise ValueError(f"unknown fault kind {k!r} (known: {', '.join(sorted(known))})")
+            if k not in POLICY_FAULT_KINDS:
+                raise ValueError(f"unknown fault kind {k!r} (known: {', '.join(sorted(POLICY_FAULT_KINDS))})")
         return v
 
     def for_kind(self, kind: str) -> FaultActionSpec:

@@ -596,7 +596,7 @@ class ForceSupervisor:
             return False
         travelled = s.travelled_mm(position_mm)
         m.set_progress(travelled / s.max_distance_mm)
-        if travelled < s.max_distance_mm:
+        if travelled < s.max_distance_mm - 1e-9:         # a position's round trip is not exact
             return False
         m.finish(MotionState.NO_CONTACT, f"no contact within {s.max_distance_mm:.1f} mm")
         self.search = None

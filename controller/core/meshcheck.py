@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from .inputfiles import MAX_MESH_BYTES, check_input_file
+
 # A face is degenerate when its area is below this fraction of the squared size of the
 # mesh (its bounding-box diagonal): at 1e-9, a 100 mm object's faces need 1e-5 mm^2,
 # far below any real facet, far above float64's rounding of a cross product.
@@ -42,6 +44,10 @@ class MeshFindings:
 def read_mesh(path: str | Path) -> trimesh.Trimesh:
     """A mesh file as one ``Trimesh`` (no processing); ``ValueError`` when it holds no usable
     triangles: unreadable, no faces, non-finite coordinates, faces naming missing vertices."""
+    try:
+        check_input_file(path, MAX_MESH_BYTES)
+    except OSError as exc:
+        raise ValueError(f"cannot read mesh: {exc.strerror or exc}") from None
     try:
         loaded = trimesh.load(str(path), force="mesh", process=False)
     except Exception as exc:     # noqa: BLE001 - trimesh raises many types for bad files

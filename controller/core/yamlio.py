@@ -34,6 +34,7 @@ from ruamel.yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 from ruamel.yaml.reader import ReaderError
 
 from .errors import InputError, InputErrors
+from .inputfiles import read_input_bytes
 
 MAX_NODES = 200_000          # constructed values, aliases expanded: bounds an alias bomb
 MAX_FILE_BYTES = 4_000_000
@@ -193,9 +194,8 @@ def parse_yaml_text(text_bytes: bytes, path: str) -> YamlDoc:
 
 def load_yaml(path: str | Path) -> YamlDoc:
     """Read and parse a YAML file; every failure is an :class:`InputError`."""
-    p = Path(path)
     try:
-        raw = p.read_bytes()
+        raw = read_input_bytes(path)
     except FileNotFoundError:
         raise InputError("no such file", path=str(path)) from None
     except IsADirectoryError:

@@ -219,6 +219,32 @@ def average_profiles(depths_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.
     return mean, count.astype(np.int64), std
 
 
+def far_field_error_mm(depth_mm: np.ndarray, x_mm: np.ndarray, inner_mm: float, min_samples: int = 8
+                       ) -> np.ndarray:
+    """(N,2) what averaged profiles (N,L) read beyond ``inner_mm`` of the contact: per profile
+    the median depth there (mm; the error common to the line) and the scatter of one sample
+    (mm; 1.4826 x the median absolute difference of neighbouring samples over sqrt(2)).
+    NaN where fewer than ``min_samples`` samples are seen that far out.
+
+    Where a stiff material's dent has faded (an elastic dent falls as 1/r: a few per cent
+    of its peak 15-40 mm out) the depth is the measurement's own error:
+    the loaded burst's and the reference burst's correlated shapes (the scanner's floor,
+    common to all scans of one burst, so no number of scans averages it out) and each
+    sample's independent noise from both. The scatter of the loaded scans about their mean
+    sees only the last of these. A soft material's dent reaches further: its far field
+    overstates the error, harmless beside a dent of millimetres.
+    """
+    d = np.asarray(depth_mm, dtype=float)
+    d = d[None, :] if d.ndim == 1 else d
+    far = np.abs(np.asarray(x_mm, dtype=float)) > inner_mm
+    out = np.full((d.shape[0], 2), np.nan)
+    for i, row in enumerate(d):
+        seen = row[far & np.isfinite(row)]
+        if seen.size >= min_samples:
+            out[i] = np.median(seen), 1.4826 * np.median(np.abs(np.diff(seen))) / np.sqrt(2.0)
+    return out
+
+
 @dataclass(frozen=True)
 class RobustMean:
     """A step's averaged profile after outlier rejection, and what was rejected.

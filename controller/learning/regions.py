@@ -10,11 +10,13 @@ slope), and the surface graph (neighbour pairs of the neural-gas units).
 2. The number of regions comes from the data: Gaussian mixtures for k = 1..kmax,
    the one with the lowest BIC wins. Optionally, clusters whose centroids differ by
    less than ``merge_sigmas`` measurement noises in every feature are merged (the
-   mixture may split a material whose features are not Gaussian). Then clusters whose
-   median peak depths differ by less than a factor ``min_contrast`` at every survey
-   force are merged: BIC finds any structure, including the smooth drift of one
-   material's visible dent with the local geometry (rims, slopes, tilt) and with its
-   support (a plate clamped at its edges), which is not a different elasticity. A
+   mixture may split a material whose features are not Gaussian). Then clusters that the
+   contrast rule does not call two materials are merged (:func:`_merge_by_contrast`:
+   median peak depths a factor ``min_contrast`` apart, beyond the measured noise of a
+   peak, at a survey force where a dent is measured): BIC finds any structure,
+   including the smooth drift of one material's visible dent with the local geometry
+   (rims, slopes, tilt) and with its support (a plate clamped at its edges), which is
+   not a different elasticity. A
    homogeneous object gives one region.
 3. Spatial coherence on the surface graph: a few passes of iterated conditional
    modes (each point takes the region maximising its feature log-likelihood plus
@@ -33,7 +35,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -44,6 +46,14 @@ _MAX_ICM_PASSES = 20
 # shallow is about the standard error of an averaged survey profile.
 DEFAULT_LOG_FLOOR_MM = 0.005
 _MAX_ISLAND_PASSES = 10
+# A dent (+ the noise floor) within this many scatters of a peak (peak_noise_mm) is not
+# measured: the peak of a profile that flat is the largest of its noisy samples near the
+# contact (about two noises above the dent on the 10-20 samples there), so two such peaks
+# say nothing of which material is stiffer. See _merge_by_contrast.
+MEASURED_DENT_NOISES = 5.0
+# A cluster with fewer points is split off only by a contrast that holds at every measured
+# survey force (see _merge_by_contrast).
+MIN_POINTS_FOR_ONE_FORCE = 3
 
 
 # -- features ----------------------------------------------------------------------------------
@@ -329,19 +339,35 @@ def _merge_by_noise(features: np.ndarray, labels: np.ndarray, noise: np.ndarray,
 
 
 def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: list[int],
-                       min_contrast: float, floor_mm: float = 0.0) -> tuple[np.ndarray, int]:
-    """Merge clusters that are not two materials, closest pair first: their median depths
-    (+ ``floor_mm``, the noise under which a dent is not seen) differ by less than a factor
-    ``min_contrast`` at every survey force (``depth_columns``: the peak-depth features), or
-    the difference does not hold at every force (one is shallower by the contrast at one
-    force, and not clearly shallower, by 3 noises of a difference, at another).
+                       min_contrast: float, floor_mm: float = 0.0,
+                       far_field_mm: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """Merge clusters that are not two materials, closest pair first. Two clusters are two
+    materials when, at some survey force at which either dent is measured (deeper than
+    ``MEASURED_DENT_NOISES`` x the scatter of one of its points' peak depth, measured from
+    its points' far fields ``far_field_mm`` (N,2), see :func:`peak_noise_mm`; ``floor_mm``
+    without them), their median depths (+ ``floor_mm``) differ by at least a factor
+    ``min_contrast`` and by more than 3 standard errors of the difference of the medians
+    (:func:`_difference_standard_error`), and at no
+    measured force is the other one deeper by more than 3 standard errors; a cluster of
+    fewer than ``MIN_POINTS_FOR_ONE_FORCE`` points must be deeper (or shallower) by 3
+    standard errors at every measured force. ``depth_columns``: the peak-depth features.
 
     The mixture splits one material wherever geometry shifts the visible dent (the rim of
     a pillow, a slope, a tilted ball surface: up to ~30 % deeper in the simulator, where
     the probe's shadow ends closer to the contact); that is not a different elasticity.
-    A stiffer material dents less at every force; two clusters of a stiff material whose
-    visible dents are a few hundredths of a millimetre can differ by 4x at one force
-    (ripple of the profile near the tip) and not at all at the other.
+
+    Why only measured forces count: at a small force a stiff material's peak is the largest
+    of the noisy samples near the contact, not its dent. On generated slab 2001 hard rubber
+    and elastomer read 0.009 and 0.019 mm at 2 N and 0.016 and 0.066 mm at 6.5 N (peak
+    scatter ~0.008 mm), and the mixture cut the hard rubber into clusters by its 2 N noise,
+    some reading as deep as the elastomer there. Requiring the contrast at every force
+    merged the two materials (one region in round 0) or joined half the hard rubber to the
+    elastomer; the contrast at any force, noise included, split the hard rubber in two. Why
+    not only the largest force: a foam's dent saturates (on suite block 1004 sponge and
+    foam read 0.72 and 1.95 mm at 3 N, 2.0 and 2.5 mm at 9 N). A stiffer material dents
+    less at every force, so an order clearly reversed at another force refutes the pair;
+    one merely unresolved there does not. A pair measured at no force is one material as
+    far as the survey can tell.
     """
     merges = 0
     if not depth_columns or min_contrast <= 1.0:
@@ -351,18 +377,33 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     log_c = float(np.log(min_contrast))
     labels, k = _compact(labels)
     med = np.maximum(_region_medians(cols, labels, k), 0.0) + floor
+    far = np.full((labels.shape[0], 2), np.nan) if far_field_mm is None else np.asarray(far_field_mm, dtype=float)
+    noise = np.array([peak_noise_mm(far[labels == c], floor) for c in range(k)])
+    count = _finite_counts(cols, labels, k)
     while k > 1:
         logs = np.log(med)
         signed = logs[:, None, :] - logs[None, :, :]                       # (k,k,F)
         finite = np.isfinite(signed)
-        absd = np.where(finite, np.abs(signed), -np.inf)
-        gap = absd.max(axis=2)
-        at = np.take_along_axis(signed, absd.argmax(axis=2)[:, :, None], axis=2)[:, :, 0]
-        # Shallower at every force by more than 3 noises of a difference (in mm: a dent at
-        # the noise floor is shallower than one 5 noises deep, whatever their ratio says).
-        diff_mm = med[:, None, :] - med[None, :, :]
-        resolved = (np.sign(at)[:, :, None] * diff_mm > 3.0 * np.sqrt(2.0) * floor) | ~finite
-        same = (gap < log_c) | ~resolved.all(axis=2)
+        seen = med > MEASURED_DENT_NOISES * noise[:, None]                   # (k,F)
+        measured = finite & (seen[:, None, :] | seen[None, :, :])
+        seen_at_all = measured.any(axis=2)
+        diff_mm = med[:, None, :] - med[None, :, :]                         # > 0: i deeper
+        margin = 3.0 * _difference_standard_error(noise, count)
+        # i deeper than j by the contrast and by 3 standard errors at some measured force,
+        # and j nowhere clearly deeper (and the other way round).
+        deeper = measured & (diff_mm > margin)
+        shows = np.any(deeper & (signed >= log_c), axis=2)
+        # A cluster of one or two points is one or two measurements: one scattered return can
+        # fake a contrast at one force, so it must be clearly deeper (or shallower) at every
+        # measured force.
+        few = np.minimum(count.min(axis=1)[:, None], count.min(axis=1)[None, :]) < MIN_POINTS_FOR_ONE_FORCE
+        everywhere = np.all(deeper | ~measured, axis=2)
+        shows &= ~few | everywhere
+        shows = (shows & ~np.any(deeper.transpose(1, 0, 2), axis=2)) | (shows.T & ~np.any(deeper, axis=2))
+        # Merge order: the ratio at the measured forces (at all forces for a pair measured at none).
+        absd = np.where(measured, np.abs(signed), -np.inf).max(axis=2)
+        gap = np.where(seen_at_all, absd, np.where(finite, np.abs(signed), -np.inf).max(axis=2))
+        same = ~shows
         same &= np.triu(np.ones((k, k), dtype=bool), 1) & np.isfinite(gap)
         if not same.any():
             break
@@ -376,8 +417,54 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
             merged = np.maximum(np.nanmedian(cols[members], axis=0), 0.0) + floor
         med = np.delete(med, j, axis=0)
         med[i] = merged
+        count = np.delete(count, j, axis=0)
+        count[i] = np.sum(np.isfinite(cols[members]), axis=0)
+        noise = np.delete(noise, j)
+        noise[i] = peak_noise_mm(far[members], floor)
         merges += 1
     return labels, merges
+
+
+def peak_noise_mm(far_field_mm: np.ndarray, floor_mm: float) -> float:
+    """The scatter (mm) of one point's peak depth among points of one material, from what
+    their averaged profiles read far from the contact (``far_field_mm`` (M,2): median depth
+    and one sample's scatter there, see :func:`profiles.far_field_error_mm`): the RMS of the
+    far-field level (1.4826 x its median absolute value) and the median sample scatter,
+    combined; ``floor_mm`` (the scans' standard error) when no point saw its far field.
+
+    Measured on each probe's own profile, not from differences between neighbouring
+    probes, so a seam between two materials cannot inflate it. Against the simulator's
+    truth (the peaks' scatter among probes of one material more than 8 mm from a seam) on
+    the generated objects' recorded surveys: hard rubber 0.0055-0.0067 mm against
+    0.007-0.0105 mm, elastomer 0.0036-0.0078 mm against 0.002-0.0055 mm, gel 0.014-0.027 mm
+    against 0.013-0.017 mm. The scans' standard error (the scatter of one step's loaded
+    scans over sqrt(scans)) misses the reference scans' noise and the correlated floor
+    (0.0026 mm on slab 2001), and comes from the session's first steps, whichever material
+    they pressed (0.012 mm, foam's, on composite box 1010): no floor for another material.
+    """
+    f = np.asarray(far_field_mm, dtype=float).reshape(-1, 2)
+    level, scatter = f[np.isfinite(f[:, 0]), 0], f[np.isfinite(f[:, 1]), 1]
+    if level.size == 0:
+        return float(floor_mm)
+    common = 1.4826 * float(np.median(np.abs(level)))
+    one = float(np.median(scatter)) if scatter.size else 0.0
+    return max(float(np.hypot(common, one)), 1e-6)
+
+
+def _finite_counts(columns: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
+    """(k, C) number of finite values of each column in each region."""
+    return np.stack([np.sum(np.isfinite(columns[labels == j]), axis=0) for j in range(k)]).astype(float)
+
+
+def _difference_standard_error(noise_mm: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """(k, k, C) standard error (mm) of the difference of two regions' median peak depths
+    from the measurement alone: each region's peak scatter ``noise_mm`` (k,) over sqrt(n),
+    times sqrt(pi / 2) from three points on (a median's efficiency against the mean's).
+    A material's own drift with geometry and support is not measurement error: the
+    contrast factor is what tells it from another material."""
+    eff = np.where(count >= 3, np.pi / 2.0, 1.0) / np.maximum(count, 1.0)
+    var = np.asarray(noise_mm, dtype=float)[:, None] ** 2 * eff                  # (k,C)
+    return np.sqrt(var[:, None, :] + var[None, :, :])
 
 
 def _icm(loglik: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray], beta: float,
@@ -402,15 +489,16 @@ def _icm(loglik: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray], b
 
 
 def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.ndarray],
-                    min_island_points: int, log_depth: np.ndarray | None = None,
-                    min_log_gap: float = np.inf) -> tuple[np.ndarray, list[int], list[int]]:
+                    min_island_points: int,
+                    distinct: Callable[[np.ndarray, np.ndarray], bool] | None = None
+                    ) -> tuple[np.ndarray, list[int], list[int]]:
     """Relabel connected same-label components smaller than ``min_island_points`` to the
     majority label of the points bordering them; isolated points (no neighbours) are kept.
 
-    With ``log_depth`` (N,F) (log peak depths): an island whose median differs from the
-    bordering majority region's median by at least ``min_log_gap`` at some force is kept:
-    one probe on a small inclusion is a material, not noise. Returns (labels, relabelled
-    point indices, kept island point indices).
+    With ``distinct(members, region)`` (point indices of the island and of the bordering
+    majority region): an island it calls another material is kept: one probe on a small
+    inclusion is a material, not noise. Returns (labels, relabelled point indices, kept
+    island point indices).
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -439,7 +527,7 @@ def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.n
                 continue
             votes = np.bincount(labels[border])
             new = int(np.argmax(votes))
-            if log_depth is not None and _distinct(log_depth, members, np.flatnonzero(labels == new), min_log_gap):
+            if distinct is not None and distinct(members, np.flatnonzero(labels == new)):
                 kept.update(int(i) for i in members)
                 continue
             labels[members] = new
@@ -448,15 +536,6 @@ def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.n
         if not changed:
             break
     return labels, sorted(set(relabelled)), sorted(kept)
-
-
-def _distinct(log_depth: np.ndarray, members: np.ndarray, region: np.ndarray, min_log_gap: float) -> bool:
-    """True when the members' median log depth differs from the region's by >= ``min_log_gap``
-    at some force."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        gap = np.abs(np.nanmedian(log_depth[members], axis=0) - np.nanmedian(log_depth[region], axis=0))
-    return bool(np.nanmax(np.where(np.isfinite(gap), gap, 0.0), initial=0.0) >= min_log_gap)
 
 
 def _region_medians(columns: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
@@ -519,7 +598,8 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
                     feature_noise: np.ndarray | None = None, merge_sigmas: float = 4.0,
                     min_contrast: float = MIN_CONTRAST, max_dims: int = 3, order_feature: int = 0,
                     seed: int = 0, noise_mm: float | None = None,
-                    previous_labels: np.ndarray | None = None) -> RegionMap:
+                    previous_labels: np.ndarray | None = None,
+                    far_field_mm: np.ndarray | None = None) -> RegionMap:
     """Cluster surveyed points (features (N,D), surface graph edges (E,2)) into regions.
 
     ``feature_noise`` (D,): measurement noise of each feature (e.g. the standard error of
@@ -529,7 +609,11 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
     standard error of an averaged survey profile (mm), the floor under the peak depths'
     logarithms (default :data:`DEFAULT_LOG_FLOOR_MM`). ``previous_labels`` (N,): each
     point's region in the previous round (-1 for points added since): regions separated
-    then stay separable now (see the module docstring). See the module docstring for the steps.
+    then stay separable now (see the module docstring). ``far_field_mm`` (N,2): what each
+    point's averaged profile at the smallest survey force reads far from the contact
+    (:func:`profiles.far_field_error_mm`), from which the contrast rule measures the scatter
+    of a peak depth per cluster (:func:`peak_noise_mm`); without it the scatter is
+    ``noise_mm``. See the module docstring for the steps.
     """
     x = np.asarray(features, dtype=float)
     if x.ndim != 2 or x.shape[0] == 0:
@@ -554,9 +638,14 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
         z_std, mean, std = _standardise(x)
         proj = _projection(z_std, max_dims)
     z = z_std @ proj.T
-    log_depth = z_std[:, log_cols] if log_cols else None
 
     stats: dict[str, Any] = {}
+    far = None
+    if far_field_mm is not None:
+        far = np.asarray(far_field_mm, dtype=float)
+        if far.shape != (n, 2):
+            raise ValueError(f"far_field_mm must be (N,2) for N={n} points; got {far.shape}")
+        stats["peak_noise_mm"] = peak_noise_mm(far, floor_mm)
     if n >= 4:
         labels, bics = _choose_mixture(z, kmax, seed)
     else:
@@ -568,7 +657,7 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
         # The mixture may put two lone probes of two different inclusions in one component
         # (one component per probe costs more than the likelihood it buys): split every
         # cluster by the materials that the contrast rule alone finds among single points.
-        alone, _ = _merge_by_contrast(x, np.arange(n), depth_cols, min_contrast, floor_mm)
+        alone, _ = _merge_by_contrast(x, np.arange(n), depth_cols, min_contrast, floor_mm, far)
         labels, k = _compact(labels * (int(alone.max()) + 1) + alone)
     if previous_labels is not None:
         prev = np.asarray(previous_labels, dtype=np.int64).reshape(-1)
@@ -583,7 +672,7 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
         labels, k = _compact(labels)
     stats["merged"] = merges
     if k > 1:
-        labels, contrast_merges = _merge_by_contrast(x, labels, depth_cols, min_contrast, floor_mm)
+        labels, contrast_merges = _merge_by_contrast(x, labels, depth_cols, min_contrast, floor_mm, far)
         labels, k = _compact(labels)
         stats["merged_by_contrast"] = contrast_merges
 
@@ -593,8 +682,15 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
     if k > 1:
         means, cov, log_prior = _fit_gaussians(z, labels, k, reg)
         labels, icm_changes = _icm(_gauss_loglik(z, means, cov) + log_prior, labels, neighbours, beta)
-        labels, islands, kept = _remove_islands(labels, e, neighbours, min_island_points, log_depth,
-                                                float(np.log(min_contrast)))
+        def distinct(members: np.ndarray, region: np.ndarray) -> bool:
+            # Another material by the same contrast rule that made the regions.
+            both = np.concatenate([members, region])
+            two = np.concatenate([np.zeros(members.size, np.int64), np.ones(region.size, np.int64)])
+            return int(_merge_by_contrast(x[both], two, depth_cols, min_contrast, floor_mm,
+                                          None if far is None else far[both])[0].max()) > 0
+
+        labels, islands, kept = _remove_islands(labels, e, neighbours, min_island_points,
+                                                distinct if log_cols and min_contrast > 1.0 else None)
         labels, bands = _absorb_transition_bands(x, labels, neighbours, depth_cols)
         labels, k = _compact(labels)
     else:

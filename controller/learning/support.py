@@ -28,8 +28,11 @@ support code:
   the contact). Used only where the mirror is admitted (the 90-degree profile's unseen
   half is a mirror);
 - ``unsupported``: none of the above; filled by shape-preserving interpolation between
-  supported samples (held flat beyond the last one), so the value is bounded by its
-  supported neighbours, and flagged. Where the mirror is not admitted the unseen side
+  supported samples, so the value is bounded by its supported neighbours, and flagged.
+  Beyond the last supported sample towards the grid's end the dent decays towards the
+  undeformed surface as the region's own measured tails do (:func:`tail_exponent`: a
+  power of the distance from the tip, fitted to the measured samples beyond the contact;
+  held flat when nothing measured it). Where the mirror is not admitted the unseen side
   of a row is first guessed from the row's own reflection about the tip (a dent falls
   off beyond the tip on both sides), flagged unsupported all the same.
 
@@ -105,26 +108,62 @@ class CompletedTargets:
     support: np.ndarray
     mirror: MirrorTest
     counts: dict[str, int] = field(default_factory=dict)
+    tail_exponent: float = 0.0           # the unsupported tails' decay (:func:`tail_exponent`)
 
 
 # --------------------------------------------------------------------------- helpers
 
-def fill_gaps(x_mm: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """NaN samples filled by monotone (PCHIP) interpolation between finite ones, held flat
-    beyond the first and last; all NaN stays all NaN. Never overshoots its neighbours."""
+def fill_gaps(x_mm: np.ndarray, values: np.ndarray, centre_mm: float = 0.0, exponent: float = 0.0,
+              near_mm: float = 1.0) -> np.ndarray:
+    """NaN samples filled by monotone (PCHIP) interpolation between finite ones; beyond the
+    first and last, the end value times (r_end / r) ** ``exponent``, r the distance from
+    ``centre_mm`` (the tip) but at least ``near_mm`` (0: held flat); all NaN stays all NaN.
+    Never overshoots its neighbours, and the ends only decay towards zero."""
     x = np.asarray(x_mm, dtype=float)
     v = np.asarray(values, dtype=float)
     ok = np.isfinite(v)
     if ok.all() or not ok.any():
         return v.copy()
     if ok.sum() == 1:
-        return np.full_like(v, v[ok][0])
-    from scipy.interpolate import PchipInterpolator   # training only: predict needs only the names here
+        out = np.full_like(v, v[ok][0])
+    else:
+        from scipy.interpolate import PchipInterpolator   # training only: predict needs only the names here
 
-    out = PchipInterpolator(x[ok], v[ok], extrapolate=False)(x)
-    out[x < x[ok][0]] = v[ok][0]
-    out[x > x[ok][-1]] = v[ok][-1]
+        out = PchipInterpolator(x[ok], v[ok], extrapolate=False)(x)
+    r = np.maximum(np.abs(x - centre_mm), near_mm)
+    for end, beyond in ((np.flatnonzero(ok)[0], x < x[ok][0]), (np.flatnonzero(ok)[-1], x > x[ok][-1])):
+        # A decay only away from the tip: an end on the tip's near side holds flat.
+        decay = np.minimum((r[end] / r[beyond]) ** exponent, 1.0) if exponent > 0.0 else 1.0
+        out[beyond] = v[end] * decay
     return np.where(ok, v, out)
+
+
+def tail_exponent(steps: RegionSteps, tip_radius_mm: float, min_samples: int = 8) -> float:
+    """How the region's measured dents decay beyond the contact: the median, over every row
+    and side, of the log-log slope of depth against the distance from the tip, fitted to the
+    measured samples more than two tip radii from it and deeper than 10 % of the row's
+    deepest sample (the tail above the noise). 0 (no decay) when no row has ``min_samples``
+    such samples over a distance ratio of 1.35 or more.
+
+    A dent in a half-space falls off as a power of the distance from the load (1/r for a
+    point load far from it); a layer on a support, or a body that sinks as a whole, falls
+    off faster or slower, so the power is the region's own, not assumed. Clipped to [0, 3].
+    """
+    x = steps.x_mm
+    slopes: list[float] = []
+    for k in range(len(steps)):
+        d = steps.depth_mm[k]
+        if not np.isfinite(d).any():
+            continue
+        centre = _centre(steps.tip_x_mm[k])
+        peak = float(np.nanmax(d))
+        for side in (-1.0, 1.0):
+            r = side * (x - centre)
+            use = np.isfinite(d) & (r > 2.0 * tip_radius_mm) & (d > 0.1 * peak) & (d > 0.0)
+            if use.sum() < min_samples or np.ptp(np.log(r[use])) < np.log(1.35):
+                continue
+            slopes.append(-float(np.polyfit(np.log(r[use]), np.log(d[use]), 1)[0]))
+    return float(np.clip(np.median(slopes), 0.0, 3.0)) if slopes else 0.0
 
 
 def sphere_depth_mm(x_mm: np.ndarray, tip_x_mm: float, tip_depth_mm: float, radius_mm: float) -> np.ndarray:
@@ -265,6 +304,7 @@ def complete_targets(steps: RegionSteps, tip_radius_mm: float) -> CompletedTarge
     measured = np.isfinite(depth)
     support[measured] = MEASURED
     mirror = mirror_test(steps)
+    power = tail_exponent(steps, tip_radius_mm)
     rows = _group(steps)
     if mirror.admitted:
         for (p, a, f), k in rows.items():
@@ -284,7 +324,7 @@ def complete_targets(steps: RegionSteps, tip_radius_mm: float) -> CompletedTarge
     normal_rows = [k for k in range(m) if _is_normal(steps.angle_deg[k])]
     for k in normal_rows:
         _complete_normal(x, depth[k], support[k], float(steps.tip_x_mm[k]), float(steps.tip_depth_mm[k]),
-                         tip_radius_mm, mirror.admitted)
+                         tip_radius_mm, mirror.admitted, power)
     family = _normal_families(steps, depth, normal_rows)
     for k in range(m):
         if _is_normal(steps.angle_deg[k]):
@@ -294,15 +334,20 @@ def complete_targets(steps: RegionSteps, tip_radius_mm: float) -> CompletedTarge
             _infer_oblique(x, depth[k], support[k], float(steps.force_n[k]), float(steps.angle_deg[k]), fam,
                            tip_radius_mm, float(steps.tip_x_mm[k]))
         _respect_tip(x, depth[k], float(steps.tip_x_mm[k]), float(steps.tip_depth_mm[k]), tip_radius_mm)
-        depth[k] = fill_gaps(x, depth[k])
+        depth[k] = fill_gaps(x, depth[k], _centre(steps.tip_x_mm[k]), power, tip_radius_mm)
     counts = {name: int(np.count_nonzero(support == code)) for code, name in enumerate(SUPPORT_NAMES)}
-    return CompletedTargets(depth, support, mirror, counts)
+    return CompletedTargets(depth, support, mirror, counts, power)
+
+
+def _centre(tip_x_mm: float) -> float:
+    """The tip's position along t (0, the planned point, when the poses did not give it)."""
+    return float(tip_x_mm) if np.isfinite(tip_x_mm) else 0.0
 
 
 def _reflect_about_tip(x: np.ndarray, depth: np.ndarray, tip_x: float) -> None:
     """Missing samples from the row's own reflection about the tip's position (0 if unknown);
     the support code stays unsupported."""
-    centre = tip_x if np.isfinite(tip_x) else 0.0
+    centre = _centre(tip_x)
     seen = np.isfinite(depth)
     if seen.sum() < 2:
         return
@@ -315,7 +360,7 @@ def _reflect_about_tip(x: np.ndarray, depth: np.ndarray, tip_x: float) -> None:
 
 
 def _complete_normal(x: np.ndarray, depth: np.ndarray, support: np.ndarray, tip_x: float, tip_depth: float,
-                     radius: float, mirror_admitted: bool) -> None:
+                     radius: float, mirror_admitted: bool, tail_power: float) -> None:
     """A 90-degree row in place: its own mirror (when admitted: the row is its own pair),
     the tip within its half-width, then the gaps, kept between the sphere (the surface
     cannot be above the tip) and the tip's depth (a normal push is deepest under the tip)."""
@@ -330,7 +375,7 @@ def _complete_normal(x: np.ndarray, depth: np.ndarray, support: np.ndarray, tip_
         zone = np.abs(x - tip_x) <= half
         depth[zone] = sphere[zone]
         support[zone] = TIP
-    filled = fill_gaps(x, depth)
+    filled = fill_gaps(x, depth, _centre(tip_x), tail_power, radius)
     gap = ~np.isfinite(depth)
     if np.isfinite(tip_depth) and tip_depth > 0.0:
         under = gap & np.isfinite(sphere)
