@@ -129,12 +129,12 @@ def test_random_bytes_in_a_mesh_file_long(edits: list[tuple[int, bytes]], tmp_pa
 
 
 # ----------------------------------------------------------------------------- journals
-@pytest.fixture(scope="module")
+@pytest.fixture
 def setup(tiny_session: dict) -> dict:
     return tiny_session
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def reference(tiny_session: dict) -> tuple[Path, Outcome, float]:
     """An uninterrupted finished session, its outcome and its wall time."""
     return tiny_session["finished"], tiny_session["outcome"], tiny_session["wall_s"]

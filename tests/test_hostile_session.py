@@ -57,12 +57,12 @@ def _phases(session: Path) -> set[tuple[str, int]]:
     return set(_sql(session, "SELECT name, round FROM phases"))
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def setup(tiny_session: dict) -> dict:
     return tiny_session
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def finished(tiny_session: dict) -> Path:
     """A finished tiny session (never modified: tests work on copies)."""
     return tiny_session["finished"]

@@ -17,7 +17,8 @@ from elastoprobe.controller.drivers.line_scanner import (
 from elastoprobe.controller.core.errors import DeviceError, DeviceTimeout
 from elastoprobe.sim.servers.scanner_serial import ScannerFaults, ScannerPtyServer
 
-pytestmark = pytest.mark.timeout(60)
+# Real transports on loopback, timed: never beside other tests (the default run's second part).
+pytestmark = [pytest.mark.timeout(60), pytest.mark.loopback]
 N = 256
 Z_SCALE = 0.002
 DEVICE_OFFSET_S = 1234.5

@@ -21,7 +21,8 @@ from elastoprobe.controller.core.errors import DeviceTimeout, ProtocolError
 from elastoprobe.sim.servers.netft_server import (
     NetFTFaults, NetFTServer, constant_source, ramp_source)
 
-pytestmark = pytest.mark.timeout(60)
+# Real transports on loopback, timed: never beside other tests (the default run's second part).
+pytestmark = [pytest.mark.timeout(60), pytest.mark.loopback]
 CPF = 1_000_000
 CPT = 1_000_000
 

@@ -33,7 +33,7 @@ AIMED = [
 ]
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def setup(tiny_session: dict) -> dict:
     """The shared tiny session's cell, plan and lock directory (conftest.py); killed runs
     write beside its finished one, never into it."""
@@ -41,7 +41,7 @@ def setup(tiny_session: dict) -> dict:
     return tiny_session
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def reference(setup: dict) -> Outcome:
     """The uninterrupted session with the same seed: the shared tiny session. Its wall time
     (``wall_s``) says how long a whole session takes on this machine now: random kills are
