@@ -4,7 +4,8 @@ the protective-stop unlock is never re-armed unseen (issue #15's soak found an F
 during a lost connection in the cloud sweep, and a frozen stream during a protective
 stop's recovery, re-armed with the first fault's retry and never journaled; then a
 connection lost just after a protective stop, waited out by the recovery and never
-journaled).
+journaled; then a protective stop met while the connection was lost, unlocked by that
+recovery and never journaled).
 
 Sessions run in this process on the tiny plan; both faults are placed in the cloud sweep
 (its simulator key, with delays), and an emergency stop later in the sweep bounds the
@@ -37,6 +38,9 @@ FIRST_AT_S = 3.0        # into the sweep: the arm is travelling or scanning a li
     ("protective_stop", "ft_frozen", 0.5, "frozen"),
     # The connection drops 0.03 s after a protective stop, as the controller stops the arm.
     ("protective_stop", "connection_loss", 0.03, "connection"),
+    # The robot stops itself (a collision, a joint limit) 0.4 s into a lost connection: the
+    # recovery finds it once the link is back and must not unlock it unseen.
+    ("connection_loss", "protective_stop", 0.4, "protective_stop"),
 ])
 def test_a_fault_during_recovery_is_journaled_and_pauses(tmp_path: Path, first: str, second: str,
                                                              after_s: float, seen_as: str) -> None:
