@@ -730,7 +730,10 @@ class Session:
             # operator to read. The robot has halted the arm already.
             message = "the robot is in a protective stop"
             self._journal_recovery_fault(fault, "protective_stop", message, None)
-            return f"protective_stop waiting to recover: {message}"
+            # A trip the guard latched meanwhile (an F/T spike while the link was down) is
+            # one more fault of its own: journaled too, and named in the pause.
+            tripped = self._trip_since(fault, "waiting to recover")
+            return f"protective_stop waiting to recover: {message}" + (f"; {tripped}" if tripped else "")
         if status.protective_stop and not arm.recover_protective_stop():
             return "the protective stop could not be cleared from the dashboard"
         # The guard keeps checking while the controller waits for the connection or the
