@@ -675,6 +675,17 @@ def _paused_fault_ids(children: list[ChildRun], faults: list[Any], run_of_fault:
         if (reason.startswith(last.kind) or (last.kind == "disk_error" and reason.startswith("journal write failed"))
                 or (interrupted is not None and reason.startswith(interrupted.group(1)))):
             paused.add(last.fault_id)
+            if interrupted is None:
+                continue
+            # One recovery may meet more than one fault (a protective stop and a trip latched
+            # while the link was down): each journaled "during recovery from K" just before
+            # it is named in the same pause.
+            of_run = [f for f in faults if run_of_fault[f.fault_id] == run_id]
+            for f in reversed(of_run[:-1]):
+                also = _RECOVERY_PREFIX.match(f.message or "")
+                if also is None or also.group(1) != interrupted.group(1):
+                    break
+                paused.add(f.fault_id)
     return paused
 
 

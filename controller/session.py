@@ -722,6 +722,18 @@ class Session:
             return "the arm did not reconnect within 10 s"
         if status.emergency_stop:
             return "the emergency stop is still engaged (release it at the cell, then resume)"
+        if status.protective_stop and fault.kind in CONNECTION_FAULT_KINDS:
+            # The robot stopped itself (a collision, a joint limit) while the link was down:
+            # neither the link's restart nor the watchdog makes a protective stop (the
+            # watchdog only stops the program), so it is a fault of its own, journaled as a
+            # protective stop is (no guard trip, so no raw F/T) and left locked for the
+            # operator to read. The robot has halted the arm already.
+            message = "the robot is in a protective stop"
+            self._journal_recovery_fault(fault, "protective_stop", message, None)
+            # A trip the guard latched meanwhile (an F/T spike while the link was down) is
+            # one more fault of its own: journaled too, and named in the pause.
+            tripped = self._trip_since(fault, "waiting to recover")
+            return f"protective_stop waiting to recover: {message}" + (f"; {tripped}" if tripped else "")
         if status.protective_stop and not arm.recover_protective_stop():
             return "the protective stop could not be cleared from the dashboard"
         # The guard keeps checking while the controller waits for the connection or the

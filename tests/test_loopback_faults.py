@@ -136,6 +136,10 @@ def test_rtde_connection_dropped_mid_move_stops_the_arm_and_the_link_comes_back(
         assert rig.emulator.tcp_pose_ur()[1] * 1e3 < far.position_mm[1] - 20.0
         # The link restarted its ur_rtde child: the arm answers and moves again.
         assert wait_for(lambda: _status_ok(arm), 20.0)
+        # The watchdog and the new child's upload only stop and replace the program: the
+        # link's restart makes no protective stop of its own (the session journals one found
+        # while recovering from a lost connection as a fault of its own, docs/design.md "Faults").
+        assert not arm.status().protective_stop
         assert wait_motion(arm.move_linear(far, 100.0, 500.0), 10.0) == MotionState.DONE
         assert rig.hw.stats()["link_restarts"] >= 1
     finally:
