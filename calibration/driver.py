@@ -93,11 +93,10 @@ def touch(head: Toolhead, direction: np.ndarray, max_distance_mm: float,
     e = np.asarray(direction, dtype=float) / np.linalg.norm(direction)
     head.tare()
     fast_mm = 0.0 if expected_mm is None else min(max(expected_mm - TOUCH_SLOW_ZONE_MM, 0.0), max_distance_mm)
-    if fast_mm > 0.0 and head.seek_contact(e, fast_mm):
-        head.hold(0.05)
-        return head.pose()
     rest_mm = max_distance_mm - fast_mm
-    if rest_mm <= 0.0 or not head.seek_contact(e, rest_mm, SLOW_TOUCH_SPEED_MM_S):
+    touched = (fast_mm > 0.0 and head.seek_contact(e, fast_mm)) or \
+        (rest_mm > 0.0 and head.seek_contact(e, rest_mm, SLOW_TOUCH_SPEED_MM_S))
+    if not touched:
         return None
     head.hold(0.05)
     return head.pose()

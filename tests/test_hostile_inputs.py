@@ -38,12 +38,12 @@ def _user_object(tmp: Path, edits: dict[str, str] | None = None, ply: bytes | No
     return tmp / "obj.yaml"
 
 
-def _plan(tmp: Path, obj: Path) -> Path:
+def _plan(tmp: Path, obj: Path, name: str = "plan.yaml") -> Path:
     text = (REPO / "config" / "plans" / "user_object.yaml").read_text()
     text = text.replace("cell: ../cells/sim.yaml", f"cell: {SIM_CELL}")
     text = text.replace("simulated_object: ../objects/user_object.yaml", f"simulated_object: {obj}")
-    (tmp / "plan.yaml").write_text(text)
-    return tmp / "plan.yaml"
+    (tmp / name).write_text(text)
+    return tmp / name
 
 
 def _mesh_bytes(vertices: np.ndarray | None = None, faces: np.ndarray | None = None) -> bytes:
@@ -309,7 +309,7 @@ def test_a_device_a_pipe_or_a_huge_file_named_as_an_input_file_is_refused_withou
     obj_text = obj.read_text()
     mesh_obj = tmp_path / "mesh_obj.yaml"
     mesh_obj.write_text(obj_text.replace("file: user_object.ply", f"file: {bad}"))
-    cases["mesh"] = (["check", str(_plan_for(tmp_path, mesh_obj, "mesh_plan.yaml"))], "mesh_obj.yaml:12:9")
+    cases["mesh"] = (["check", str(_plan(tmp_path, mesh_obj, "mesh_plan.yaml"))], "mesh_obj.yaml:12:9")
     cell = tmp_path / "cell.yaml"
     cell.write_text((REPO / "config" / "cells" / "sim_miscalibrated.yaml").read_text()
                     .replace("calibration_file: sim_miscalibrated.calibration.json", f"calibration_file: {bad}")
@@ -326,14 +326,6 @@ def test_a_device_a_pipe_or_a_huge_file_named_as_an_input_file_is_refused_withou
         assert code == 2, (what, err)
         assert named in err and "Traceback" not in err, (what, err)
         assert ("more than the" if special == "huge" else "not a regular file") in err, (what, err)
-
-
-def _plan_for(tmp: Path, obj: Path, name: str) -> Path:
-    """A plan like :func:`_plan`'s for ``obj``, written to ``name``."""
-    text = _plan(tmp, obj).read_text()
-    _plan(tmp, tmp / "obj.yaml")                  # plan.yaml back to the plain object
-    (tmp / name).write_text(text)
-    return tmp / name
 
 
 def test_an_output_that_is_a_device_a_pipe_or_a_folder_is_refused_and_left_as_it_was(
