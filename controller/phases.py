@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .acquire import unseen_of_cloud
 from .core.errors import BudgetSpent, SessionAborted
 from .core.geometry import INTERIOR_ANGLES_DEG, Pose, scan_direction
 from .journal import StepPlan
@@ -230,12 +231,17 @@ def phase_cloud(ctx: PhaseContext) -> None:
         for why in swept.refused:
             s._log("sweep_line_skipped", reason=why)
         sweep = swept.outputs()
-        s._log("sweep_unseen", unseen_mm2=sweep["unseen_mm2"], top_surface_mm2=sweep["top_surface_mm2"],
-               coverage=sweep["coverage"], patches=sweep["unseen_patches"])
         normals = None
         j.add_robot_time("sweep", robot_s)
     obj_pts, plane = remove_table_below(pts, seed=s.seed,
                                          link_mm=FOOT_LINK_SPACINGS * plan.cloud.sweep_spacing_mm)
+    if plan.cloud.source != "file":
+        # What the session keeps, the table gone, is what counts as seen.
+        sweep["coverage_swept"] = sweep["coverage"]
+        sweep.update(unseen_of_cloud(s.world.object_mesh, obj_pts, plan.sampling.max_tilt_deg,
+                                     sweep["seen_within_mm"]))
+        s._log("sweep_unseen", unseen_mm2=sweep["unseen_mm2"], top_surface_mm2=sweep["top_surface_mm2"],
+               coverage=sweep["coverage"], patches=sweep["unseen_patches"])
     if normals is None or len(normals) != len(obj_pts):
         normals = orient_outward_from_above(obj_pts, cl.estimate_normals(obj_pts, k=16))
     normals = canonical(normals, 6)
