@@ -190,8 +190,8 @@ def standing_on_table(points_mm: np.ndarray, height_mm: np.ndarray, clear_mm: fl
         return keep
     # The chain graph over the low points and the clear points within reach of one.
     high = np.flatnonzero(clear)
-    near, _ = cKDTree(pts[low]).query(pts[high], distance_upper_bound=link_mm)
-    high = high[np.isfinite(near)]
+    to_low_mm, _ = cKDTree(pts[low]).query(pts[high], distance_upper_bound=link_mm)
+    high = high[np.isfinite(to_low_mm)]
     nodes = np.concatenate([low, high])
     pairs = cKDTree(pts[nodes]).query_pairs(link_mm, output_type="ndarray")
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(nodes), len(nodes)))
