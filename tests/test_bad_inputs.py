@@ -36,6 +36,8 @@ PLANS = {
     "min_contrast_below_one.yaml": (4, 19, "greater than or equal to 1"),
     "missing_name.yaml": (1, 1, "missing required key 'name'"),
     "nan_value.yaml": (3, 13, "NaN and infinity are not allowed"),
+    "nested_block_deep.yaml": (66, 65, "nested more than 64 levels deep"),
+    "nested_flow_deep.yaml": (2, 71, "nested more than 64 levels deep"),
     "non_utf8.yaml": (1, 10, "not valid UTF-8"),
     "only_comments.yaml": (1, 1, "file is empty"),
     "python_tag.yaml": (1, 7, "python/object/apply:os.system' is not allowed"),
