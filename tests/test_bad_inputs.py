@@ -41,6 +41,8 @@ PLANS = {
     "non_utf8.yaml": (1, 10, "not valid UTF-8"),
     "only_comments.yaml": (1, 1, "file is empty"),
     "python_tag.yaml": (1, 7, "python/object/apply:os.system' is not allowed"),
+    "reference_direction_steep.yaml": (4, 24, "26.6 deg from vertical, within max_tilt_deg = 50"),
+    "reference_direction_zero.yaml": (3, 24, "the zero vector"),
     "scans_too_many.yaml": (3, 19, "less than or equal to 200"),
     "scans_zero.yaml": (3, 19, "greater than or equal to 1"),
     "seed_negative.yaml": (2, 7, "greater than or equal to 0"),

@@ -384,3 +384,19 @@ def test_a_damaged_calibration_file_is_bad_input_and_is_left_as_it_was(
     assert code == 2, err
     assert f"{damaged}: unreadable calibration file" in err and "Traceback" not in err
     assert damaged.read_bytes() == b'{"format": "elastoprobe-calibration", "sections": '
+
+
+def test_check_says_when_the_budget_stops_the_plan_before_anything_is_probed(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A sweep spacing of 0.001 mm is a valid number, and a sweep at 0.1 mm/s: `check` said
+    "valid, 4.00 h" while `run` would spend the whole budget sweeping and probe nothing."""
+    demo = REPO / "config" / "plans" / "demo.yaml"
+    text = demo.read_text().replace("sweep_spacing_mm: 4.0", "sweep_spacing_mm: 0.001")
+    text = text.replace("../cells/", f"{REPO}/config/cells/").replace("../objects/", f"{REPO}/config/objects/")
+    plan = tmp_path / "slow_sweep.yaml"
+    plan.write_text(text)
+    assert main(["check", str(plan)]) == 0
+    out = capsys.readouterr().out
+    assert "warning: the plan needs about" in out and "nothing would be probed" in out, out
+    assert main(["check", str(demo), "--json"]) == 0
+    assert '"budget_warning": null' in capsys.readouterr().out
