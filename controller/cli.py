@@ -33,12 +33,9 @@ def _existing_dir(value: str) -> Path:
 
 def _output_dir(value: str) -> str:
     """A folder to create or fill: an empty name (``--out "$UNSET"``) is refused, not read as
-    the default or as the current folder."""
+    the default or as the current folder. (Each command says itself what it finds there.)"""
     if not value.strip():
         raise argparse.ArgumentTypeError("the folder name is empty")
-    p = Path(value)
-    if p.exists() and not p.is_dir():
-        raise argparse.ArgumentTypeError(f"{value}: exists and is not a folder")
     return value
 
 
