@@ -400,3 +400,15 @@ def test_check_says_when_the_budget_stops_the_plan_before_anything_is_probed(
     assert "warning: the plan needs about" in out and "nothing would be probed" in out, out
     assert main(["check", str(demo), "--json"]) == 0
     assert '"budget_warning": null' in capsys.readouterr().out
+
+
+def test_a_binary_stl_of_the_wrong_length_is_named_for_what_it_is(tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """trimesh retries it as ASCII, which wants an optional module: the message named that
+    module ("No module named 'charset_normalizer'"), as if the user had to install something."""
+    obj = _user_object(tmp_path, edits={"file: user_object.ply": "file: broken.stl"})
+    (tmp_path / "broken.stl").write_bytes(b"\0" * 80 + (4_000_000_000).to_bytes(4, "little") + b"\xee" * 50)
+    assert main(["check", str(_plan(tmp_path, obj))]) == 2
+    err = capsys.readouterr().err
+    assert f"{obj}:12:9: " in err and "Binary STL has incorrect length" in err, err
+    assert "module" not in err, err
