@@ -27,6 +27,13 @@ to ``resolution_mm``. The boundary is resolved when every disagreeing edge is sh
 ``resolution_mm``. A midpoint is half an edge from its ends, so edges shorter than
 2 x min_spacing_mm cannot be split: choose resolution_mm >= 2 x min_spacing_mm, or the
 rounds end "spacing-limited" (``DensifyRound.stop`` with ``resolved`` False).
+
+Before any edge: a ring of points around every point of a region with fewer than three
+points (a small inclusion one survey probe landed on) and around every point its region
+explains badly (a misfit), at a quarter of the survey spacing there
+(:func:`ring_candidates`): an edge's midpoint, half a spacing out, mostly misses an
+inclusion the survey could miss, and a material seen at one point is the one a later
+round can lose.
 """
 from __future__ import annotations
 
@@ -443,7 +450,7 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
     (where a target may go); ``survey_scores``: pair scores from the survey itself
     (:func:`survey_pair_scores`); ``misfit`` (N,): how far each point lies beyond what its
     region explains (regions.survey_misfit; > 1: maybe another material): when all its
-    neighbours share its region, its ring of edges scores ``threshold`` x misfit;
+    neighbours share its region, it is probed around (a ring, see the module docstring) and its edges score ``threshold`` x misfit;
     ``levels`` (N,): each point's dent on the scale the regions differ on (mean log peak
     depth): a crossing edge is then split where the level interpolated between its ends
     crosses midway (surface_map.seam_fractions; a false-position step, clipped to the
