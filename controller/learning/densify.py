@@ -450,7 +450,8 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
     (where a target may go); ``survey_scores``: pair scores from the survey itself
     (:func:`survey_pair_scores`); ``misfit`` (N,): how far each point lies beyond what its
     region explains (regions.survey_misfit; > 1: maybe another material): when all its
-    neighbours share its region, it is probed around (a ring, see the module docstring) and its edges score ``threshold`` x misfit;
+    neighbours share its region, it is probed around (a ring, see the module docstring)
+    and its edges score ``threshold`` x misfit;
     ``levels`` (N,): each point's dent on the scale the regions differ on (mean log peak
     depth): a crossing edge is then split where the level interpolated between its ends
     crosses midway (surface_map.seam_fractions; a false-position step, clipped to the
