@@ -21,10 +21,11 @@ measurements choose between them:
 The fill is w x the join + (1 - w) x Hertz's shape, w fitted per region by holding back
 (:func:`fit_join_weight`): on every normal row the seen samples within one tip radius of
 the first are treated as unseen, filled from the next ones, and compared with what was
-measured there. On the simulator's objects (demo box and pillow, rubber ball, generated
-objects 1001, 1004, 1006, 1008: sponge, foam, elastomer, plate) the held-back choice of w
-cut the gap's error against the truth from 0.026-0.48 mm RMS (plain monotone interpolation)
-to 0.004-0.13 mm in 11 of 12 regions.
+measured there. On the simulator's objects (the demo's box, a plate on foam, and foam
+pillow; the rubber ball, sessions 1 and 2; generated objects 1001, 1004, 1006 and 1008,
+elastomers and sponges) the held-back choice of w cut the gap's error against the truth
+from 0.025-0.48 mm RMS (plain monotone interpolation, before) to 0.004-0.13 mm in 12 of 13
+regions (one sponge region of 1008 went from 0.025 to 0.029 mm).
 
 Distances r are along t from the tip, outward (> 0); depths in mm along -n.
 """

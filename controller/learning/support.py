@@ -22,11 +22,14 @@ support code:
   dent moves with the tangential load: there the sphere only bounds the surface (it
   cannot be above the tip) and the samples come from the inferred profile below;
 - ``inferred``: at an oblique angle, the unseen samples follow the same point's complete
-  90-degree profile at the same normal load F sin(alpha), shifted along t and offset to
-  meet the measured side (the normal and tangential contact problems decouple to first
-  order: the tangential load shifts the dent and adds an odd term that decays away from
-  the contact). Used only where the mirror is admitted (the 90-degree profile's unseen
-  half is a mirror);
+  90-degree profile at the same normal load F sin(alpha), centred on the tip, plus the
+  body's sink, plus the tangential load's odd term read off the seen side and reversed (the
+  normal and tangential contact problems decouple to first order: the tangential load
+  shifts the dent and adds an odd term that decays away from the contact). Used only where
+  the mirror is admitted (the 90-degree profile's unseen half is a mirror). Under a normal
+  push, the gap between the tip's zone and the first seen sample on each side follows the
+  contact's shape (:mod:`contact`: the sphere out to the contact's edge, then a fall fitted
+  to the region's own seen samples);
 - ``unsupported``: none of the above; filled by shape-preserving interpolation between
   supported samples, so the value is bounded by its supported neighbours, and flagged.
   Beyond the last supported sample towards the grid's end the dent decays towards the
