@@ -29,11 +29,10 @@ to ``resolution_mm``. The boundary is resolved when every disagreeing edge is sh
 rounds end "spacing-limited" (``DensifyRound.stop`` with ``resolved`` False).
 
 Before any edge: a ring of points around every point of a region with fewer than three
-points (a small inclusion one survey probe landed on) and around every point its region
-explains badly (a misfit), at a quarter of the survey spacing there
-(:func:`ring_candidates`): an edge's midpoint, half a spacing out, mostly misses an
-inclusion the survey could miss, and a material seen at one point is the one a later
-round can lose.
+points (a small inclusion one survey probe landed on, kept by the regions' contrast rule),
+at a quarter of the survey spacing there (:func:`ring_candidates`): an edge's midpoint,
+half a spacing out, mostly misses an inclusion the survey could miss, and a material seen
+at one point is the one a later round can lose.
 """
 from __future__ import annotations
 
@@ -450,8 +449,7 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
     (where a target may go); ``survey_scores``: pair scores from the survey itself
     (:func:`survey_pair_scores`); ``misfit`` (N,): how far each point lies beyond what its
     region explains (regions.survey_misfit; > 1: maybe another material): when all its
-    neighbours share its region, it is probed around (a ring, see the module docstring)
-    and its edges score ``threshold`` x misfit;
+    neighbours share its region, its ring of edges scores ``threshold`` x misfit;
     ``levels`` (N,): each point's dent on the scale the regions differ on (mean log peak
     depth): a crossing edge is then split where the level interpolated between its ends
     crosses midway (surface_map.seam_fractions; a false-position step, clipped to the
@@ -483,11 +481,14 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
                                               min_length_mm=resolution_mm, return_lengths=True,
                                               fraction=where, return_edges=True)
     area = gap_mm if border is None else gap_mm * np.maximum(np.asarray(border, dtype=float)[used], 1.0)
-    # Around a region's lone points (a small inclusion one survey probe landed on) and the
-    # misfits: a ring at a quarter of the survey spacing (ring_candidates), ahead of every
-    # edge: a material seen at one point is the one a round can lose.
+    # Around a region's lone points (a small inclusion one survey probe landed on): a ring at
+    # a quarter of the survey spacing (ring_candidates), ahead of every edge: a material seen
+    # at one point is the one a round can lose. Not around a misfit: the contrast rule has not
+    # called it another material, and a ring of points reading alike makes a region of what
+    # may be geometry (suite 1011: a ring around the plate's one misfit became a third region,
+    # map error 0 -> 0.8 %); its edges' midpoints look half a spacing out.
     lone = lone_points(lab) if np.unique(lab).size > 1 else np.zeros(lab.shape[0], dtype=bool)
-    ring, owner = ring_candidates(positions_mm, e, np.flatnonzero(lone | odd), min_spacing_mm, resolution_mm,
+    ring, owner = ring_candidates(positions_mm, e, np.flatnonzero(lone), min_spacing_mm, resolution_mm,
                                   surface_points_mm)
     # A lone point scores what its crossing edges score (its region against its neighbours').
     doubt = ps.copy()
