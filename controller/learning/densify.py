@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping, Protocol
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from . import regions as rg
 from . import surface_map as sm
@@ -275,8 +276,6 @@ def _tangent_frames(points_mm: np.ndarray, surface_points_mm: np.ndarray | None,
     plane of its ``k`` nearest surface points (PCA), the horizontal plane without a surface.
     The first lies along the plane's projection of x (of y where x is near its normal), so
     a ring's directions do not depend on the PCA's sign."""
-    from scipy.spatial import cKDTree
-
     pts = np.asarray(points_mm, dtype=float).reshape(-1, 3)
     normals = np.tile([0.0, 0.0, 1.0], (pts.shape[0], 1))
     if surface_points_mm is not None and len(surface_points_mm) >= 3:
