@@ -202,16 +202,17 @@ def test_a_point_its_region_explains_badly_is_probed_around():
     prop = np.asarray(rnd.proposed_mm)
     assert prop.shape == (4, 3)                                   # the four edges of a grid point
     assert np.allclose(np.linalg.norm(prop - POS[odd], axis=1), 5.0)
+    assert rnd.extra["ring_around"] == []              # a misfit is not a material: no ring
 
 
 def test_a_crossing_edge_is_split_where_the_level_crosses_midway():
     """A crossing edge whose stiff end dents a little deeper than its region (a probe straddling
     the seam): the seam is near that end, and the new point goes there, not to the midpoint."""
-    pos = np.array([[0.0, 0, 0], [-20.0, 0, 0], [-30.0, 0, 0], [20.0, 0, 0], [30.0, 0, 0]])
-    edges = np.array([[0, 3], [1, 0], [2, 1], [3, 4]])
-    labels = np.array([0, 0, 0, 1, 1])
+    pos = np.array([[0.0, 0, 0], [-20.0, 0, 0], [-30.0, 0, 0], [20.0, 0, 0], [30.0, 0, 0], [40.0, 0, 0]])
+    edges = np.array([[0, 3], [1, 0], [2, 1], [3, 4], [4, 5]])
+    labels = np.array([0, 0, 0, 1, 1, 1])
     # Levels (log depth): region 0 near log 0.1, region 1 near log 2.0; point 0 part way.
-    levels = np.log(np.array([0.4, 0.1, 0.1, 2.0, 2.0]))
+    levels = np.log(np.array([0.4, 0.1, 0.1, 2.0, 2.0, 2.0]))
     models = {0: _Dent(0.1, 0.1), 1: _Dent(2.0, 0.1)}
     plain = plan_round(1, pos, edges, labels, models, SURVEY_F, SURVEY_A, NOISE_MM, budget=1,
                        min_spacing_mm=2.0, resolution_mm=6.0)
@@ -224,13 +225,55 @@ def test_a_crossing_edge_is_split_where_the_level_crosses_midway():
 def test_a_longer_border_is_split_before_an_equal_gap_at_a_corner(models):
     """Two crossing edges of equal length: with ``border`` the one whose cells share more
     surface (more area hangs on where that boundary is drawn) is split first."""
-    pos = np.array([[0.0, 0, 0], [20.0, 0, 0], [0.0, 40, 0], [20.0, 40, 0]])
-    edges = np.array([[0, 1], [2, 3], [0, 2], [1, 3]])
-    labels = np.array([0, 1, 0, 1])
+    pos = np.array([[0.0, 0, 0], [20.0, 0, 0], [0.0, 40, 0], [20.0, 40, 0], [-20.0, 20, 0], [40.0, 20, 0]])
+    edges = np.array([[0, 1], [2, 3], [0, 2], [1, 3], [0, 4], [2, 4], [1, 5], [3, 5]])
+    labels = np.array([0, 1, 0, 1, 0, 1])
     kw = dict(budget=1, min_spacing_mm=2.0, resolution_mm=8.0)
     first = plan_round(0, pos, edges, labels, {0: models[0], 1: models[1]}, SURVEY_F, SURVEY_A, NOISE_MM,
-                       border=np.array([2.0, 30.0, 0.0, 0.0]), **kw)
+                       border=np.array([2.0, 30.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]), **kw)
     assert np.allclose(first.proposed_mm, [[10.0, 40, 0]])
     other = plan_round(0, pos, edges, labels, {0: models[0], 1: models[1]}, SURVEY_F, SURVEY_A, NOISE_MM,
-                       border=np.array([30.0, 2.0, 0.0, 0.0]), **kw)
+                       border=np.array([30.0, 2.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]), **kw)
     assert np.allclose(other.proposed_mm, [[10.0, 0, 0]])
+
+
+def test_a_lone_probe_of_another_material_is_ringed_before_its_edges_are_split():
+    """A small inclusion one survey probe landed on (a region of one point in a 10 mm grid):
+    the round first rings it at a quarter of the survey spacing (2.5 mm; the midpoints of its
+    edges, 5 mm out, mostly fall outside an inclusion that small), then splits edges. A lone
+    point its neighbours' region does not disagree with gets no ring."""
+    labels = np.zeros(N * N, dtype=int)
+    lone = 4 * N + 4
+    labels[lone] = 1
+    rnd = plan_round(1, POS, EDGES, labels, {0: _Dent(0.1, 0.1), 1: _Dent(2.0, 0.1)}, SURVEY_F, SURVEY_A,
+                     NOISE_MM, budget=8, min_spacing_mm=2.0, resolution_mm=6.0)
+    assert rnd.extra["ring_around"] == [lone]
+    prop = np.asarray(rnd.proposed_mm)
+    r = np.linalg.norm(prop - POS[lone], axis=1)
+    assert prop.shape == (8, 3)
+    assert np.allclose(r[:6], 2.5) and np.allclose(r[6:], 5.0)
+    angles = np.sort(np.degrees(np.arctan2(prop[:6, 1] - POS[lone, 1], prop[:6, 0] - POS[lone, 0])) % 360)
+    assert np.allclose(np.diff(angles), 60.0)
+    same = plan_round(1, POS, EDGES, labels, {0: _Dent(0.5, 0.1), 1: _Dent(0.52, 0.1)}, SURVEY_F, SURVEY_A,
+                      NOISE_MM, budget=8, min_spacing_mm=2.0, resolution_mm=6.0)
+    assert same.resolved and same.proposed_mm == []
+
+
+def test_a_ring_follows_the_surface_and_skips_a_point_already_surrounded():
+    """On a tilted plane the ring lies in the plane (snapped to the measured surface); a lone
+    point whose edges are all within the resolution is already surrounded: no ring."""
+    from elastoprobe.controller.learning.densify import ring_candidates
+
+    tilt = np.radians(30.0)
+    u, v = np.meshgrid(np.linspace(-40, 40, 161), np.linspace(-40, 40, 161))
+    surface = np.column_stack([u.ravel() * np.cos(tilt), v.ravel(), u.ravel() * np.sin(tilt)])
+    pos = np.array([[0.0, 0, 0], [20 * np.cos(tilt), 0, 20 * np.sin(tilt)], [0, 20.0, 0], [0, -20.0, 0]])
+    edges = np.array([[0, 1], [0, 2], [0, 3]])
+    ring, owner = ring_candidates(pos, edges, np.array([0]), min_spacing_mm=3.0, resolution_mm=6.0,
+                                  surface_points_mm=surface)
+    assert ring.shape == (6, 3) and np.all(owner == 0)
+    normal = np.array([-np.sin(tilt), 0.0, np.cos(tilt)])
+    assert np.all(np.abs((ring - pos[0]) @ normal) < 1e-6)
+    assert np.allclose(np.linalg.norm(ring - pos[0], axis=1), 5.0, atol=0.3)
+    close = pos * 0.25
+    assert ring_candidates(close, edges, np.array([0]), 3.0, 6.0, surface)[0].shape == (0, 3)

@@ -27,6 +27,12 @@ to ``resolution_mm``. The boundary is resolved when every disagreeing edge is sh
 ``resolution_mm``. A midpoint is half an edge from its ends, so edges shorter than
 2 x min_spacing_mm cannot be split: choose resolution_mm >= 2 x min_spacing_mm, or the
 rounds end "spacing-limited" (``DensifyRound.stop`` with ``resolved`` False).
+
+Before any edge: a ring of points around every point of a region with fewer than three
+points (a small inclusion one survey probe landed on, kept by the regions' contrast rule),
+at a quarter of the survey spacing there (:func:`ring_candidates`): an edge's midpoint,
+half a spacing out, mostly misses an inclusion the survey could miss, and a material seen
+at one point is the one a later round can lose.
 """
 from __future__ import annotations
 
@@ -34,12 +40,21 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping, Protocol
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from . import regions as rg
 from . import surface_map as sm
 
 ROI_FRACTION = 0.05
 DEFAULT_THRESHOLD = 3.0
+# Probing around a point (see :func:`ring_candidates`): the ring's radius as a fraction of
+# the point's edges (the survey spacing around it), and how many directions it takes.
+RING_FRACTION = 0.25
+RING_DIRECTIONS = 6
+# A region of fewer survey points is probed around: the regions' contrast rule holds a
+# cluster this small to a contrast at every measured force (regions.MIN_POINTS_FOR_ONE_FORCE),
+# and a probe on a small inclusion is usually alone there.
+LONE_REGION_POINTS = rg.MIN_POINTS_FOR_ONE_FORCE
 
 
 class ProfileModel(Protocol):
@@ -255,6 +270,73 @@ def candidate_points(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np
     return out + ((np.flatnonzero(keep),) if return_edges else ())
 
 
+def _tangent_frames(points_mm: np.ndarray, surface_points_mm: np.ndarray | None, k: int = 16
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors (M,3), (M,3) spanning the surface's tangent plane at each point: the
+    plane of its ``k`` nearest surface points (PCA), the horizontal plane without a surface.
+    The first lies along the plane's projection of x (of y where x is near its normal), so
+    a ring's directions do not depend on the PCA's sign."""
+    pts = np.asarray(points_mm, dtype=float).reshape(-1, 3)
+    normals = np.tile([0.0, 0.0, 1.0], (pts.shape[0], 1))
+    if surface_points_mm is not None and len(surface_points_mm) >= 3:
+        surf = np.asarray(surface_points_mm, dtype=float).reshape(-1, 3)
+        _, idx = cKDTree(surf).query(pts, k=min(k, surf.shape[0]))
+        for i, nb in enumerate(np.atleast_2d(idx)):
+            q = surf[nb] - surf[nb].mean(axis=0)
+            normals[i] = np.linalg.eigh(q.T @ q)[1][:, 0]
+    ex = np.array([1.0, 0.0, 0.0])
+    axis = np.where(np.abs(normals @ ex)[:, None] > 0.9, np.array([0.0, 1.0, 0.0]), ex)
+    u = axis - np.sum(axis * normals, axis=1, keepdims=True) * normals
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    return u, np.cross(normals, u)
+
+
+def ring_candidates(positions_mm: np.ndarray, edges: np.ndarray, centres: np.ndarray,
+                    min_spacing_mm: float, resolution_mm: float,
+                    surface_points_mm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Points (C,3) around each of ``centres`` (indices into ``positions_mm``), and the centre
+    (C,) each belongs to: ``RING_DIRECTIONS`` points on a circle in the surface's tangent
+    plane, snapped to the surface.
+
+    The radius is ``RING_FRACTION`` of the median length of the centre's edges (the survey
+    spacing around it), at least ``min_spacing_mm``. Why a quarter: the survey misses an
+    inclusion narrower than about its spacing s (planrule: one unit per s^2), so a probe
+    that did land on one lies within s/2 of its centre, typically 2/3 of its radius off
+    it; the midpoints of the probe's edges, s/2 away, then mostly fall outside it, while a
+    ring at s/4 puts two or three points inside an inclusion s/2 to s across, away from
+    its seam, where they read its material unblended. A centre whose edges are all within
+    ``resolution_mm`` is already surrounded; it gets no ring.
+    """
+    pos = np.asarray(positions_mm, dtype=float).reshape(-1, 3)
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    lengths = np.linalg.norm(pos[e[:, 0]] - pos[e[:, 1]], axis=1) if e.size else np.zeros(0)
+    out, owner = [], []
+    for c in np.asarray(centres, dtype=np.int64).reshape(-1):
+        own = lengths[(e[:, 0] == c) | (e[:, 1] == c)] if e.size else lengths
+        if own.size == 0 or float(np.median(own)) <= resolution_mm:
+            continue
+        radius = max(RING_FRACTION * float(np.median(own)), float(min_spacing_mm))
+        u, v = _tangent_frames(pos[c][None], surface_points_mm)
+        angles = 2.0 * np.pi * np.arange(RING_DIRECTIONS) / RING_DIRECTIONS
+        out.append(pos[c] + radius * (np.cos(angles)[:, None] * u + np.sin(angles)[:, None] * v))
+        owner.append(np.full(RING_DIRECTIONS, c, dtype=np.int64))
+    if not out:
+        return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+    ring = np.concatenate(out)
+    if surface_points_mm is not None:
+        ring = snap_to_surface(ring, surface_points_mm)
+    return ring, np.concatenate(owner)
+
+
+def lone_points(labels: np.ndarray, min_points: int = LONE_REGION_POINTS) -> np.ndarray:
+    """(N,) True for the points of a region with fewer than ``min_points`` points."""
+    lab = np.asarray(labels, dtype=np.int64).reshape(-1)
+    if lab.size == 0:
+        return np.zeros(0, dtype=bool)
+    _, inverse, counts = np.unique(lab, return_inverse=True, return_counts=True)
+    return counts[inverse.reshape(-1)] < min_points
+
+
 def propose_points(candidates_mm: np.ndarray, scores: np.ndarray, existing_mm: np.ndarray, budget: int,
                    min_spacing_mm: float, min_score: float = DEFAULT_THRESHOLD,
                    priority: np.ndarray | None = None) -> np.ndarray:
@@ -278,7 +360,7 @@ def propose_points(candidates_mm: np.ndarray, scores: np.ndarray, existing_mm: n
             break
         if taken:
             d = np.linalg.norm(np.asarray(taken) - cand[i], axis=1)
-            if float(d.min()) < min_spacing_mm:
+            if float(d.min()) < min_spacing_mm - 1e-9:      # exactly the spacing keeps it
                 continue
         accepted.append(i)
         taken.append(cand[i])
@@ -382,10 +464,10 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
     es = edge_scores(edges, lab, pscores)
     ps = point_scores(posterior, pscores) if posterior is not None else np.zeros(lab.shape[0])
     odd = np.zeros(lab.shape[0], dtype=bool)
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
     if misfit is not None:
         # A misfit beside another region is the seam's blend, which the crossing edges
         # already follow; one surrounded by its own region is unexplained.
-        e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
         on_seam = np.zeros(lab.shape[0], dtype=bool)
         crossing = lab[e[:, 0]] != lab[e[:, 1]]
         on_seam[e[crossing].ravel()] = True
@@ -398,10 +480,27 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
                                               min_length_mm=resolution_mm, return_lengths=True,
                                               fraction=where, return_edges=True)
     area = gap_mm if border is None else gap_mm * np.maximum(np.asarray(border, dtype=float)[used], 1.0)
+    # Around a region's lone points (a small inclusion one survey probe landed on): a ring at
+    # a quarter of the survey spacing (ring_candidates), ahead of every edge: a material seen
+    # at one point is the one a round can lose. Not around a misfit: the contrast rule has not
+    # called it another material, and a ring of points reading alike makes a region of what
+    # may be geometry (suite 1011: a ring around the plate's one misfit became a third region,
+    # map error 0 -> 0.8 %); its edges' midpoints look half a spacing out.
+    lone = lone_points(lab) if np.unique(lab).size > 1 else np.zeros(lab.shape[0], dtype=bool)
+    ring, owner = ring_candidates(positions_mm, e, np.flatnonzero(lone), min_spacing_mm, resolution_mm,
+                                  surface_points_mm)
+    # A lone point scores what its crossing edges score (its region against its neighbours').
+    doubt = ps.copy()
+    if e.size:
+        np.maximum.at(doubt, e[:, 0], np.where(lone[e[:, 0]], es, 0.0))
+        np.maximum.at(doubt, e[:, 1], np.where(lone[e[:, 1]], es, 0.0))
+    cand, cs = np.vstack([ring, cand]), np.concatenate([doubt[owner], cs])
+    area = np.concatenate([np.full(owner.size, np.inf), area])
     if resolved and np.any(cs >= threshold):
         resolved = False
-        reason += (f"; around {int(np.sum(ps >= threshold))} points that their region explains badly or "
-                   f"that lie between regions, edges longer than {resolution_mm:g} mm remain")
+        reason += (f"; around {int(np.sum(doubt >= threshold))} points that their region explains badly, that lie "
+                   f"between regions or that are their region's only ones, edges longer than {resolution_mm:g} mm "
+                   "remain")
     proposed = np.zeros((0, 3))
     proposed_scores = np.zeros(0)
     if not resolved:
@@ -409,7 +508,6 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
         proposed, proposed_scores = cand[idx], cs[idx]
         if idx.size == 0:
             reason += f"; no candidate keeps {min_spacing_mm:g} mm from existing points"
-    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
     hot = es >= threshold
     return DensifyRound(
         round_index=round_index, n_points=int(lab.shape[0]), n_regions=int(np.unique(lab).shape[0]),
@@ -417,4 +515,5 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
         pair_scores={f"{a}-{b}": _finite_or_none(v) for (a, b), v in pscores.items()},
         disagreeing_edges=e[hot].tolist(), disagreeing_scores=[_finite_or_none(v) for v in es[hot]],
         proposed_mm=proposed.tolist(), proposed_scores=[_finite_or_none(v) for v in proposed_scores],
-        resolved=resolved, reason=reason, extra={"misfit_points": np.flatnonzero(odd).tolist()})
+        resolved=resolved, reason=reason, extra={"misfit_points": np.flatnonzero(odd).tolist(),
+                                                      "ring_around": sorted(set(owner.tolist()))})
