@@ -364,6 +364,21 @@ def describe_unseen(top: TopSurface, seen: np.ndarray, seen_within_mm: float, ma
     return out
 
 
+def unseen_of_cloud(object_mesh: trimesh.Trimesh, points_mm: np.ndarray, max_tilt_deg: float,
+                    seen_within_mm: float) -> dict:
+    """The top surface a cloud (object frame, mm) has not seen, as the sweep reports it:
+    ``unseen_mm2``, ``top_surface_mm2``, ``coverage`` and ``unseen_patches``
+    (:func:`describe_unseen`). The cloud phase scores the cloud it keeps with it: the
+    sweep's own figures count what it saw, the table included, and a band the table
+    removal drops would go unreported."""
+    top = top_surface(object_mesh, TOP_GRID_MM, max_tilt_deg)
+    seen = seen_mask(top.points_mm, points_mm, seen_within_mm)
+    unseen = float(top.area_mm2[~seen].sum())
+    return {"top_surface_mm2": round(top.total_mm2, 1), "unseen_mm2": round(unseen, 1),
+            "coverage": round(1.0 - unseen / top.total_mm2 if top.total_mm2 > 0 else 1.0, 5),
+            "unseen_patches": describe_unseen(top, seen, seen_within_mm)}
+
+
 def fill_unseen(sweeper: _Sweeper, top: TopSurface, seen: np.ndarray, tcp_z_mm: float, max_lines: int) -> int:
     """Scan lines over the patches of top surface the sweep has not seen, the largest patch
     first; returns how many lines were planned (at most ``max_lines``).

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .acquire import unseen_of_cloud
 from .core.errors import BudgetSpent, SessionAborted
 from .core.geometry import INTERIOR_ANGLES_DEG, Pose, scan_direction
 from .journal import StepPlan
@@ -230,11 +231,17 @@ def phase_cloud(ctx: PhaseContext) -> None:
         for why in swept.refused:
             s._log("sweep_line_skipped", reason=why)
         sweep = swept.outputs()
-        s._log("sweep_unseen", unseen_mm2=sweep["unseen_mm2"], top_surface_mm2=sweep["top_surface_mm2"],
-               coverage=sweep["coverage"], patches=sweep["unseen_patches"])
         normals = None
         j.add_robot_time("sweep", robot_s)
-    obj_pts, plane = remove_table_below(pts, seed=s.seed)
+    obj_pts, plane = remove_table_below(pts, seed=s.seed,
+                                         link_mm=FOOT_LINK_SPACINGS * plan.cloud.sweep_spacing_mm)
+    if plan.cloud.source != "file":
+        # What the session keeps, the table gone, is what counts as seen.
+        sweep["coverage_swept"] = sweep["coverage"]
+        sweep.update(unseen_of_cloud(s.world.object_mesh, obj_pts, plan.sampling.max_tilt_deg,
+                                     sweep["seen_within_mm"]))
+        s._log("sweep_unseen", unseen_mm2=sweep["unseen_mm2"], top_surface_mm2=sweep["top_surface_mm2"],
+               coverage=sweep["coverage"], patches=sweep["unseen_patches"])
     if normals is None or len(normals) != len(obj_pts):
         normals = orient_outward_from_above(obj_pts, cl.estimate_normals(obj_pts, k=16))
     normals = canonical(normals, 6)
@@ -254,12 +261,21 @@ def phase_cloud(ctx: PhaseContext) -> None:
     ctx.cloud_mm, ctx.cloud_normals = rec.arrays["points_mm"].astype(float), rec.arrays["normals"].astype(float)
 
 
-def remove_table_below(points_mm: np.ndarray, seed: int, max_tries: int = 4) -> tuple[np.ndarray, tuple[np.ndarray, float]]:
+TABLE_BAND_MM = 2.0     # points this close to the table plane are table unless the object reaches them
+# The foot of the object is chained profile to profile: a little more than the sweep's spacing.
+FOOT_LINK_SPACINGS = 1.5
+
+
+def remove_table_below(points_mm: np.ndarray, seed: int, link_mm: float, max_tries: int = 4
+                       ) -> tuple[np.ndarray, tuple[np.ndarray, float]]:
     """The table is the large horizontal plane with the object on it and nothing under it.
 
     A wide object has big flat faces of its own (the pillow's top can hold as many
     points as the visible table); a plane with many points below it is a face of the
-    object, so its points are set aside and the search goes on.
+    object, so its points are set aside and the search goes on. Of the points within
+    TABLE_BAND_MM of the table, those the object reaches down to stay
+    (learning.cloud.standing_on_table, chained ``link_mm`` apart: a little more than
+    the sweep's profiles lie apart).
     """
     from .learning import cloud as cl
 
@@ -270,10 +286,10 @@ def remove_table_below(points_mm: np.ndarray, seed: int, max_tries: int = 4) -> 
         height = points_mm @ normal - offset
         below = float(np.mean(height < -5.0))
         if below < 0.02:
-            return points_mm[height > 2.0], (normal, offset)
+            return points_mm[cl.standing_on_table(points_mm, height, TABLE_BAND_MM, link_mm)], (normal, offset)
         # A face of the object: drop its inliers and look for a lower plane.
         h_rest = rest @ normal - offset
-        rest = rest[np.abs(h_rest) > 2.0]
+        rest = rest[np.abs(h_rest) > TABLE_BAND_MM]
         if len(rest) < 100:
             break
     raise SessionAborted("no table plane found under the scanned points")

@@ -233,7 +233,7 @@ class Session:
         has to look at a cell where something moved.
         """
         from .core.validation import build_validator
-        from .phases import SWEEP_STEP_KEY, remove_table_below
+        from .phases import FOOT_LINK_SPACINGS, SWEEP_STEP_KEY, remove_table_below
         from .placement import reregister
 
         assert self.journal is not None and self.cell is not None
@@ -247,7 +247,8 @@ class Session:
         pts_obj, robot_s = swept.points_mm, swept.robot_s
         j.add_robot_time("sweep", robot_s)
         self.machine.fire("plan")           # from here the session may also pause
-        cloud_base, _ = remove_table_below(before.apply(pts_obj), seed=self.seed)
+        cloud_base, _ = remove_table_below(before.apply(pts_obj), seed=self.seed,
+                                           link_mm=FOOT_LINK_SPACINGS * plan.cloud.sweep_spacing_mm)
         try:
             after, rms = reregister(mesh, cloud_base, before, seed=self.seed)
         except ValueError as exc:

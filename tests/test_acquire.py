@@ -222,13 +222,18 @@ def test_session_journals_and_reports_the_unseen_area(tmp_path: Path, monkeypatc
     assert cloud["coverage"] == sweep["coverage"] and cloud["lines_replanned"] == len(sweep["lines_replanned"])
 
 
-def test_a_generated_object_is_covered_on_its_true_surface(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
-    # An object nobody tuned for (the suite's seed 1006, a dome, docs/generated_objects.md)
-    # with the plan the rule gives it: its raster line nearest the robot's column has the
+@pytest.mark.parametrize("object_seed", [1006, 1007])
+def test_a_generated_object_is_covered_on_its_true_surface(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                           object_seed: int):
+    # Objects nobody tuned for (the suite's domes 1006 and 1007, docs/generated_objects.md)
+    # with the plan the rule gives them: the raster line nearest the robot's column has the
     # scanner in the column and is planned again (skipped, with lines a scanner's width and
-    # more apart, the cloud covered 85 % of the top); the cloud then covers the true top
-    # within the plan's tilt, scored as evaluate scores it (>= 98 %: issue 16's goal).
-    assert main(["sim", "object", "--seed", "1006", "--out", str(tmp_path / "obj")]) == 0
+    # more apart, the cloud covered 85 % of 1006's top); the cloud then covers the true top
+    # within the plan's tilt, scored as evaluate scores it (>= 98 %: issue 16's goal). 1007's
+    # rim meets the table at about 25 degrees, inside the tilt: the table removal dropped
+    # its lowest 2 mm, a band all round (92.5 %), while the sweep reported 100 %; the
+    # journal's figure is now that of the cloud kept.
+    assert main(["sim", "object", "--seed", str(object_seed), "--out", str(tmp_path / "obj")]) == 0
     inputs = load_session_inputs(tmp_path / "obj" / "plan.yaml")
     session = Session(inputs, tmp_path / "s", seed=1)
     _pause_after_the_cloud(monkeypatch)
@@ -243,3 +248,4 @@ def test_a_generated_object_is_covered_on_its_true_surface(tmp_path: Path, monke
                                   np.zeros(len(pts), dtype=int), top.spacing_mm)
     print(f"coverage {scores['coverage']:.4f} of {scores['area_mm2']:.0f} mm^2; sweep: {sweep['coverage']}")
     assert scores["coverage"] >= 0.98
+    assert sweep["coverage"] == pytest.approx(scores["coverage"], abs=0.01)

@@ -119,3 +119,16 @@ def test_unknown_or_mismatched_shape_and_pattern_are_refused() -> None:
         gen.generate(1, "slab", "box")
     with pytest.raises(ValueError, match="pairs"):
         gen.generate(1, pairs="close")
+
+
+def test_a_small_block_drawn_for_two_inclusions_is_drawn_again_not_a_traceback() -> None:
+    # Seed 3001 draws a block 138 x 120 mm for two inclusions and a strip: no room for both
+    # 15 mm apart, and `elastoprobe sim object --seed 3001` ended in a traceback. The shape
+    # is drawn again; a seed whose first shape fits keeps it.
+    obj = gen.generate(3001, forces=rule_forces)
+    assert obj.shape.kind == "block" and obj.pattern.kind == "two_inclusions_and_strip"
+    assert len(obj.pattern.features) == 3
+    again = gen.generate(3067, "block", "two_inclusions", forces=rule_forces)
+    assert len(again.pattern.features) == 2
+    first = gen.draw_shape("slab", np.random.default_rng([3002, 1]), "disc")
+    assert gen.generate(3002, "slab", "disc", forces=rule_forces).shape == first

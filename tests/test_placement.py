@@ -15,7 +15,7 @@ import pytest
 
 from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.controller.learning.cloud import box_on_pillow_mesh
-from elastoprobe.controller.placement import PlacementMonitor, reregister
+from elastoprobe.controller.placement import PlacementEstimate, PlacementMonitor, reregister
 
 PLACED = Pose(np.array([400.0, 0.0, 0.0]), np.eye(3))
 
@@ -134,3 +134,14 @@ def test_reregistration_does_not_rest_slid_along_the_planes_of_the_composite() -
         errors_mm.append(round(float(np.linalg.norm(found.position_mm - true.position_mm)), 2))
     # Before the fix 5 of these 8 rested 7.3-7.7 mm short.
     assert max(errors_mm) < 0.5, errors_mm
+
+
+def test_scans_that_already_fit_are_no_move_however_far_the_fit_slides(monitor: PlacementMonitor) -> None:
+    # Composite box 1010, seed 1: a target on the pillow's nearly flat top; the scans fit
+    # the registered mesh to 0.02 mm and a 7 mm slide halved that to 0.01 mm. The session
+    # paused on an object that had not moved (a fresh sweep found it 0.0 mm away).
+    slid = PlacementEstimate(np.array([0.8, -7.0, 0.0]), 7.05, 0.05, 600, 0.02, 0.01)
+    assert not monitor.moved(slid)
+    # The same slide explaining a mismatch that size would show (7 mm x sqrt(0.05)) is a move.
+    real = PlacementEstimate(np.array([0.8, -7.0, 0.0]), 7.05, 0.05, 600, 1.5, 0.02)
+    assert monitor.moved(real)
