@@ -431,9 +431,9 @@ def kill_phase(session_dir: Path, pid: int) -> str | None:
     j = Journal.open_readonly(session_dir, check="none")
     try:
         run = [r["run_id"] for r in j.runs() if r["pid"] == pid]
-        transitions = j.transitions(run_id=run[-1]) if run else []
-        at_step = [t["step_id"] for t in transitions if t["step_id"] is not None]
-        step_phase = j.step(at_step[-1]).phase if at_step else None
+        transitions = j.transitions(run_id=run[-1], last=1) if run else []
+        step = j.last_step_of_run(run[-1]) if run else None
+        step_phase = step.phase if step is not None else None
     finally:
         j.close()
     if not transitions:

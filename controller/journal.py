@@ -1213,6 +1213,13 @@ class Journal:
                                    message=r[5], policy_action=r[6], raw=raw, run_id=r[11]))
         return out
 
+    def last_step_of_run(self, run_id: int) -> StepRecord | None:
+        """The step run ``run_id`` began last (None: it began none): where a killed run was.
+        A step that a later run began again belongs to that run now."""
+        rows = self._q("SELECT step_id FROM steps WHERE run_id = ? AND started_utc IS NOT NULL "
+                       "ORDER BY started_utc DESC LIMIT 1", (int(run_id),))
+        return self.step(int(rows[0][0])) if rows else None
+
     def runs(self) -> list[dict[str, Any]]:
         """Every run (one controller process each: the first, then each resume), oldest first."""
         keys = ("run_id", "mode", "started_utc", "pid", "host", "ended_utc", "end_status")
