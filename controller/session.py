@@ -737,8 +737,9 @@ class Session:
         if status.emergency_stop:
             if "emergency_stop" not in about:
                 # Pressed while this fault was handled: its own fault, and the operator's.
-                self._fault_during_recovery(fault, root, step_id, "emergency_stop", "emergency stop is pressed",
-                                            None, "waiting to recover")
+                failed = self._fault_during_recovery(fault, root, step_id, "emergency_stop",
+                                                     "emergency stop is pressed", None, "waiting to recover")
+                return f"{failed} (release it at the cell, then resume)"
             return "the emergency stop is still engaged (release it at the cell, then resume)"
         if status.protective_stop and "protective_stop" not in about:
             # The robot stopped itself while this fault was handled: after a lost link (neither
@@ -756,9 +757,9 @@ class Session:
         if status.protective_stop and not arm.recover_protective_stop():
             if arm.status().emergency_stop and "emergency_stop" not in about:
                 # Pressed while the stop was being unlocked (the unlock fails then).
-                self._fault_during_recovery(fault, root, step_id, "emergency_stop", "emergency stop is pressed",
-                                            None, "waiting to recover")
-                return "the emergency stop is engaged (release it at the cell, then resume)"
+                failed = self._fault_during_recovery(fault, root, step_id, "emergency_stop",
+                                                     "emergency stop is pressed", None, "waiting to recover")
+                return f"{failed} (release it at the cell, then resume)"
             return "the protective stop could not be cleared from the dashboard"
         # The guard keeps checking while the controller waits for the connection or the
         # dashboard: a trip latched since this fault (a stalled or frozen F/T stream, a

@@ -108,7 +108,8 @@ def test_an_emergency_stop_during_recovery_is_named_and_pauses(tmp_path: Path) -
     assert [(k, a) for k, _, a in journaled] == [("protective_stop", "retry"), ("emergency_stop", "pause")], journaled
     assert journaled[1][1].startswith("during recovery from protective_stop: "), journaled
     assert code == EXIT_PAUSED and status["status_reason"].startswith("protective_stop"), status["status_reason"]
-    assert "emergency stop" in status["status_reason"], status["status_reason"]
+    # The operator (and the soak's driver) reads which stop to release from the reason.
+    assert "emergency_stop waiting to recover" in status["status_reason"], status["status_reason"]
 
 
 def test_the_retract_waits_for_a_fresh_stream(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
