@@ -18,7 +18,8 @@ from typing import Any
 import numpy as np
 
 from elastoprobe.controller.cellfactory import build_calibration_cell
-from elastoprobe.controller.core.calfile import calibration_path, load_calibration, pose_list, write_section
+from elastoprobe.controller.core.calfile import (calibration_path, load_calibration, pose_list, writable_document,
+                                                 write_section)
 from elastoprobe.controller.core.config import load_cell
 from elastoprobe.controller.core.devices import Cell
 from elastoprobe.controller.core.errors import CalibrationError, ElastoprobeError
@@ -184,6 +185,8 @@ def run_calibration(kind: str, cell_path: Path, seed: int = 0, out_path: Path | 
     cell_path = Path(cell_path)
     cell_spec, cell_doc = load_cell(cell_path)
     target = Path(out_path) if out_path is not None else calibration_path(cell_spec, cell_path)
+    if target is not None:
+        writable_document(target, cell_spec.name)     # refused now, not after the poses
     mount, mount_source = (None, None)
     if kind == "object":
         mount, mount_source = scanner_mount_for_object(cell_spec, target)

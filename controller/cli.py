@@ -31,8 +31,18 @@ def _existing_dir(value: str) -> Path:
     return p
 
 
+def _output_dir(value: str) -> str:
+    """A folder to create or fill: an empty name (``--out "$UNSET"``) is refused, not read as
+    the default or as the current folder. (Each command says itself what it finds there.)"""
+    if not value.strip():
+        raise argparse.ArgumentTypeError("the folder name is empty")
+    return value
+
+
 def _output_file(value: str) -> Path:
     """A file to write: absent, or a regular file to replace (never a device, a pipe or a folder)."""
+    if not value.strip():
+        raise argparse.ArgumentTypeError("the file name is empty")
     p = Path(value)
     if p.exists() and not p.is_file():
         raise argparse.ArgumentTypeError(f"{value}: exists and is not a regular file")
@@ -86,6 +96,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         "force_steps": est.steps,
         "robot_hours": round(est.hours(), 3),
         "robot_s_per_phase": {k: round(v, 1) for k, v in est.per_phase_s.items()},
+        "budget_warning": est.budget_warning(),
     }
     travel = _travel_saved(inputs)
     if travel is not None:
@@ -98,6 +109,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         print(f"  estimated robot time: {est.hours():.2f} h over {est.contacts} contacts, {est.steps} force steps")
         for k, v in est.per_phase_s.items():
             print(f"    {k:<13} {v / 60:7.1f} min")
+        if est.budget_warning() is not None:
+            print(f"  warning: {est.budget_warning()}")
         if travel is not None:
             print(f"  travel by ordering: {travel[0]:.0f} mm -> {travel[1]:.0f} mm "
                   f"(saved {travel[0] - travel[1]:.0f} mm)")
@@ -437,7 +450,7 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="run a plan (default: on the simulated cell)")
     r.add_argument("plan")
     r.add_argument("--cell", help="cell file (default: the plan's cell, else the simulated cell)")
-    r.add_argument("--out", help="session directory (default: sessions/<date>-<plan name>)")
+    r.add_argument("--out", type=_output_dir, help="session directory (default: sessions/<date>-<plan name>)")
     r.add_argument("--seed", type=_seed, help="seed (default: the plan's)")
     r.add_argument("--dry-run", action="store_true",
                    help="simulated devices behind a real cell's limits, tool geometry and workspace")
@@ -488,7 +501,7 @@ def build_parser() -> argparse.ArgumentParser:
     sa = sub.add_parser("salvage", help="copy every intact part of a damaged session into a new session "
                                         "directory, from which resume continues")
     sa.add_argument("dir", type=_existing_dir)
-    sa.add_argument("--out", required=True, help="the new session directory (must not hold a journal)")
+    sa.add_argument("--out", required=True, type=_output_dir, help="the new session directory (must not hold a journal)")
 
     ca = sub.add_parser("calibrate", help="calibrate the F/T payload, probe tip, scanner mount or object pose")
     ca.add_argument("kind", choices=["ft", "tcp", "scanner", "object"])
@@ -509,7 +522,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     so = smsub.add_parser("object", help="generate a painted object (mesh + object YAML) and a plan for it")
     so.add_argument("--seed", type=_seed, required=True, help="the object's seed (the same seed: the same object)")
-    so.add_argument("--out", required=True, help="folder to write object.ply, object.yaml and plan.yaml into")
+    so.add_argument("--out", required=True, type=_output_dir, help="folder to write object.ply, object.yaml and plan.yaml into")
     so.add_argument("--shape", help="slab, block, dome, sheet or composite (default: drawn from the seed)")
     so.add_argument("--pattern", help="plain, disc, ellipse, strip, wavy_seam, curved_seam, ring, two_inclusions, "
                                       "disc_and_strip or two_inclusions_and_strip; a composite's: box or plate "

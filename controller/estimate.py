@@ -29,11 +29,27 @@ def trapezoid_s(distance_mm: float, speed_mm_s: float, accel_mm_s2: float) -> fl
 class Estimate:
     contacts: int
     steps: int
-    robot_s: float
+    robot_s: float                      # what the budget lets run
     per_phase_s: dict[str, float]
+    budget_s: float = float("inf")      # the plan's max_robot_hours
 
     def hours(self) -> float:
         return self.robot_s / 3600.0
+
+    def budget_warning(self) -> str | None:
+        """Said when the plan's budget stops it before its phases are done: which phases would
+        not run (or not finish); None when the whole plan fits."""
+        needed_s = sum(self.per_phase_s.values())
+        if needed_s <= self.budget_s:
+            return None
+        elapsed_s, cut = 0.0, []
+        for name, phase_s in self.per_phase_s.items():
+            if elapsed_s + phase_s > self.budget_s:
+                cut.append(name if elapsed_s >= self.budget_s else f"{name} (partly)")
+            elapsed_s += phase_s
+        return (f"the plan needs about {needed_s / 3600:.1f} robot h but budget.max_robot_hours stops it at "
+                f"{self.budget_s / 3600:.2f} h: {', '.join(cut)} would not run"
+                + ("; nothing would be probed" if cut and cut[0].startswith("cloud") else ""))
 
 
 def contact_time_s(inputs: SessionInputs, forces_n: list[float], travel_mm: float) -> float:
@@ -80,4 +96,5 @@ def estimate_plan(inputs: SessionInputs, expected_regions: int = 2, mean_travel_
     steps += n_dens * len(ph.survey.forces_n)
     steps = min(steps, plan.budget.max_steps)
     total = min(sum(per.values()), plan.budget.max_robot_hours * 3600.0)
-    return Estimate(contacts=contacts, steps=steps, robot_s=total, per_phase_s=per)
+    return Estimate(contacts=contacts, steps=steps, robot_s=total, per_phase_s=per,
+                    budget_s=plan.budget.max_robot_hours * 3600.0)

@@ -90,9 +90,20 @@ def _is_damage(exc: sqlite3.DatabaseError) -> bool:
     """Whether SQLite's error means the file's content is damaged (not busy, locked or a failing disk)."""
     if not isinstance(exc, sqlite3.OperationalError):
         return True              # "database disk image is malformed", "file is not a database", ...
+    if _sqlite_error(exc, "SQLITE_CORRUPT", "SQLITE_NOTADB"):
+        return True
+    # A table or column missing from the schema is SQLite's generic SQLITE_ERROR: only the
+    # message tells it from a mistake in our own SQL.
     text = str(exc).lower()
     return any(w in text for w in ("malformed", "no such table", "no such column", "could not decode",
                                    "not a database", "corrupt"))
+
+
+def _sqlite_error(exc: sqlite3.Error, *names: str) -> bool:
+    """Whether SQLite's own result code (extended codes included, e.g. SQLITE_IOERR_READ)
+    is one of ``names``: the code, not the wording of the message, which varies by version."""
+    name = getattr(exc, "sqlite_errorname", None) or ""
+    return any(name == n or name.startswith(n + "_") for n in names)
 
 
 def _damage_error(exc: sqlite3.DatabaseError, path: Path) -> JournalError:
@@ -604,7 +615,7 @@ class Journal:
                 return conn
             except sqlite3.OperationalError as exc:
                 conn.close()
-                if "disk i/o" not in str(exc).lower() and "unable to open" not in str(exc).lower():
+                if not _sqlite_error(exc, "SQLITE_IOERR", "SQLITE_CANTOPEN"):
                     raise _damage_error(exc, path) from None
             except sqlite3.DatabaseError as exc:
                 conn.close()
@@ -851,7 +862,7 @@ class Journal:
         except sqlite3.OperationalError as exc:
             with contextlib.suppress(sqlite3.Error):
                 self._conn.execute("ROLLBACK")
-            if "full" in str(exc).lower():
+            if _sqlite_error(exc, "SQLITE_FULL"):
                 raise JournalError(f"journal: disk full, the last write was not saved ({exc})") from None
             raise
 

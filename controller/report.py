@@ -812,7 +812,8 @@ def _section_numbers(data: ReportData, numbers: dict[str, Any]) -> str:
                "fit at the end of training over the completed targets (model metadata); fit RMSE: model minus " \
                "every measured averaged profile of the region (in-sample, mm). Support: where the training " \
                "targets' samples came from (measured; mirrored from the same point at 180 - angle; the tip's " \
-               "sphere under a normal push; inferred from the 90-degree profile at the same normal load; " \
+               "sphere under a normal push; inferred from the 90-degree profile at the same normal load with the " \
+               "odd term of the tangential load reversed, or beside the tip from the contact's shape; " \
                "unsupported, interpolated). Served depths are clipped to the depth bounds.</p>"
         out += _grid(["region", "members", "hidden", "profiles", "train RMSE (mm)", "fit RMSE (mm)",
                       "depth scale (mm)", "model hash", "mirror", "support of the targets", "depth bounds (mm)",

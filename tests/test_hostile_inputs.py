@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from elastoprobe.calibration import runner as calibration_runner
 from elastoprobe.controller.cli import main
 from elastoprobe.controller.core.atomic import atomic_write_bytes
 from elastoprobe.controller.core.errors import DiskError
@@ -348,3 +349,66 @@ def test_an_output_that_is_a_device_a_pipe_or_a_folder_is_refused_and_left_as_it
             atomic_write_bytes(target, b"x")
     assert fifo.is_fifo() and link.is_symlink() and Path("/dev/null").is_char_device() and folder.is_dir()
     assert not [p for p in tmp_path.iterdir() if p.name not in {"fifo", "to-null", "folder"}]   # no temporaries left
+
+
+@pytest.mark.parametrize("argv", [
+    ["run", str(REPO / "config" / "plans" / "demo.yaml"), "--out", ""],
+    ["salvage", ".", "--out", " "],
+    ["sim", "object", "--seed", "3", "--out", ""],
+    ["export", ".", "--format", "hdf5", "--out", ""],
+])
+def test_an_empty_output_name_is_refused_not_read_as_the_default(
+        argv: list[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
+    """``--out "$DIR"`` with DIR unset: ``run`` started a whole session in ./sessions/<date>-demo."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    assert "name is empty" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_damaged_calibration_file_is_bad_input_and_is_left_as_it_was(
+        tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The calibration file is the user's: unreadable or damaged, it is exit 2 (not 1, a fault
+    of the cell) before the arm moves (it was found only after every pose had been measured),
+    and it is not overwritten."""
+    def no_cell(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the cell was built: the arm would have moved")
+
+    monkeypatch.setattr(calibration_runner, "calibration_cell", no_cell)
+    damaged = tmp_path / "calibration.json"
+    damaged.write_bytes(b'{"format": "elastoprobe-calibration", "sections": ')
+    code = main(["calibrate", "tcp", "--cell", str(SIM_CELL), "--out", str(damaged)])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert f"{damaged}: unreadable calibration file" in err and "Traceback" not in err
+    assert damaged.read_bytes() == b'{"format": "elastoprobe-calibration", "sections": '
+
+
+def test_check_says_when_the_budget_stops_the_plan_before_anything_is_probed(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A sweep spacing of 0.001 mm is a valid number, and a sweep at 0.1 mm/s: `check` said
+    "valid, 4.00 h" while `run` would spend the whole budget sweeping and probe nothing."""
+    demo = REPO / "config" / "plans" / "demo.yaml"
+    text = demo.read_text().replace("sweep_spacing_mm: 4.0", "sweep_spacing_mm: 0.001")
+    text = text.replace("../cells/", f"{REPO}/config/cells/").replace("../objects/", f"{REPO}/config/objects/")
+    plan = tmp_path / "slow_sweep.yaml"
+    plan.write_text(text)
+    assert main(["check", str(plan)]) == 0
+    out = capsys.readouterr().out
+    assert "warning: the plan needs about" in out and "nothing would be probed" in out, out
+    assert main(["check", str(demo), "--json"]) == 0
+    assert '"budget_warning": null' in capsys.readouterr().out
+
+
+def test_a_binary_stl_of_the_wrong_length_is_named_for_what_it_is(tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """trimesh retries it as ASCII, which wants an optional module: the message named that
+    module ("No module named 'charset_normalizer'"), as if the user had to install something."""
+    obj = _user_object(tmp_path, edits={"file: user_object.ply": "file: broken.stl"})
+    (tmp_path / "broken.stl").write_bytes(b"\0" * 80 + (4_000_000_000).to_bytes(4, "little") + b"\xee" * 50)
+    assert main(["check", str(_plan(tmp_path, obj))]) == 2
+    err = capsys.readouterr().err
+    assert f"{obj}:12:9: " in err and "Binary STL has incorrect length" in err, err
+    assert "module" not in err, err

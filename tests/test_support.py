@@ -107,7 +107,11 @@ def test_symmetric_region_is_completed_with_every_support_and_close_to_the_truth
     normal = steps.angle_deg == 90.0
     assert (done.support[normal] == sp.TIP).any() and (done.support[normal] == sp.MIRRORED).any()
     assert (done.support[~normal] == sp.INFERRED).any()
-    assert not (done.support[normal] == sp.INFERRED).any()
+    # At 90 degrees only the contact's gap beside the tip is inferred (contact.py): within
+    # the shadow, nearer the tip than the first seen sample.
+    beside = np.abs(X[None, :] - steps.tip_x_mm[normal][:, None]) < R + 1.0
+    assert (done.support[normal] == sp.INFERRED).any()
+    assert beside[done.support[normal] == sp.INFERRED].all()
     err = np.abs(done.depth_mm - truth)
     peak = float(truth.max())
     assert np.sqrt(np.mean(err ** 2)) < 0.05 * peak
@@ -118,21 +122,29 @@ def test_repeated_normal_steps_a_few_mn_apart_do_not_make_the_inferred_side_swin
     """Repeats of a 90-degree level, 3 mN apart in measured force, are one level of the
     family the oblique rows are inferred from: as two knots, the interpolation between
     them swung by many times the scans' noise (spikes in the targets, then in the model)."""
-    steps, truth = region(normal_repeat_n=0.003)
-    done = sp.complete_targets(steps, R)
-    assert done.mirror.admitted, done.mirror.reason
-    inferred = done.support == sp.INFERRED
-    assert inferred.any()
-    # Without repeats the inferred samples are within 6 % of the peak; with them as two
-    # knots, 11 %.
-    assert np.abs(done.depth_mm - truth)[inferred].max() < 0.08 * float(truth.max())
+    worst = []
+    for repeat in (None, 0.003):
+        steps, truth = region(normal_repeat_n=repeat)
+        done = sp.complete_targets(steps, R)
+        assert done.mirror.admitted, done.mirror.reason
+        inferred = done.support == sp.INFERRED
+        assert inferred.any()
+        worst.append(float(np.abs(done.depth_mm - truth)[inferred].max()))
+    # With the repeats as two knots the worst inferred sample was 1.8 times as far off as
+    # without repeats (11 % of the peak against 6 %).
+    assert worst[1] < 1.15 * worst[0], worst
 
 
 def test_a_lopsided_material_is_not_mirrored_and_says_so() -> None:
     steps, _ = region(asymmetry=0.5)
     done = sp.complete_targets(steps, R)
     assert not done.mirror.admitted and "not admitted" in done.mirror.reason
-    assert not np.isin(done.support, [sp.MIRRORED, sp.INFERRED]).any()
+    assert not (done.support == sp.MIRRORED).any()
+    # Nothing is inferred from a mirror: only the contact's gap beside the tip of a normal
+    # push, from its own seen side (contact.py).
+    inferred = done.support == sp.INFERRED
+    assert (steps.angle_deg[np.flatnonzero(inferred.any(axis=1))] == 90.0).all()
+    assert (np.abs(X[None, :] - steps.tip_x_mm[:, None])[inferred] < R + 1.0).all()
     assert np.all(np.isfinite(done.depth_mm))
     # The unseen side falls off away from the dent instead of holding its deepest value.
     ends = done.depth_mm[:, [0, -1]].max(axis=1)
@@ -228,3 +240,75 @@ def test_fill_gaps_decays_beyond_its_ends_only() -> None:
     # The left end lies on the tip's near side of the grid's centre: it decays only where
     # the distance from the tip grows past its own.
     assert np.all(out[:100] <= 3.0) and np.all(out[:100] > 0.0)
+
+
+# --------------------------------------------------------------------------- the simulator's dents
+
+def simulated_region(response: object, material: object, angles: tuple[float, ...], forces: tuple[float, ...],
+                     shadow_mm: float, seed: int = 3) -> tuple[sp.RegionSteps, np.ndarray]:
+    """Two points of one material, the simulator's own dents (sim/physics.py: the normal
+    dent, the tip's shift and the tangential load's odd term), each profile seen only on
+    the side its tangential load pushes toward (both sides at 90 degrees), beyond
+    ``shadow_mm`` from the tip, with the scans' noise."""
+    from elastoprobe.sim.physics import Component, ContactModel
+
+    rng = np.random.default_rng(seed)
+    rows = []
+    for pid in (0, 1):
+        for a in angles:
+            model = ContactModel([Component(1.0, response)], a, material, 0)
+            for f in forces:
+                truth = model.depth_profile_mm(X, f)
+                _, _, shift, _ = model._dent_loads(f, np.inf)
+                lead = 1.0 if a < 90.0 else -1.0 if a > 90.0 else 0.0
+                seen = (lead * (X - shift) > shadow_mm) if lead else (np.abs(X - shift) > shadow_mm)
+                meas = np.where(seen, truth + rng.normal(0.0, 0.01, X.shape), np.nan)
+                tip_depth = float(np.interp(shift, X, truth))
+                rows.append((f, f, a, meas, pid, shift, tip_depth, rng.normal(0.0, 0.005, X.shape), truth))
+    f, lvl, a, d, p, tx, td, rh, truth = (np.array(v) for v in zip(*rows))
+    return sp.RegionSteps(X, f, lvl, a, d, p.astype(np.int64), tx, td, rh), truth
+
+
+def _rubber_and_foam() -> dict[str, tuple[object, object]]:
+    from elastoprobe.sim.materials import Material
+    from elastoprobe.sim.physics import FoamResponse, HertzResponse
+
+    rubber = Material(name="rubber", kind="elastic", E_mpa=2.0, nu=0.49, friction_mu=0.8)
+    foam = Material(name="foam", kind="foam", E_mpa=0.12, nu=0.25, friction_mu=0.6, thickness_mm=80.0,
+                    decay_length_mm=6.0, densification_strain=0.7, densification_exponent=2.0)
+    return {"rubber": (HertzResponse(rubber, R, R), rubber), "foam": (FoamResponse(foam, R), foam)}
+
+
+def test_the_gap_beside_the_tip_follows_the_contact_of_a_rubber_and_of_a_foam() -> None:
+    """Between the tip's zone and the first seen sample of a normal push the surface stays
+    on the sphere to the contact's edge, then leaves it with its slope: Hertz's free surface
+    on a rubber, a gentler fall on a foam whose contact spreads wider. The fill is chosen
+    per region from the seen samples held back, and flagged inferred. Plain monotone
+    interpolation (before) missed the simulator's dents there by 0.20 mm RMS on the rubber
+    (11 % of its deepest dent) and 0.67 mm on the foam (2.6 %); this fill by 0.013 and 0.28."""
+    for name, (response, material) in _rubber_and_foam().items():
+        steps, truth = simulated_region(response, material, (90.0,), (2.0, 5.0, 9.0, 14.0, 20.0), 1.6 * R)
+        done = sp.complete_targets(steps, R)
+        gap = (np.abs(X[None, :] - steps.tip_x_mm[:, None]) < 1.6 * R) & (done.support != sp.TIP)
+        assert (done.support[gap] == sp.INFERRED).all(), name
+        err = done.depth_mm[gap] - truth[gap]
+        peak = float(truth.max())
+        assert np.sqrt(np.mean(err ** 2)) < 0.015 * peak, (name, np.sqrt(np.mean(err ** 2)), peak)
+
+
+def test_the_unseen_side_of_an_oblique_push_carries_the_tangential_loads_odd_term_reversed() -> None:
+    """A tangential load sinks the surface ahead of it and lifts it behind (Cerruti): the
+    seen side is deeper than the normal dent by the odd term, the unseen side shallower by
+    as much. Offsetting the normal dent to meet the seen side (before) put the odd term on
+    both sides: 0.080 mm RMS (5 % of the deepest dent) on the rubber, 0.27 mm on the foam,
+    against 0.013 and 0.16 mm now."""
+    angles = (10.0, 25.0, 45.0, 75.0, 90.0, 105.0, 135.0, 155.0, 170.0)
+    for name, (response, material) in _rubber_and_foam().items():
+        steps, truth = simulated_region(response, material, angles, (2.0, 8.0, 16.0), 1.6 * R)
+        done = sp.complete_targets(steps, R)
+        assert done.mirror.admitted, (name, done.mirror.reason)
+        inferred = (done.support == sp.INFERRED) & (steps.angle_deg != 90.0)[:, None]
+        err = done.depth_mm[inferred] - truth[inferred]
+        peak = float(truth.max())
+        assert np.sqrt(np.mean(err ** 2)) < 0.01 * peak, (name, np.sqrt(np.mean(err ** 2)), peak)
+        assert np.abs(err).max() < 0.05 * peak, (name, np.abs(err).max(), peak)

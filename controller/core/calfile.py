@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from .atomic import atomic_write_json
-from .errors import CalibrationError
+from .errors import CalibrationError, CalibrationFileError
 from .geometry import Pose
 from .inputfiles import read_input_bytes, read_input_text
 
@@ -71,22 +72,22 @@ def read_document(path: str | Path) -> dict[str, Any]:
     try:
         doc = json.loads(read_input_text(p))
     except FileNotFoundError:
-        raise CalibrationError(f"{p}: calibration file not found") from None
+        raise CalibrationFileError(f"{p}: calibration file not found") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CalibrationError(f"{p}: unreadable calibration file: {exc}") from None
+        raise CalibrationFileError(f"{p}: unreadable calibration file: {exc}") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise CalibrationError(f"{p}: not an Elastoprobe calibration file (format {doc.get('format')!r})"
+        raise CalibrationFileError(f"{p}: not an Elastoprobe calibration file (format {doc.get('format')!r})"
                                if isinstance(doc, dict) else f"{p}: not an Elastoprobe calibration file")
     if doc.get("format_version") != FORMAT_VERSION:
-        raise CalibrationError(f"{p}: calibration format version {doc.get('format_version')!r} is not supported "
+        raise CalibrationFileError(f"{p}: calibration format version {doc.get('format_version')!r} is not supported "
                                f"(this version reads {FORMAT_VERSION})")
     if not isinstance(doc.get("sections"), dict):
-        raise CalibrationError(f"{p}: calibration file has no sections")
+        raise CalibrationFileError(f"{p}: calibration file has no sections")
     for kind, sec in doc["sections"].items():
         if kind not in KINDS:
-            raise CalibrationError(f"{p}: unknown calibration section {kind!r}")
+            raise CalibrationFileError(f"{p}: unknown calibration section {kind!r}")
         if not isinstance(sec, dict) or "result" not in sec or "calibrated_utc" not in sec:
-            raise CalibrationError(f"{p}: section {kind!r} lacks result or calibrated_utc")
+            raise CalibrationFileError(f"{p}: section {kind!r} lacks result or calibrated_utc")
         _parse_time(sec["calibrated_utc"], p, kind)
     return doc
 
@@ -95,8 +96,25 @@ def _parse_time(value: Any, path: Path, kind: str) -> dt.datetime:
     try:
         t = dt.datetime.fromisoformat(str(value))
     except ValueError:
-        raise CalibrationError(f"{path}: section {kind!r} has a bad calibrated_utc {value!r}") from None
+        raise CalibrationFileError(f"{path}: section {kind!r} has a bad calibrated_utc {value!r}") from None
     return t if t.tzinfo else t.replace(tzinfo=dt.timezone.utc)
+
+
+def writable_document(path: str | Path, cell_name: str) -> dict[str, Any]:
+    """The document a new section of ``cell_name`` goes into: the file's, or an empty one when
+    there is none. Refused (CalibrationFileError) when the file is unreadable, damaged or
+    another cell's, or its folder cannot be written: what a calibration checks before the
+    arm moves, so that an hour of poses is never measured for a file it cannot write."""
+    p = Path(path)
+    if p.exists():
+        doc = read_document(p)
+        if doc.get("cell") != cell_name:
+            raise CalibrationFileError(f"{p}: the calibration file belongs to cell {doc.get('cell')!r}, not {cell_name!r}")
+        return doc
+    folder = p.parent if str(p.parent) else Path(".")
+    if folder.exists() and not os.access(folder, os.W_OK | os.X_OK):
+        raise CalibrationFileError(f"{p}: cannot write into {folder} (permission denied)")
+    return empty_document(cell_name)
 
 
 def write_section(path: str | Path, cell_name: str, kind: str, result: dict[str, Any], fit: dict[str, Any],
@@ -109,12 +127,7 @@ def write_section(path: str | Path, cell_name: str, kind: str, result: dict[str,
     if kind not in KINDS:
         raise ValueError(f"unknown calibration kind {kind!r}")
     p = Path(path)
-    if p.exists():
-        doc = read_document(p)
-        if doc.get("cell") != cell_name:
-            raise CalibrationError(f"{p}: the calibration file belongs to cell {doc.get('cell')!r}, not {cell_name!r}")
-    else:
-        doc = empty_document(cell_name)
+    doc = writable_document(p, cell_name)
     stamp = (now or utc_now()).astimezone(dt.timezone.utc).isoformat(timespec="seconds")
     doc["sections"][kind] = {"calibrated_utc": stamp, "data_sha256": data_sha256, "fit": fit, "result": result}
     doc["written_utc"] = stamp
@@ -184,7 +197,7 @@ class Corrections:
 def _pose(values: Any, path: Path, where: str) -> Pose:
     v = np.asarray(values, dtype=float)
     if v.shape != (6,) or not np.all(np.isfinite(v)):
-        raise CalibrationError(f"{path}: {where} must be six finite numbers [x, y, z, rx, ry, rz]")
+        raise CalibrationFileError(f"{path}: {where} must be six finite numbers [x, y, z, rx, ry, rz]")
     return Pose.from_list(v)
 
 
@@ -208,7 +221,7 @@ def load_calibration(path: str | Path) -> Corrections:
         if "object" in secs:
             kw["base_to_object"] = _pose(secs["object"]["result"]["base_to_object"], p, "object.base_to_object")
     except (KeyError, TypeError, ValueError) as exc:
-        raise CalibrationError(f"{p}: incomplete calibration result ({exc})") from None
+        raise CalibrationFileError(f"{p}: incomplete calibration result ({exc})") from None
     return Corrections(**kw)
 
 
@@ -307,7 +320,7 @@ def believed_cell(cell_spec, cell_path: str | Path,  # noqa: ANN001, ANN201 — 
         data = read_input_bytes(path)
         doc = read_document(path)
         if doc.get("cell") != cell_spec.name:
-            raise CalibrationError(f"{path}: calibrated for cell {doc.get('cell')!r}, not {cell_spec.name!r}")
+            raise CalibrationFileError(f"{path}: calibrated for cell {doc.get('cell')!r}, not {cell_spec.name!r}")
         corrections = load_calibration(path)
     except (OSError, CalibrationError) as exc:
         msg = str(exc) if isinstance(exc, CalibrationError) else f"{path}: {exc.strerror or exc}"

@@ -10,12 +10,13 @@ Every error is reported as ``path:line:col: message``.
 from __future__ import annotations
 
 import datetime as _dt
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from .calfile import believed_cell
 from .errors import InputError, InputErrors
@@ -318,6 +319,25 @@ class SamplingSpec(Spec):
     def _units(cls, v: int) -> int:
         if 0 < v < 4:
             raise ValueError("units must be 0 (explicit targets only) or at least 4")
+        return v
+
+    @field_validator("reference_direction")
+    @classmethod
+    def _reference_off_every_normal(cls, v: tuple[float, float, float], info: ValidationInfo) -> tuple[float, float, float]:
+        # The scan direction is this vector projected on the tangent plane. Parallel to a
+        # probe-able normal (tilted up to max_tilt_deg from vertical) it projects to nothing
+        # there, and the angles would mean different things from point to point.
+        norm = math.hypot(*v)
+        if norm < 1e-9:
+            raise ValueError("reference_direction is the zero vector: it has no direction")
+        from_vertical_deg = math.degrees(math.acos(min(1.0, abs(v[2]) / norm)))
+        max_tilt_deg = info.data.get("max_tilt_deg")
+        # A level reference is always taken: with max_tilt_deg 90 nothing else would be, and
+        # only faces that are themselves vertical fall back (geometry.scan_direction).
+        if max_tilt_deg is not None and from_vertical_deg <= min(max_tilt_deg, 89.0):
+            raise ValueError(f"reference_direction is {from_vertical_deg:.1f} deg from vertical, within "
+                             f"max_tilt_deg = {max_tilt_deg:g} of it: it would be parallel to some probe-able "
+                             f"surface normal (give a direction across the object, e.g. [0, 1, 0])")
         return v
 
 

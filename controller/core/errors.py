@@ -94,6 +94,13 @@ class CalibrationError(ElastoprobeError):
     """A calibration was refused: degenerate or too few poses, or a poor fit (the reason says which)."""
 
 
+class CalibrationFileError(CalibrationError):
+    """A calibration file that cannot be used as it is (unreadable, damaged, another cell's):
+    the user's file, so bad input (exit 2), not a fault of the cell."""
+
+    exit_code = 2
+
+
 class SessionAborted(Exception):
     """The fault policy said abort (exit 1)."""
 

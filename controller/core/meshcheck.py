@@ -51,6 +51,12 @@ def read_mesh(path: str | Path) -> trimesh.Trimesh:
     try:
         loaded = trimesh.load(str(path), force="mesh", process=False)
     except Exception as exc:     # noqa: BLE001 - trimesh raises many types for bad files
+        # A fallback reader that needs an optional module (a binary STL of the wrong length
+        # is retried as ASCII, which wants charset_normalizer) hides the file's own problem.
+        # Then the first error of the chain is the one about the file.
+        if isinstance(exc, ImportError):
+            while isinstance(exc.__context__, Exception):
+                exc = exc.__context__
         raise ValueError(f"cannot read mesh: {type(exc).__name__}: {exc}") from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise ValueError("the mesh file holds no triangles")

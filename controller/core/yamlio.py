@@ -32,12 +32,19 @@ from ruamel.yaml import YAML
 from ruamel.yaml.error import MarkedYAMLError, YAMLError
 from ruamel.yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 from ruamel.yaml.reader import ReaderError
+from ruamel.yaml.tokens import (BlockEndToken, BlockMappingStartToken, BlockSequenceStartToken,
+                                FlowMappingEndToken, FlowMappingStartToken, FlowSequenceEndToken,
+                                FlowSequenceStartToken)
 
 from .errors import InputError, InputErrors
 from .inputfiles import read_input_bytes
 
 MAX_NODES = 200_000          # constructed values, aliases expanded: bounds an alias bomb
 MAX_FILE_BYTES = 4_000_000
+MAX_DEPTH = 64               # nested collections; ruamel's composer recurses once per level
+
+_OPENS = (BlockMappingStartToken, BlockSequenceStartToken, FlowMappingStartToken, FlowSequenceStartToken)
+_CLOSES = (BlockEndToken, FlowMappingEndToken, FlowSequenceEndToken)
 
 _CORE = "tag:yaml.org,2002:"
 _INT_RE = re.compile(r"^[-+]?(0|[1-9][0-9_]*)$|^0o[0-7]+$|^0x[0-9a-fA-F]+$")
@@ -89,8 +96,8 @@ class _Builder:
         self.count += 1
         if self.count > MAX_NODES:
             raise self.fail(node, f"document expands to more than {MAX_NODES} values (alias bomb?)")
-        if depth > 64:
-            raise self.fail(node, "document is nested more than 64 levels deep")
+        if depth > MAX_DEPTH:
+            raise self.fail(node, f"document is nested more than {MAX_DEPTH} levels deep")
         self.doc.positions.setdefault(loc, _pos(node))
         tag = str(node.tag)
         if isinstance(node, MappingNode):
@@ -152,6 +159,22 @@ def _line_col(text: str, index: int) -> tuple[int, int]:
     return before.count("\n") + 1, index - (before.rfind("\n") + 1) + 1
 
 
+def _refuse_deep_nesting(yaml: YAML, text: str, path: str) -> None:
+    """Refuse collections nested deeper than MAX_DEPTH before composing: the scanner is
+    iterative, the composer recursive, so ``[[[[...]]]]`` a few thousand deep would end in
+    RecursionError instead of an error at its place."""
+    depth = 0
+    for token in yaml.scan(text):
+        if isinstance(token, _OPENS):
+            depth += 1
+            if depth > MAX_DEPTH:
+                mark = token.start_mark
+                raise InputError(f"document is nested more than {MAX_DEPTH} levels deep",
+                                 path=path, line=mark.line + 1, col=mark.column + 1)
+        elif isinstance(token, _CLOSES):
+            depth -= 1
+
+
 def parse_yaml_text(text_bytes: bytes, path: str) -> YamlDoc:
     """Parse YAML bytes into a :class:`YamlDoc`; raise :class:`InputError` with a position."""
     if len(text_bytes) > MAX_FILE_BYTES:
@@ -171,6 +194,7 @@ def parse_yaml_text(text_bytes: bytes, path: str) -> YamlDoc:
     yaml = YAML(typ="rt")
     yaml.version = (1, 2)
     try:
+        _refuse_deep_nesting(yaml, text, path)
         node = yaml.compose(text)
     except MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark

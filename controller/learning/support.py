@@ -22,11 +22,14 @@ support code:
   dent moves with the tangential load: there the sphere only bounds the surface (it
   cannot be above the tip) and the samples come from the inferred profile below;
 - ``inferred``: at an oblique angle, the unseen samples follow the same point's complete
-  90-degree profile at the same normal load F sin(alpha), shifted along t and offset to
-  meet the measured side (the normal and tangential contact problems decouple to first
-  order: the tangential load shifts the dent and adds an odd term that decays away from
-  the contact). Used only where the mirror is admitted (the 90-degree profile's unseen
-  half is a mirror);
+  90-degree profile at the same normal load F sin(alpha), centred on the tip, plus the
+  body's sink, plus the tangential load's odd term read off the seen side and reversed (the
+  normal and tangential contact problems decouple to first order: the tangential load
+  shifts the dent and adds an odd term that decays away from the contact). Used only where
+  the mirror is admitted (the 90-degree profile's unseen half is a mirror). Under a normal
+  push, the gap between the tip's zone and the first seen sample on each side follows the
+  contact's shape (:mod:`contact`: the sphere out to the contact's edge, then a fall fitted
+  to the region's own seen samples);
 - ``unsupported``: none of the above; filled by shape-preserving interpolation between
   supported samples, so the value is bounded by its supported neighbours, and flagged.
   Beyond the last supported sample towards the grid's end the dent decays towards the
@@ -45,6 +48,8 @@ from typing import Any
 
 import numpy as np
 
+from . import contact
+
 MEASURED, MIRRORED, TIP, INFERRED, UNSUPPORTED = 0, 1, 2, 3, 4
 SUPPORT_NAMES: tuple[str, ...] = ("measured", "mirrored", "tip", "inferred", "unsupported")
 # The sphere stands in for the surface where it is within this fraction of the tip's
@@ -55,6 +60,9 @@ NORMAL_ANGLE_DEG = 90.0
 # asymmetry (RMS, as a fraction of the region's deepest dent) below which it does not matter.
 MIRROR_FALSE_REJECTION = 1e-3
 MIRROR_MARGIN = 0.05
+# Beyond this many tip radii from the tip the odd part of an oblique push is taken to have
+# fallen off (:func:`_infer_oblique`).
+ODD_FAR_RADII = 4.0
 
 
 @dataclass(frozen=True)
@@ -322,9 +330,14 @@ def complete_targets(steps: RegionSteps, tip_radius_mm: float) -> CompletedTarge
         for k in range(m):
             _reflect_about_tip(x, depth[k], float(steps.tip_x_mm[k]))
     normal_rows = [k for k in range(m) if _is_normal(steps.angle_deg[k])]
+    zones = {k: _normal_seen(x, depth[k], support[k], float(steps.tip_x_mm[k]), float(steps.tip_depth_mm[k]),
+                             tip_radius_mm, mirror.admitted) for k in normal_rows}
+    join_weight = contact.fit_join_weight(
+        [(x, _supported(depth[k], support[k]), zones[k], _centre(steps.tip_x_mm[k]), float(steps.tip_depth_mm[k]))
+         for k in normal_rows if zones[k].any()], tip_radius_mm)
     for k in normal_rows:
-        _complete_normal(x, depth[k], support[k], float(steps.tip_x_mm[k]), float(steps.tip_depth_mm[k]),
-                         tip_radius_mm, mirror.admitted, power)
+        _fill_normal(x, depth[k], support[k], zones[k], float(steps.tip_x_mm[k]), float(steps.tip_depth_mm[k]),
+                     tip_radius_mm, power, join_weight)
     family = _normal_families(steps, depth, normal_rows)
     for k in range(m):
         if _is_normal(steps.angle_deg[k]):
@@ -359,24 +372,42 @@ def _reflect_about_tip(x: np.ndarray, depth: np.ndarray, tip_x: float) -> None:
     depth[idx] = reflected[idx]
 
 
-def _complete_normal(x: np.ndarray, depth: np.ndarray, support: np.ndarray, tip_x: float, tip_depth: float,
-                     radius: float, mirror_admitted: bool, tail_power: float) -> None:
-    """A 90-degree row in place: its own mirror (when admitted: the row is its own pair),
-    the tip within its half-width, then the gaps, kept between the sphere (the surface
-    cannot be above the tip) and the tip's depth (a normal push is deepest under the tip)."""
+def _supported(depth: np.ndarray, support: np.ndarray) -> np.ndarray:
+    """The row with NaN wherever nothing supports its value (a guess stays out of a fit)."""
+    return np.where(support == UNSUPPORTED, np.nan, depth)
+
+
+def _normal_seen(x: np.ndarray, depth: np.ndarray, support: np.ndarray, tip_x: float, tip_depth: float,
+                 radius: float, mirror_admitted: bool) -> np.ndarray:
+    """A 90-degree row's supported samples in place: its own mirror (when admitted: the row
+    is its own pair) and the tip within its half-width. Returns the tip's zone (L,) bool."""
     if mirror_admitted:
         own = depth[::-1].copy()
         fill = ~np.isfinite(depth) & np.isfinite(own)
         depth[fill] = own[fill]
         support[fill] = MIRRORED
     half = tip_half_width_mm(tip_depth, radius)
+    zone = np.abs(x - tip_x) <= half if half > 0.0 else np.zeros(x.shape, dtype=bool)
+    depth[zone] = sphere_depth_mm(x, tip_x, tip_depth, radius)[zone]
+    support[zone] = TIP
+    return zone
+
+
+def _fill_normal(x: np.ndarray, depth: np.ndarray, support: np.ndarray, zone: np.ndarray, tip_x: float,
+                 tip_depth: float, radius: float, tail_power: float, join_weight: float) -> None:
+    """The rest of a 90-degree row in place: between the tip's zone and the first supported
+    sample on each side the contact's shape (:mod:`contact`, flagged inferred), then the
+    remaining gaps; every filled sample kept between the sphere (the surface cannot be above
+    the tip) and the tip's depth (a normal push is deepest under the tip)."""
     sphere = sphere_depth_mm(x, tip_x, tip_depth, radius)
-    if half > 0.0:
-        zone = np.abs(x - tip_x) <= half
-        depth[zone] = sphere[zone]
-        support[zone] = TIP
-    filled = fill_gaps(x, depth, _centre(tip_x), tail_power, radius)
     gap = ~np.isfinite(depth)
+    if zone.any():
+        for g, inside, _ in contact.side_gaps(x, _supported(depth, support), zone, _centre(tip_x), tip_depth, radius):
+            inside = inside[support[inside] == UNSUPPORTED]
+            depth[inside] = contact.gap_fill(g, np.abs(x[inside] - _centre(tip_x)), join_weight)
+            support[inside] = INFERRED
+            gap[inside] = True
+    filled = fill_gaps(x, depth, _centre(tip_x), tail_power, radius)
     if np.isfinite(tip_depth) and tip_depth > 0.0:
         under = gap & np.isfinite(sphere)
         filled[under] = np.clip(filled[under], sphere[under], tip_depth)
@@ -423,39 +454,54 @@ def normal_profile_at(forces_n: np.ndarray, profiles_mm: np.ndarray, load_n: flo
 
 def _infer_oblique(x: np.ndarray, depth: np.ndarray, support: np.ndarray, force_n: float, angle_deg: float,
                    family: tuple[np.ndarray, np.ndarray], radius: float, tip_x: float) -> None:
-    """Unseen samples of an oblique row from the 90-degree profile at the same normal load,
-    shifted by s along t and offset by c to meet the measured side.
+    """Unseen samples of an oblique row: the even part, the 90-degree profile E at the same
+    normal load centred on the tip (s, its position along t, at most a tip radius off the
+    point), plus the body's sink c, plus the tangential load's odd part O read off the seen
+    side and reversed.
 
-    s is fitted (least squares over the measured samples where the shifted profile exceeds
-    5 % of its peak, |s| <= the tip radius) only when the measured side reaches the dent's
-    flank (samples where the unshifted profile exceeds 30 % of its peak): seen only from
-    its far tail, a dent's position is not determined by the data, and the tip's own
-    position along t is used. c is then the mean offset over those samples.
+    A tangential load sinks the surface ahead of it and lifts it behind (Cerruti): with
+    u = x - s, the row is E(u) + O(u) + c with O(-u) = -O(u), so the seen side gives
+    O = depth - E - c there and the unseen side gets E - O + c. c is the median of
+    depth - E over the seen samples at least ``ODD_FAR_RADII`` tip radii from the tip (where
+    the odd part of a contact a few mm wide has fallen off; over the farther half of the
+    seen samples if too few lie there). Between the tip and the first seen sample O runs
+    monotonically from 0 (it is odd) to its first seen value (the seen side's own gap is
+    filled the same way); beyond the last, it falls off as 1/|u| (Cerruti's far field).
+
+    Offsetting E by the mean difference to the seen side (before) put the seen side's odd
+    part on the unseen side with the wrong sign: on the demo pillow the 170-degree rows'
+    far side came out 1-3 mm too deep.
     """
     seen = np.isfinite(depth)
     if not seen.any():
         return
-    sym = normal_profile_at(*family, force_n * np.sin(np.radians(angle_deg)))
-    peak = float(np.max(sym))
-    if not peak > 0.0:
+    even = normal_profile_at(*family, force_n * np.sin(np.radians(angle_deg)))
+    if not float(np.max(even)) > 0.0:
         return
-    spacing = float(x[1] - x[0])
-    flank = seen & (sym > 0.3 * peak)
-    default = float(np.clip(tip_x, -radius, radius)) if np.isfinite(tip_x) else 0.0
-    shifts = np.arange(-radius, radius + 1e-9, spacing / 2.0) if flank.sum() >= 3 else np.array([default])
-    best: tuple[float, float, float] | None = None
-    for s in shifts:
-        shifted = np.interp(x - s, x, sym)
-        w = seen & (shifted > 0.05 * peak)
-        if w.sum() < 3:
-            w = seen
-        c = float(np.mean(depth[w] - shifted[w]))
-        err = float(np.mean((depth[w] - shifted[w] - c) ** 2))
-        if best is None or err < best[0]:
-            best = (err, float(s), c)
-    assert best is not None
-    _, s, c = best
-    inferred = np.interp(x - s, x, sym) + c
+    s = float(np.clip(tip_x, -radius, radius)) if np.isfinite(tip_x) else 0.0
+    u = x - s
+    even = np.interp(u, x, even)
+    far = seen & (np.abs(u) >= ODD_FAR_RADII * radius)
+    if far.sum() < 3:
+        far = seen & (np.abs(u) >= np.median(np.abs(u[seen])))
+    c = float(np.median(depth[far] - even[far]))
+    lead = 1.0 if np.mean(u[seen]) >= 0.0 else -1.0      # the side the scanner saw
+    on_lead = seen & (lead * u > 0.0)
+    if not on_lead.any():
+        return
+    order = np.argsort(np.abs(u[on_lead]))
+    known_u = np.concatenate([[0.0], np.abs(u[on_lead])[order]])
+    known_odd = np.concatenate([[0.0], (depth - even - c)[on_lead][order]])
+    from scipy.interpolate import PchipInterpolator
+
+    r = np.abs(u)
+    odd = PchipInterpolator(known_u, known_odd, extrapolate=False)(np.minimum(r, known_u[-1]))
+    beyond = r > known_u[-1]
+    odd[beyond] = known_odd[-1] * known_u[-1] / r[beyond]
+    # The reversed odd part may lift the far side above the surface (as Cerruti's does),
+    # but no higher than the row's own highest seen sample: nothing measured such a rise.
+    floor = min(0.0, float(np.min(depth[seen])))
+    inferred = np.maximum(even + np.where(lead * u > 0.0, odd, -odd) + c, floor)
     fill = ~seen
     depth[fill] = inferred[fill]
     support[fill] = INFERRED
