@@ -125,9 +125,10 @@ class SoakConfig:
     kills: int = 24                                 # landed on a live child, every kind together
     learning_kills: int = 4                         # of them, in a learning phase
     # Robot seconds between two kills of the rotation, so they spread over every phase of the
-    # night instead of all landing in its first hour: its 20 over ~7.2 of its ~8.5 hours
-    # (a kill armed in a child that pauses first waits for the next child).
-    kill_every_robot_s: float = 1300.0
+    # night instead of all landing in its first hour: its 20 over ~7 of its ~8.5 hours. A
+    # progress kill not due when its child starts is armed for its robot moment (a child
+    # runs for hours between pauses); an aimed one waits for the first child started after it.
+    kill_every_robot_s: float = 1200.0
     # A "progress" kill: after the child has committed this many steps of its own (0: during
     # its start-up, resume and re-registration), then a random wall delay within the next
     # step (uniform over kill_jitter_s): a moment read from the child's own progress, so it
@@ -165,8 +166,8 @@ def part_of_night(divisor: int) -> SoakConfig:
     """The night's soak with its plan, kills and bounds divided by ``divisor`` (2 or 4)."""
     quarter = divisor >= 4
     return replace(FULL, plan_overrides={
-        "name": f"soak-1-{divisor}", "sampling.units": 280 // divisor,
-        "phases.characterize.points_per_region": 8 // divisor,
+        "name": f"soak-1-{divisor}", "sampling.units": 400 // divisor,
+        "phases.characterize.points_per_region": 10 // divisor,
         "phases.densify.rounds": 2 if quarter else 4, "phases.densify.points_per_round": 10,
         **({"model.ensemble": 1, "model.max_epochs": 300} if quarter else {})},
         kills=24 // divisor, learning_kills=max(4 // divisor, 2), kill_every_robot_s=FULL.kill_every_robot_s,
@@ -275,18 +276,23 @@ class ChildRun:
     pause_reason: str | None = None
     stderr_tail: str = ""
     kill_phase: str | None = None      # where a kill landed: sweeping, survey, ..., learning
+    kill_due: bool = False             # the armed kill's moment came (a child that exits after is a miss)
 
 
 @dataclass(frozen=True)
 class ProgressKill:
     """SIGKILL the child ``jitter_s`` wall seconds after it has committed ``after_steps`` steps
-    of its own (0: from its start)."""
+    of its own (0: from its start), counted from when the session's robot time reached
+    ``at_robot_s`` (0: from the child's start): a child that runs on for hours is killed when
+    the night's schedule says, not only a child that starts after that moment."""
 
     after_steps: int
     jitter_s: float
+    at_robot_s: float = 0.0
 
     def describe(self) -> str:
-        return f"progress {self.after_steps} steps +{self.jitter_s:.1f} s"
+        at = f" from {self.at_robot_s / 3600.0:.2f} robot h" if self.at_robot_s > 0 else ""
+        return f"progress {self.after_steps} steps +{self.jitter_s:.1f} s{at}"
 
 
 def _vm_mb(pid: int, field_name: str = "VmRSS") -> float | None:
@@ -352,7 +358,11 @@ def run_child(args: list[str], env: dict[str, str], session_dir: Path, kill: Pro
     robot_s = 0.0
     phases = 0
     peak_mb = 0.0
-    kill_at_s = None if kill is None or kill.after_steps > 0 else kill.jitter_s
+    # Steps are counted from the kill's robot moment (the done set then); None: not due yet.
+    due_done: set[int] | None = None
+    if kill is not None and (before[0] if before is not None else 0.0) >= kill.at_robot_s:
+        due_done = done_before
+    kill_at_s = None if kill is None or due_done is None or kill.after_steps > 0 else kill.jitter_s
     while True:
         pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
         if pid != 0:
@@ -371,7 +381,10 @@ def run_child(args: list[str], env: dict[str, str], session_dir: Path, kill: Pro
         if polled is not None:
             robot_s, phases = polled[0], polled[2]
             ever_done |= polled[1]
-            if kill is not None and kill_at_s is None and len(polled[1] - done_before) >= kill.after_steps:
+            if kill is not None and due_done is None and robot_s >= kill.at_robot_s:
+                due_done = set(polled[1])
+            if kill is not None and kill_at_s is None and due_done is not None \
+                    and len(polled[1] - due_done) >= kill.after_steps:
                 kill_at_s = t + kill.jitter_s
         rss = _vm_rss_mb(proc.pid)
         if rss is not None:
@@ -392,7 +405,7 @@ def run_child(args: list[str], env: dict[str, str], session_dir: Path, kill: Pro
     elif proc.returncode != -signal.SIGKILL and killed is not None and killed != "timeout":
         killed = None                                # it had exited on its own: the kill hit nothing
     return ChildRun(args, proc.pid, proc.returncode, killed, time.monotonic() - t0, peak_mb, samples,
-                    stderr_tail=own_text[-3000:])
+                    stderr_tail=own_text[-3000:], kill_due=kill is None or due_done is not None)
 
 
 def _session_status(session_dir: Path) -> tuple[str | None, str | None]:
@@ -417,23 +430,20 @@ def kill_phase(session_dir: Path, pid: int) -> str | None:
         return None
     j = Journal.open_readonly(session_dir, check="none")
     try:
-        run = j._q("SELECT run_id FROM runs WHERE pid = ? ORDER BY run_id DESC LIMIT 1", (pid,))
-        if not run:
-            return "start-up"
-        last = j._q("SELECT to_state FROM transitions WHERE run_id = ? ORDER BY id DESC LIMIT 1",
-                    (run[0][0],))
-        step = j._q("SELECT phase FROM steps WHERE run_id = ? AND started_utc IS NOT NULL "
-                    "ORDER BY started_utc DESC LIMIT 1", (run[0][0],))
+        run = [r["run_id"] for r in j.runs() if r["pid"] == pid]
+        transitions = j.transitions(run_id=run[-1], last=1) if run else []
+        step = j.last_step_of_run(run[-1]) if run else None
+        step_phase = step.phase if step is not None else None
     finally:
         j.close()
-    if not last:
+    if not transitions:
         return "start-up"
-    state = last[0][0]
+    state = transitions[-1]["to_state"]
     if state in ("learning", "sweeping", "planning"):
         return state
     if state in ("preflight", "idle"):
         return "start-up"
-    return PHASE_NAMES.get(step[0][0], step[0][0]) if step else "start-up"
+    return PHASE_NAMES.get(step_phase, step_phase) if step_phase else "start-up"
 
 
 def journal_soundness(session_dir: Path) -> list[str]:
@@ -444,8 +454,7 @@ def journal_soundness(session_dir: Path) -> list[str]:
         return []
     j = Journal.open_readonly(session_dir, check="none")
     try:
-        problems = [f"integrity_check: {r[0]}" for r in j._q("PRAGMA integrity_check") if r[0] != "ok"]
-        return problems + j.verify()
+        return j.verify()          # SQLite's integrity check among the rest
     finally:
         j.close()
 
@@ -497,19 +506,21 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
 
     j = Journal.open_readonly(session_dir, check="none")
     try:
-        run_of_pid = {int(r[1]): int(r[0]) for r in j._q("SELECT run_id, pid FROM runs ORDER BY run_id")}
+        run_of_pid = {int(r["pid"]): int(r["run_id"]) for r in j.runs()}
         faults = j.faults(with_raw=False)
-        run_of_fault = {int(r[0]): r[1] for r in j._q("SELECT fault_id, run_id FROM faults")}
+        transitions = j.transitions()
         steps = j.steps()
-        status = {r.step_id: r.status for r in steps}
-        step_phase = {r.step_id: r.phase for r in steps}
-        # How far each run's robot clock got (its last transition or fault): a killed run
-        # that went on past a fault's match window had its chance to see it.
-        last_t_of_run = {int(r[0]): float(r[1]) for r in j._q(
-            "SELECT run_id, MAX(t) FROM (SELECT run_id, t_robot_s AS t FROM transitions "
-            "UNION ALL SELECT run_id, t_robot_s AS t FROM faults) WHERE t IS NOT NULL GROUP BY run_id")}
     finally:
         j.close()
+    run_of_fault = {f.fault_id: f.run_id for f in faults}
+    status = {r.step_id: r.status for r in steps}
+    step_phase = {r.step_id: r.phase for r in steps}
+    # How far each run's robot clock got (its last transition or fault): a killed run
+    # that went on past a fault's match window had its chance to see it.
+    last_t_of_run: dict[int, float] = {}
+    for run_id, t in [(t["run_id"], t["t_robot_s"]) for t in transitions] + [(f.run_id, f.t_robot_s) for f in faults]:
+        if run_id is not None and t is not None:
+            last_t_of_run[int(run_id)] = max(float(t), last_t_of_run.get(int(run_id), -math.inf))
     paused_fault_ids = _paused_fault_ids(children, faults, run_of_fault, run_of_pid)
     injected = [r for r in records if r.get("event") == "injected"]
     effect_at = {(r["kind"], tuple(r["key"] or ()), r["plan"], r["pid"]): r["t_s"]
@@ -572,8 +583,13 @@ def judge_faults(records: list[dict[str, Any]], session_dir: Path, children: lis
     all_fates = [f for group in fates.values() for f in group]
     share_burst(all_fates)
     other = [f for f in faults if f.fault_id not in claimed]
+    during = [f for f in faults if _RECOVERY_PREFIX.match(f.message or "")]
     return {"fates": all_fates, "raw_injections": len(injected),
-            "journaled_other": _histogram(f.kind for f in other)}
+            "journaled_other": _histogram(f.kind for f in other),
+            # Faults the controller met while recovering from another (journaled "during
+            # recovery from K"): retried in a nested recovery, or paused on.
+            "journaled_during_recovery": _histogram(f"{f.kind} {f.policy_action}" for f in during),
+            "nested_recoveries": sum(f.policy_action == "retry" for f in during)}
 
 
 SCANNER_KINDS = ("scanner_timeout", "scanner_short_burst")
@@ -891,13 +907,15 @@ def run_soak(cfg: SoakConfig, work_dir: Path, carry_on: bool = False) -> dict[st
         # The rotation's kill is armed once the night has gone far enough since the last one;
         # the learning kill is armed beside it in every child until its quota has landed.
         learning_kills = state["kills_by_mode"].get("learning", 0)
-        if state["kills"] - learning_kills < cfg.kills - cfg.learning_kills and robot_now_s >= next_kill_robot_s:
-            mode = cfg.kill_modes[mode_index % len(cfg.kill_modes)]
+        if state["kills"] - learning_kills < cfg.kills - cfg.learning_kills:
+            mode = cfg.kill_modes[mode_index % len(cfg.kill_modes)] if robot_now_s >= next_kill_robot_s else "progress"
             if mode == "aimed":
                 point = rng.choice(sorted(AIMED_NTH))
                 crash_specs.append(f"{point}@{rng.randint(*AIMED_NTH[point])}")
             else:
-                kill = ProgressKill(rng.randint(*cfg.kill_after_steps), rng.uniform(*cfg.kill_jitter_s))
+                # Not due yet: armed for the robot moment it is due (the child may run past it).
+                kill = ProgressKill(rng.randint(*cfg.kill_after_steps), rng.uniform(*cfg.kill_jitter_s),
+                                    at_robot_s=next_kill_robot_s if robot_now_s < next_kill_robot_s else 0.0)
         # Not in the child right after a learning kill: it would kill the same learning
         # phase again; the next one gets its turn.
         if learning_kills < cfg.learning_kills and not (children and children[-1].killed == f"aimed {LEARNING_POINT}"):
@@ -929,8 +947,10 @@ def run_soak(cfg: SoakConfig, work_dir: Path, carry_on: bool = False) -> dict[st
                 time.sleep(cfg.operator_delay_s)
                 state["operator_clears"] += 1
         elif child.returncode == 3:
-            if mode is not None:
-                state["kills_missed"] += 1       # it paused before its kill's moment came
+            if mode is not None and child.kill_due:
+                state["kills_missed"] += 1       # its kill's moment had come, and it paused first
+            elif mode is not None:
+                state["kills_not_due"] = state.get("kills_not_due", 0) + 1   # paused before the moment
             # The operator plays their part whatever kill was armed (a pause on an e-stop
             # while a learning kill waited was left uncounted, and the short run's judge
             # then missed its operator release).
@@ -983,9 +1003,14 @@ def summarize(work_dir: Path) -> dict[str, Any]:
         "faults_by_phase": {p: _histogram(f["fate"] for f in fates if f["phase"] == p)
                             for p in sorted({f["phase"] for f in fates})},
         "faults_during_recovery": _histogram(f["fate"] for f in fates if f.get("follows")),
+        "nested_recoveries": judged.get("nested_recoveries", 0),
+        "journaled_during_recovery": judged.get("journaled_during_recovery", {}),
+        "faults_injected_per_8h": (round(len(fates) * 8.0 / facts["robot_hours"], 1)
+                                   if facts.get("robot_hours") else None),
         "kills_by_mode": state.get("kills_by_mode", {}),
         "kills_by_phase": state.get("kills_by_phase", {}),
         "kills_missed": state.get("kills_missed", 0),
+        "kills_armed_not_due": state.get("kills_not_due", 0),
         "fault_injections_raw": judged.get("raw_injections", 0),
         "faults_journaled_not_injected": judged.get("journaled_other", {}),
         "fault_rates_per_100_steps": state["rates"],

@@ -316,6 +316,7 @@ class FaultRecord:
     message: str
     policy_action: str | None
     raw: np.ndarray | None     # (N, 7): t_s, Fx, Fy, Fz (N), Tx, Ty, Tz (N m)
+    run_id: int | None = None  # the run (controller process) that journaled it
 
 
 @dataclass
@@ -1214,14 +1215,26 @@ class Journal:
         """Faults (of one step, if given), oldest first; raw F/T data verified, or left out
         (``raw=None``) with ``with_raw=False`` — cheap for counting retries."""
         raw_cols = "raw_dtype, raw_shape, raw_sha256, raw" if with_raw else "NULL, NULL, NULL, NULL"
-        sql = (f"SELECT fault_id, kind, t_robot_s, t_wall_utc, step_id, message, policy_action, {raw_cols} "
+        sql = (f"SELECT fault_id, kind, t_robot_s, t_wall_utc, step_id, message, policy_action, {raw_cols}, run_id "
                f"FROM faults" + (" WHERE step_id=?" if step_id is not None else "") + " ORDER BY fault_id")
         out = []
         for r in self._q(sql, (int(step_id),) if step_id is not None else ()):
             raw = None if r[10] is None else decode_array(r[7], r[8], r[9], r[10], f"fault {r[0]} raw F/T")
             out.append(FaultRecord(fault_id=r[0], kind=r[1], t_robot_s=r[2], t_wall_utc=r[3], step_id=r[4],
-                                   message=r[5], policy_action=r[6], raw=raw))
+                                   message=r[5], policy_action=r[6], raw=raw, run_id=r[11]))
         return out
+
+    def last_step_of_run(self, run_id: int) -> StepRecord | None:
+        """The step run ``run_id`` began last (None: it began none): where a killed run was.
+        A step that a later run began again belongs to that run now."""
+        rows = self._q("SELECT step_id FROM steps WHERE run_id = ? AND started_utc IS NOT NULL "
+                       "ORDER BY started_utc DESC LIMIT 1", (int(run_id),))
+        return self.step(int(rows[0][0])) if rows else None
+
+    def runs(self) -> list[dict[str, Any]]:
+        """Every run (one controller process each: the first, then each resume), oldest first."""
+        keys = ("run_id", "mode", "started_utc", "pid", "host", "ended_utc", "end_status")
+        return [dict(zip(keys, r)) for r in self._q(f"SELECT {', '.join(keys)} FROM runs ORDER BY run_id")]
 
     def log_event(self, kind: str, record: Mapping[str, Any] | None = None, t_robot_s: float | None = None) -> int:
         """A free-form JSON record (decisions, warnings, progress) in the session log."""
@@ -1361,7 +1374,6 @@ class Journal:
         last_t = self._q("SELECT from_state, to_state, trigger, t_robot_s, t_wall_utc, step_id FROM transitions "
                          "ORDER BY id DESC LIMIT 1")
         last_f = self._q("SELECT kind, message, t_wall_utc, step_id FROM faults ORDER BY fault_id DESC LIMIT 1")
-        runs = self._q("SELECT run_id, mode, started_utc, pid, host, ended_utc, end_status FROM runs ORDER BY run_id")
         return {
             "session": self.session(),
             "steps": self.status_counts(),
@@ -1370,8 +1382,7 @@ class Journal:
             "last_transition": dict(zip(("from", "to", "trigger", "t_robot_s", "t_wall_utc", "step_id"),
                                         last_t[0])) if last_t else None,
             "last_fault": dict(zip(("kind", "message", "t_wall_utc", "step_id"), last_f[0])) if last_f else None,
-            "runs": [dict(zip(("run_id", "mode", "started_utc", "pid", "host", "ended_utc", "end_status"), r))
-                     for r in runs],
+            "runs": self.runs(),
         }
 
 

@@ -26,6 +26,7 @@ from .core.config import SessionInputs, effective_motion_limits
 from .core.devices import Cell, Trip, same_trip
 from .core.errors import BudgetSpent, DeviceError, DiskError, ElastoprobeError, MotionRefused, SessionAborted
 from .core.geometry import Pose
+from .core.safety import stream_health_guard
 from .journal import Journal, JournalCorruption, JournalError, SessionMeta, StepRecord, StepResult
 from .locking import CellLock
 from .machine import SessionMachine
@@ -105,6 +106,9 @@ def _json_default(o: Any) -> Any:
 # their recovery waits for it to come back; for any other fault, the connection lost
 # while recovering is a second fault.
 CONNECTION_FAULT_KINDS = frozenset({"connection", "device"})
+# Faults met during a recovery that always pause, whatever their kind's policy: the operator's
+# (an e-stop, a stop at the robot) and a journal that cannot be written (docs/design.md).
+NEVER_NESTED = frozenset({"emergency_stop", "operator_stop", "disk_error"})
 
 
 class Session:
@@ -606,7 +610,8 @@ class Session:
             status = arm.status()
         return {"is_moving": bool(status.is_moving), "tcp_speed_mm_s": float(status.tcp_speed_mm_s),
                 "protective_stop": bool(status.protective_stop), "emergency_stop": bool(status.emergency_stop),
-                "connected": bool(status.connected), "t_robot_s": float(status.t_s), "waited_s": round(waited, 3)}
+                "connected": bool(status.connected), "link_generation": int(status.link_generation),
+                "t_robot_s": float(status.t_s), "waited_s": round(waited, 3)}
 
     def _handle_fault(self, fault: ProbeFault, group: list[StepRecord]) -> None:
         """Stop first (the device already did), journal, retract, then follow the policy."""
@@ -637,7 +642,7 @@ class Session:
         if self.machine.can("fault"):
             self.machine.fire("fault")
         self.machine.fire("recover")
-        failed = self._recover(fault)
+        failed = self._recover(fault, step_id, since_generation=arm_state["link_generation"])
         if failed is not None and action in ("retry", "skip_target"):
             action = "pause"
         if action == "skip_target":
@@ -692,7 +697,7 @@ class Session:
         if self.machine.can("fault"):
             self.machine.fire("fault")
         self.machine.fire("recover")
-        failed = self._recover(fault)
+        failed = self._recover(fault, since_generation=arm_state["link_generation"])
         if failed is not None and action == "retry":
             action = "pause"
         why = (f"{fault.kind} {SWEEP_FAULT_PREFIX}: {fault.message}"
@@ -704,45 +709,68 @@ class Session:
         # The machine has no "sweep" from retracting: the sweep runs again from there.
         self.machine.fire("retract")
 
-    def _recover(self, fault: ProbeFault) -> str | None:
+    def _recover(self, fault: ProbeFault, step_id: int | None = None, since_generation: int | None = None,
+                 root: ProbeFault | None = None) -> str | None:
         """Make the arm movable again: protective-stop recovery, re-arm, retract. Never clears an e-stop.
 
         None when the arm is movable again, else why not (for the pause reason: the operator
-        at the cell reads it first).
+        at the cell reads it first). ``since_generation``: the link generation when the fault
+        was met (ArmStatus.link_generation); a higher one afterwards is a connection lost and
+        regained inside this recovery. ``root``: the fault whose recovery this one is nested
+        in (docs/design.md, fault policy: one nested recovery, never two).
         """
         assert self.cell is not None
         arm = self.cell.arm
+        if since_generation is None:
+            since_generation = arm.status().link_generation
         if fault.kind not in CONNECTION_FAULT_KINDS and not arm.status().connected:
             # The connection dropped after this fault was seen: a fault of its own.
-            self._journal_recovery_fault(fault, "connection", "lost the connection to the robot", None)
-            if self._await_connection() is None:
-                return "connection waiting to recover: the arm did not reconnect within 10 s"
-            return "connection waiting to recover: lost the connection to the robot"
+            return self._fault_during_recovery(fault, root, step_id, "connection",
+                                               "lost the connection to the robot", None, "waiting to recover")
         status = self._await_connection()
         if status is None:
             return "the arm did not reconnect within 10 s"
+        if fault.kind in CONNECTION_FAULT_KINDS:
+            # The loss that is this fault is behind us: only a later one is a fault of its own.
+            since_generation = max(since_generation, status.link_generation)
+        # A stop this recovery (or the one it is nested in) is about is not a new fault.
+        about = {fault.kind} | ({root.kind} if root is not None else set())
         if status.emergency_stop:
+            if "emergency_stop" not in about:
+                # Pressed while this fault was handled: its own fault, and the operator's.
+                failed = self._fault_during_recovery(fault, root, step_id, "emergency_stop",
+                                                     "emergency stop is pressed", None, "waiting to recover")
+                return f"{failed} (release it at the cell, then resume)"
             return "the emergency stop is still engaged (release it at the cell, then resume)"
-        if status.protective_stop and fault.kind in CONNECTION_FAULT_KINDS:
-            # The robot stopped itself (a collision, a joint limit) while the link was down:
-            # neither the link's restart nor the watchdog makes a protective stop (the
-            # watchdog only stops the program), so it is a fault of its own, journaled as a
-            # protective stop is (no guard trip, so no raw F/T) and left locked for the
-            # operator to read. The robot has halted the arm already.
-            message = "the robot is in a protective stop"
-            self._journal_recovery_fault(fault, "protective_stop", message, None)
-            # A trip the guard latched meanwhile (an F/T spike while the link was down) is
-            # one more fault of its own: journaled too, and named in the pause.
-            tripped = self._trip_since(fault, "waiting to recover")
-            return f"protective_stop waiting to recover: {message}" + (f"; {tripped}" if tripped else "")
+        if status.protective_stop and "protective_stop" not in about:
+            # The robot stopped itself while this fault was handled: after a lost link (neither
+            # the link's restart nor the watchdog makes a protective stop), or the UR's own
+            # limit along with a force trip. A fault of its own (no guard trip, so no raw F/T),
+            # never unlocked unnamed. A trip the guard latched meanwhile (an F/T spike while
+            # the link was down) is one more: journaled too, and named in the pause.
+            nests = self._nests("protective_stop", root)
+            failed = self._fault_during_recovery(fault, root, step_id, "protective_stop",
+                                                 "the robot is in a protective stop", None, "waiting to recover")
+            if failed is not None and not nests:
+                _, tripped = self._trip_since(fault, root, step_id, "waiting to recover", may_nest=False)
+                return failed + (f"; {tripped}" if tripped else "")
+            return failed
         if status.protective_stop and not arm.recover_protective_stop():
+            if arm.status().emergency_stop and "emergency_stop" not in about:
+                # Pressed while the stop was being unlocked (the unlock fails then).
+                failed = self._fault_during_recovery(fault, root, step_id, "emergency_stop",
+                                                     "emergency stop is pressed", None, "waiting to recover")
+                return f"{failed} (release it at the cell, then resume)"
             return "the protective stop could not be cleared from the dashboard"
         # The guard keeps checking while the controller waits for the connection or the
         # dashboard: a trip latched since this fault (a stalled or frozen F/T stream, a
         # spike) is a fault of its own, not part of this one, and is never re-armed unseen.
-        failed = self._trip_since(fault, "waiting to recover")
-        if failed is not None:
+        met, failed = self._trip_since(fault, root, step_id, "waiting to recover")
+        if met:
             return failed
+        # A retract started on a stream still frozen or ringing from a spike trips again on
+        # the very fault it recovers from: wait (bounded) for fresh samples first.
+        self._await_fresh_ft()
         self.executor.acknowledged_trip = arm.trip()
         try:
             self.executor.safe_retract()
@@ -751,43 +779,111 @@ class Session:
             # that follows names both.
             self._stop_arm()
             kind = exc.kind if isinstance(exc, ProbeFault) else "device"
-            self._journal_recovery_fault(fault, kind, str(exc), exc.trip if isinstance(exc, ProbeFault) else None)
-            return f"{kind} while retracting: {exc}"
+            self.executor.acknowledged_trip = None
+            return self._fault_during_recovery(fault, root, step_id, kind, str(exc),
+                                               exc.trip if isinstance(exc, ProbeFault) else None, "while retracting")
         finally:
             self.executor.acknowledged_trip = None
         # Re-arm only after the state change (retracted), below the hysteresis level.
         for _ in range(50):
-            failed = self._trip_since(fault, "after retracting")
-            if failed is not None:
+            met, failed = self._trip_since(fault, root, step_id, "after retracting")
+            if met:
                 return failed
             if arm.rearm():
-                return None
+                return self._lost_link_since(fault, root, step_id, since_generation)
             self.cell.clock.sleep_s(0.1)
             self.cell.ft.read_block()
         return "the force limits could not be re-armed within 5 s of retracting (the F/T still reads over them)"
 
-    def _trip_since(self, fault: ProbeFault, when: str) -> str | None:
-        """If the arm's guard holds a trip other than the one ``fault`` reported (latched
-        while recovering from it), journal it and say why recovery failed; else None."""
+    def _lost_link_since(self, fault: ProbeFault, root: ProbeFault | None, step_id: int | None,
+                         since_generation: int) -> str | None:
+        """The recovery is done; if the link was lost and regained inside it (its generation
+        rose), that loss is a fault of its own: the robot's watchdog stopped the program
+        meanwhile and the arm was moved on a link that had dropped."""
+        assert self.cell is not None
+        try:
+            status = self.cell.arm.status()
+        except DeviceError as exc:
+            return self._fault_during_recovery(fault, root, step_id, "device", str(exc), None, "after retracting")
+        if status.link_generation <= since_generation:
+            return None
+        lost = status.link_generation - since_generation
+        return self._fault_during_recovery(
+            fault, root, step_id, "connection",
+            f"lost the connection to the robot and regained it ({lost} time{'s' if lost > 1 else ''})", None,
+            "while recovering")
+
+    def _await_fresh_ft(self, clean_for_s: float | None = None, max_s: float = 0.5) -> bool:
+        """Wait (bounded, robot time) until the F/T stream has been healthy for ``clean_for_s``
+        (default: twice the frozen or rate window, whichever is longer): no frozen run, no
+        status word, no force-rate crossing, no gap. True if it was, False at ``max_s``."""
+        assert self.cell is not None
+        limits = self.inputs.limits
+        ft, clock = self.cell.ft, self.cell.clock
+        need_s = clean_for_s if clean_for_s is not None else 2e-3 * max(limits.ft_frozen_ms, limits.rate_window_ms)
+        guard = stream_health_guard(limits, ft.rate_hz)
+        clean_since: float | None = None
+        waited, period_s = 0.0, 0.01
+        while waited < max_s:
+            clock.sleep_s(period_s)
+            waited += period_s
+            try:
+                block = ft.read_block()
+            except DeviceError:
+                clean_since = None
+                continue
+            if not len(block) or guard.check_block(block) is not None or guard.check_stale(clock.now_s()):
+                guard.tripped, clean_since = None, None
+                continue
+            clean_since = float(block.t_s[0]) if clean_since is None else clean_since
+            if float(block.t_s[-1]) - clean_since >= need_s:
+                return True
+        self._log("ft_not_fresh", waited_s=round(waited, 3))
+        return False
+
+    def _fault_during_recovery(self, fault: ProbeFault, root: ProbeFault | None, step_id: int | None, kind: str,
+                               message: str, trip: Trip | None, when: str, may_nest: bool = True) -> str | None:
+        """A fault met while recovering from ``fault``: journaled as its own fault. When its
+        kind's policy is retry and this recovery is not nested already, recover from it once
+        (a nested recovery; None if that made the arm movable again); else say why recovery
+        failed (the session pauses, its reason naming both). E-stops, disk errors and
+        operator stops always pause."""
+        assert self.journal is not None and self.cell is not None
+        outer = root if root is not None else fault
+        nest = may_nest and self._nests(kind, root)
+        note = "" if root is None else f" (while recovering from the {fault.kind} met in that recovery)"
+        self.journal.record_fault(kind, f"during recovery from {outer.kind}: {message}{note}",
+                                  t_robot_s=self.cell.clock.now_s(), step_id=step_id,
+                                  policy_action="retry" if nest else "pause",
+                                  raw=trip.raw if trip is not None else None)
+        if not nest:
+            self._log("recovery_failed", kind=kind, message=message, during=fault.kind, nested=root is not None)
+            return f"{kind} {when}: {message}"
+        self._log("nested_recovery", kind=kind, message=message, during=fault.kind)
+        return self._recover(ProbeFault(kind, message, trip), step_id, root=outer)
+
+    def _nests(self, kind: str, root: ProbeFault | None) -> bool:
+        """Whether a fault of ``kind`` met during a recovery gets a nested recovery: its kind's
+        policy is retry, it is not the operator's or the disk's, and the recovery it was met
+        in is not itself nested (``root`` None)."""
+        policy = self.inputs.plan.fault_policy.for_kind(kind)
+        return root is None and policy.action == "retry" and policy.retries > 0 and kind not in NEVER_NESTED
+
+    def _trip_since(self, fault: ProbeFault, root: ProbeFault | None, step_id: int | None, when: str,
+                    may_nest: bool = True) -> tuple[bool, str | None]:
+        """Whether the arm's guard holds a trip other than those of ``fault`` and ``root``
+        (latched while recovering from them): a fault of its own, handled by
+        :meth:`_fault_during_recovery`; with it, why recovery failed (None: a nested
+        recovery made the arm movable again)."""
         assert self.cell is not None
         try:
             trip = self.cell.arm.trip()
         except DeviceError as exc:
-            self._journal_recovery_fault(fault, "device", str(exc), None)
-            return f"device {when}: {exc}"
-        if trip is None or same_trip(trip, fault.trip):
-            return None
+            return True, self._fault_during_recovery(fault, root, step_id, "device", str(exc), None, when, may_nest)
+        if trip is None or same_trip(trip, fault.trip) or (root is not None and same_trip(trip, root.trip)):
+            return False, None
         self._stop_arm()
-        self._journal_recovery_fault(fault, trip.kind, trip.message, trip)
-        return f"{trip.kind} {when}: {trip.message}"
-
-    def _journal_recovery_fault(self, fault: ProbeFault, kind: str, message: str, trip: Trip | None) -> None:
-        """Journal a fault met while recovering from ``fault`` (the pause that follows names both)."""
-        assert self.journal is not None and self.cell is not None
-        self.journal.record_fault(kind, f"during recovery from {fault.kind}: {message}",
-                                  t_robot_s=self.cell.clock.now_s(), policy_action="pause",
-                                  raw=trip.raw if trip is not None else None)
-        self._log("recovery_failed", kind=kind, message=message, during=fault.kind)
+        return True, self._fault_during_recovery(fault, root, step_id, trip.kind, trip.message, trip, when, may_nest)
 
     # ------------------------------------------------------------------ operator, budget, progress
     def _check_operator(self) -> None:

@@ -258,6 +258,7 @@ class SimArm:
         self._estop = False
         self._connected = True
         self._program_running = True
+        self._link_generation = 0          # connection losses so far (ArmStatus.link_generation)
 
     @property
     def _regulator(self) -> Regulation | None:
@@ -280,7 +281,7 @@ class SimArm:
                          program_running=self._program_running,
                          protective_stop=self._protective_since_us is not None,
                          emergency_stop=self._estop, is_moving=abs(self._du) * self._path.speed_scale > 1e-3,
-                         connected=connected)
+                         connected=connected, link_generation=self._link_generation)
 
     def inverse_kinematics(self, tcp_pose: Pose, seed_joints_rad: np.ndarray | None = None) -> np.ndarray | None:
         seed = self._path.joints(self._u) if seed_joints_rad is None else seed_joints_rad
@@ -678,6 +679,7 @@ class SimArm:
 
     def _sim_connection_lost(self, t_us: int) -> None:
         """RTDE lost: the robot-side watchdog stops the program."""
+        self._link_generation += 1
         self._halt(t_us, self._settings.stop_decel_mm_s2)
         self._program_running = False
         self._fault("connection lost")

@@ -89,6 +89,8 @@ def test_overnight_soak(tmp_path: Path) -> None:
     assert set(result["faults_by_kind"]) == set(soak_kinds())
     assert {"sweeping", "survey", "characterize", "densify", "learning"} <= set(result["faults_by_phase"])
     assert sum(result["faults_during_recovery"].values()) >= 5
+    # A retry-kind fault met while recovering gets one nested recovery (docs/design.md).
+    assert result["nested_recoveries"] >= 1
     # Kills that landed on a running child (its own exit status says SIGKILL), spread over the
     # phases: a moment of the child's progress, inside a journal transaction, in learning.
     assert result["kills"] >= 20 and set(result["kills_by_mode"]) == {"progress", "aimed", "learning"}
@@ -219,6 +221,23 @@ def test_a_kill_counts_only_when_it_lands_on_a_running_child(tmp_path: Path) -> 
     aimed = _fake_child(tmp_path, "from elastoprobe.controller.testing import crash_point as c; c('a'); c('a')",
                         None, {"ELASTOPROBE_JOURNAL_CRASH_AT": f"{soak.LEARNING_POINT},a@2"})
     assert aimed.returncode == -9 and aimed.killed == "aimed a@2"
+
+
+def test_a_kill_not_due_at_a_childs_start_lands_at_its_robot_moment(tmp_path: Path,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    # The night on 280 units landed 14 kills of 24: a kill was armed only in a child started
+    # after its robot moment, and a child runs for hours between pauses. Now one armed for a
+    # later robot moment lands when the child's journal reaches it; a child that exits before
+    # that moment is not a miss (kill_due False).
+    polls = iter(range(0, 10**6, 10))
+    monkeypatch.setattr(soak, "_journal_poll", lambda _dir: (float(next(polls)), set(), 0))
+    later = soak.ProgressKill(0, 0.0, at_robot_s=60.0)
+    running = _fake_child(tmp_path, "import time; time.sleep(30)", later)
+    assert running.returncode == -9 and running.killed == later.describe() and running.kill_due
+    assert running.samples == [] or running.samples[-1][2] >= 60.0
+    polls = iter(range(0, 10**6, 1))
+    early = _fake_child(tmp_path, "import sys; sys.exit(3)", soak.ProgressKill(0, 0.0, at_robot_s=10**7))
+    assert (early.returncode, early.killed, early.kill_due) == (3, None, False)
 
 
 def _child_samples(start_h: float, span_h: float, rss_at: Any) -> soak.ChildRun:

@@ -132,6 +132,10 @@ class ArmStatus:
     ``operator_stop``: the robot's program was stopped or paused by someone at the pendant
     or the dashboard (no safety stop explains it); ``stop_reason`` says so in the robot's
     words. The arm is the operator's then: nothing moves it until the session is resumed.
+    ``link_generation``: how many times the control link to the robot has been lost (and
+    re-established) since the driver started: a loss and a return between two status reads
+    leaves ``connected`` True but this count higher, so a caller that compares it across a
+    span of work (a recovery) sees a connection lost inside it.
     """
 
     t_s: float
@@ -145,6 +149,7 @@ class ArmStatus:
     connected: bool = True
     operator_stop: bool = False
     stop_reason: str = ""
+    link_generation: int = 0
 
 
 @dataclass(frozen=True)

@@ -15,8 +15,9 @@ separately, a stale stream (no sample for ``ft_stale_ms``) and tip slip.
 """
 from __future__ import annotations
 
+import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -208,6 +209,17 @@ class SafetyGuard:
         if self.tripped is None:
             self.tripped = trip
         return trip
+
+
+def stream_health_guard(limits: SafetyLimits, rate_hz: float) -> SafetyGuard:
+    """A guard over the F/T stream's health only: frozen, stale, a device status word and the
+    force rate; the load limits (force, torque, lateral force) are lifted.
+
+    Why: after a fault the probe may still press on the object (the load is what the retract
+    removes), but a retract started while the stream is still frozen or still ringing from a
+    spike trips again on the same fault. Samples this guard passes are fresh."""
+    lifted = replace(limits, max_force_n=math.inf, max_torque_nm=math.inf, max_lateral_force_n=math.inf)
+    return SafetyGuard(lifted, rate_hz=rate_hz)
 
 
 def _run_lengths(same_as_previous: np.ndarray, carried: int) -> np.ndarray:

@@ -504,7 +504,9 @@ class _HardwareServer:
                 "speed_mm_s": st.tcp_speed_m_s * 1e3, "program_running": st.program_running,
                 "protective": st.protective_stopped, "emergency": st.emergency_stopped,
                 "connected": st.connected and self.link.alive, "operator_stop": st.operator_stop,
-                "stop_reason": st.stop_reason}
+                "stop_reason": st.stop_reason,
+                # Every lost link restarts the child (URLink._fault): its restarts count the losses.
+                "link_generation": self.link.restarts}
 
     def op_move_linear(self, target_ur: list[float], speed_mm_s: float, accel_mm_s2: float) -> int:
         self._raise_pending()
@@ -875,7 +877,7 @@ class HardwareArm:
                          program_running=bool(d["program_running"]), protective_stop=bool(d["protective"]),
                          emergency_stop=bool(d["emergency"]), is_moving=float(d["speed_mm_s"]) > 0.1,
                          connected=bool(d["connected"]), operator_stop=bool(d["operator_stop"]),
-                         stop_reason=str(d["stop_reason"]))
+                         stop_reason=str(d["stop_reason"]), link_generation=int(d.get("link_generation", 0)))
 
     def inverse_kinematics(self, tcp_pose: Pose, seed_joints_rad: np.ndarray | None = None) -> np.ndarray | None:
         from ..core.kinematics import inverse, ur5e
