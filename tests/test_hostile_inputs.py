@@ -404,11 +404,13 @@ def test_check_says_when_the_budget_stops_the_plan_before_anything_is_probed(
 
 def test_a_binary_stl_of_the_wrong_length_is_named_for_what_it_is(tmp_path: Path,
                                                                   capsys: pytest.CaptureFixture[str]) -> None:
-    """trimesh retries it as ASCII, which wants an optional module: the message named that
-    module ("No module named 'charset_normalizer'"), as if the user had to install something."""
+    """trimesh retries it as ASCII, which wants an optional module: without that module the
+    message named it ("No module named 'charset_normalizer'"), as if the user had to install
+    something. With it or without it, the message is about the file."""
     obj = _user_object(tmp_path, edits={"file: user_object.ply": "file: broken.stl"})
     (tmp_path / "broken.stl").write_bytes(b"\0" * 80 + (4_000_000_000).to_bytes(4, "little") + b"\xee" * 50)
     assert main(["check", str(_plan(tmp_path, obj))]) == 2
     err = capsys.readouterr().err
-    assert f"{obj}:12:9: " in err and "Binary STL has incorrect length" in err, err
+    assert f"{obj}:12:9: broken.stl: " in err and "Traceback" not in err, err
     assert "module" not in err, err
+    assert "Binary STL has incorrect length" in err or "holds no triangles" in err, err
