@@ -19,10 +19,19 @@ from .acquire import unseen_of_cloud
 from .core.errors import BudgetSpent, SessionAborted
 from .core.geometry import INTERIOR_ANGLES_DEG, Pose, scan_direction
 from .journal import StepPlan
+from .learning import cloud as cl
+from .learning import densify as dn
+from .learning import neural_gas as ng
 from .learning import profiles as prof
+from .learning import regions as rg
+from .learning import surface_map as sm
+from .learning import targets as tg
+from .learning.densify import averaged_noise_mm
 from .learning.models import RegionModel, ServingLimits, TrainConfig, fit_region_model
 from .learning.support import UNSUPPORTED, CompletedTargets, RegionSteps, complete_targets, support_table
+from .ordering import order_targets
 from .probe import ProbeTarget, StepData
+from .report import write_report
 from .testing import crash_point
 
 if TYPE_CHECKING:
@@ -76,7 +85,6 @@ class PhaseContext:
 
     def surface(self) -> Any:
         """The committed cloud's surface graph (learning.surface_map), built on first use."""
-        from .learning import surface_map as sm
 
         if self._surface is None:
             assert self.cloud_mm is not None and self.cloud_normals is not None
@@ -85,7 +93,6 @@ class PhaseContext:
 
     def surface_neighbours(self, points_mm: np.ndarray) -> np.ndarray:
         """(E,2) neighbour pairs of targets: their cells on the cloud touch without a fold between."""
-        from .learning import surface_map as sm
 
         g = self.surface()
         return np.asarray(sm.seed_neighbours(g, sm.cells(g, points_mm)), dtype=np.int64).reshape(-1, 2)
@@ -194,7 +201,6 @@ def _next_order(ctx: PhaseContext) -> int:
 
 
 def _ordered(ctx: PhaseContext, ids: list[int]) -> list[int]:
-    from .ordering import order_targets
 
     if len(ids) < 3:
         return ids
@@ -207,7 +213,6 @@ def _ordered(ctx: PhaseContext, ids: list[int]) -> list[int]:
 
 # --------------------------------------------------------------------------- phases
 def phase_cloud(ctx: PhaseContext) -> None:
-    from .learning import cloud as cl
 
     s = ctx.session
     j, cell = s.journal, s.cell
@@ -277,7 +282,6 @@ def remove_table_below(points_mm: np.ndarray, seed: int, link_mm: float, max_tri
     (learning.cloud.standing_on_table, chained ``link_mm`` apart: a little more than
     the sweep's profiles lie apart).
     """
-    from .learning import cloud as cl
 
     up = np.array([0.0, 0.0, 1.0])
     rest = points_mm
@@ -315,9 +319,6 @@ def orient_outward_from_above(points_mm: np.ndarray, normals: np.ndarray) -> np.
 
 def phase_sampling(ctx: PhaseContext) -> None:
     """Neural gas units -> probe targets (on the surface, away from edges) -> survey steps."""
-    from .learning import neural_gas as ng
-    from .learning import targets as tg
-    from .learning import cloud as cl
 
     s = ctx.session
     j = s.journal
@@ -383,7 +384,6 @@ def phase_sampling(ctx: PhaseContext) -> None:
 
 def _target_rules(ctx: PhaseContext) -> Any:
     """The plan's rules for where a target may sit (learning.targets.TargetRules)."""
-    from .learning import targets as tg
 
     plan = ctx.session.inputs.plan
     radius = ctx.session.inputs.cell.tool.tip_radius_mm
@@ -446,7 +446,6 @@ def _survey_profiles(ctx: PhaseContext, target_ids: list[int]) -> tuple[list[int
 
 def phase_regions(ctx: PhaseContext, round_: int) -> None:
     """Cluster the surveyed targets into regions; plan characterization where a region lacks it."""
-    from .learning import regions as rg
 
     s = ctx.session
     j = s.journal
@@ -754,10 +753,6 @@ def phase_models(ctx: PhaseContext, round_: int) -> None:
 def phase_densify(ctx: PhaseContext, round_: int) -> bool:
     """Add survey targets where adjacent regions differ (their models or their survey dents)
     and around survey points their region explains badly; False when resolved or out of budget."""
-    from .learning import cloud as cl
-    from .learning import densify as dn
-    from .learning import surface_map as sm
-    from .learning import targets as tg
 
     s = ctx.session
     j = s.journal
@@ -831,7 +826,6 @@ def _region_features(ctx: PhaseContext, ids: list[int]) -> tuple[np.ndarray, lis
 def _survey_levels(ctx: PhaseContext, ids: list[int]) -> np.ndarray | None:
     """Each labelled target's dent on the scale regions differ on (mean over survey forces of
     log(peak + noise), regions.log_peaks); None without a regions round."""
-    from .learning import regions as rg
 
     found = _region_features(ctx, ids)
     if found is None:
@@ -852,7 +846,6 @@ def _cloud_normals_at(ctx: PhaseContext, points_mm: np.ndarray) -> np.ndarray:
 
 def measured_noise_mm(ctx: PhaseContext, max_steps: int = 20) -> float:
     """Standard error (mm) of averaged survey profiles, from the scans themselves."""
-    from .learning.densify import averaged_noise_mm
 
     s = ctx.session
     j, cell = s.journal, s.cell
@@ -875,8 +868,6 @@ def measured_noise_mm(ctx: PhaseContext, max_steps: int = 20) -> float:
 
 def phase_final(ctx: PhaseContext) -> None:
     """The region map over the whole cloud, and the report."""
-    from .learning import surface_map as sm
-    from .report import write_report
 
     s = ctx.session
     j = s.journal

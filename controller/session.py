@@ -19,7 +19,9 @@ from typing import Any, Callable
 
 import numpy as np
 
+from . import phases
 from .acquire import SweepResult, SweepSettings, acquire_cloud, line_footprint_mm
+from .cellfactory import build_cell, load_object_model
 from .core.atomic import json_default
 from .core.collision import shapes_from_cell
 from .core.config import SessionInputs, effective_motion_limits
@@ -27,11 +29,16 @@ from .core.devices import Cell, Trip, same_trip
 from .core.errors import BudgetSpent, DeviceError, DiskError, ElastoprobeError, MotionRefused, SessionAborted
 from .core.geometry import Pose
 from .core.safety import stream_health_guard
+from .core.validation import build_validator
 from .journal import Journal, JournalCorruption, JournalError, SessionMeta, StepRecord, StepResult
 from .locking import CellLock
 from .machine import SessionMachine
-from .placement import PlacementMonitor
+from .notify import DiskWatch, Notifier
+from .phases import FOOT_LINK_SPACINGS, SWEEP_STEP_KEY, remove_table_below
+from .placement import PlacementMonitor, reregister
 from .probe import ForceLevel, ProbeExecutor, ProbeFault, ProbeSettings, ProbeTarget, StepData
+from .provenance import calibration_entry, collect_provenance
+from .report import write_report
 from .signals import OperatorFlags, OperatorInterrupt, deferred_interrupts
 from .testing import play_disk_error
 
@@ -132,7 +139,6 @@ class Session:
 
     # ------------------------------------------------------------------ entry points
     def run(self, resume: bool = False) -> int:
-        from .cellfactory import build_cell, load_object_model
 
         self.flags.install()
         # The cell lock guards real hardware; an in-process simulated cell (or a dry run)
@@ -178,7 +184,6 @@ class Session:
 
     # ------------------------------------------------------------------ journal
     def _open_journal(self, resume: bool) -> Journal:
-        from .provenance import collect_provenance
 
         plan_text = self.inputs.plan_path.read_bytes()
         cell_text = self.inputs.cell_path.read_bytes()
@@ -210,7 +215,6 @@ class Session:
     def _note_calibration_change(self) -> None:
         """A calibration redone between run and resume (e.g. after a pause that asked for it)
         changes the believed geometry from here on: allowed, but on the record."""
-        from .provenance import calibration_entry
 
         assert self.journal is not None
         before = (self.journal.provenance().get("calibration") or {}).get("sha256")
@@ -236,9 +240,6 @@ class Session:
         step maps onto the same material again. A poor fit pauses the session: a person
         has to look at a cell where something moved.
         """
-        from .core.validation import build_validator
-        from .phases import FOOT_LINK_SPACINGS, SWEEP_STEP_KEY, remove_table_below
-        from .placement import reregister
 
         assert self.journal is not None and self.cell is not None
         j, cell, plan = self.journal, self.cell, self.inputs.plan
@@ -344,7 +345,6 @@ class Session:
 
     # ------------------------------------------------------------------ phases
     def _run_phases(self, resume: bool) -> int:
-        from . import phases
 
         assert self.journal is not None and self.cell is not None
         j = self.journal
@@ -435,7 +435,6 @@ class Session:
                                 f"the session can be resumed)") from exc
 
     def _make_executor(self, machine: SessionMachine) -> ProbeExecutor:
-        from .core.validation import build_validator
 
         inputs = self.inputs
         m = effective_motion_limits(inputs)
@@ -525,7 +524,6 @@ class Session:
         return len(self.journal.faults(step_id=step_id, with_raw=False))
 
     def _run_contact(self, target: ProbeTarget, group: list[StepRecord], targets: dict[int, ProbeTarget]) -> None:
-        from . import phases
 
         assert self.journal is not None and self.cell is not None
         j = self.journal
@@ -895,7 +893,6 @@ class Session:
 
     def _check_disk(self) -> None:
         """Pause before the disk fills (a step of raw scans is a few hundred kB)."""
-        from .notify import DiskWatch
 
         status = DiskWatch(self.dir).check(next_write_bytes=2_000_000)
         if status.level == "pause":
@@ -905,7 +902,6 @@ class Session:
             self._log("disk_low", message=status.message)
 
     def _notifier(self) -> object:
-        from .notify import Notifier
 
         spec = self.inputs.plan.notify or self.inputs.cell.notify
         return Notifier(spec, log=(self.journal.log_event if self.journal is not None else None))
@@ -921,8 +917,6 @@ class Session:
         """The report with the final status, then the notification. Best effort: the
         session's outcome is already journaled."""
         try:
-            from .report import write_report
-
             with self.flags.interruptible():       # a second request skips it: `elastoprobe report` redoes it
                 write_report(self.dir)
         except (Exception, OperatorInterrupt) as exc:   # a report problem must not change the exit code
