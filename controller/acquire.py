@@ -226,6 +226,7 @@ class SweepResult:
     unseen_mm2: float = 0.0                                # of it, no point within seen_within_mm
     seen_within_mm: float = 0.0
     unseen_where: list[dict] = field(default_factory=list)   # describe_unseen
+    top: TopSurface | None = None                          # the surface scored (not journaled)
 
     @property
     def coverage(self) -> float:
@@ -334,7 +335,7 @@ def acquire_cloud(executor: ProbeExecutor, object_mesh: trimesh.Trimesh, setting
     result = SweepResult(obj_pts, cell.clock.now_s() - t0, sweeper.refused, sweeper.replanned,
                          lines=len(lines) + fill, fill_lines=fill, top_mm2=top.total_mm2,
                          unseen_mm2=float(top.area_mm2[~seen].sum()), seen_within_mm=within,
-                         unseen_where=describe_unseen(top, seen, within))
+                         unseen_where=describe_unseen(top, seen, within), top=top)
     if len(obj_pts) > settings.max_points:
         rng = np.random.default_rng(settings.seed)
         result.points_mm = obj_pts[np.sort(rng.choice(len(obj_pts), settings.max_points, replace=False))]
@@ -364,14 +365,12 @@ def describe_unseen(top: TopSurface, seen: np.ndarray, seen_within_mm: float, ma
     return out
 
 
-def unseen_of_cloud(object_mesh: trimesh.Trimesh, points_mm: np.ndarray, max_tilt_deg: float,
-                    seen_within_mm: float) -> dict:
-    """The top surface a cloud (object frame, mm) has not seen, as the sweep reports it:
-    ``unseen_mm2``, ``top_surface_mm2``, ``coverage`` and ``unseen_patches``
-    (:func:`describe_unseen`). The cloud phase scores the cloud it keeps with it: the
-    sweep's own figures count what it saw, the table included, and a band the table
-    removal drops would go unreported."""
-    top = top_surface(object_mesh, TOP_GRID_MM, max_tilt_deg)
+def unseen_of_cloud(top: TopSurface, points_mm: np.ndarray, seen_within_mm: float) -> dict:
+    """The part of ``top`` (the sweep's top surface, :attr:`SweepResult.top`) a cloud (object
+    frame, mm) has not seen, as the sweep reports it: ``unseen_mm2``, ``top_surface_mm2``,
+    ``coverage`` and ``unseen_patches`` (:func:`describe_unseen`). The cloud phase scores the
+    cloud it keeps with it: the sweep's own figures count what it saw, the table included,
+    and a band the table removal drops would go unreported."""
     seen = seen_mask(top.points_mm, points_mm, seen_within_mm)
     unseen = float(top.area_mm2[~seen].sum())
     return {"top_surface_mm2": round(top.total_mm2, 1), "unseen_mm2": round(unseen, 1),

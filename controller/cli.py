@@ -89,6 +89,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     inputs = load_session_inputs(args.plan, args.cell)
     _load_object(inputs)
     est = estimate_plan(inputs)
+    budget_warning = est.budget_warning()
     report = {
         "plan": inputs.plan.name,
         "cell": inputs.cell.name,
@@ -96,7 +97,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         "force_steps": est.steps,
         "robot_hours": round(est.hours(), 3),
         "robot_s_per_phase": {k: round(v, 1) for k, v in est.per_phase_s.items()},
-        "budget_warning": est.budget_warning(),
+        "budget_warning": budget_warning,
     }
     travel = _travel_saved(inputs)
     if travel is not None:
@@ -109,8 +110,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         print(f"  estimated robot time: {est.hours():.2f} h over {est.contacts} contacts, {est.steps} force steps")
         for k, v in est.per_phase_s.items():
             print(f"    {k:<13} {v / 60:7.1f} min")
-        if est.budget_warning() is not None:
-            print(f"  warning: {est.budget_warning()}")
+        if budget_warning is not None:
+            print(f"  warning: {budget_warning}")
         if travel is not None:
             print(f"  travel by ordering: {travel[0]:.0f} mm -> {travel[1]:.0f} mm "
                   f"(saved {travel[0] - travel[1]:.0f} mm)")

@@ -243,8 +243,8 @@ def phase_cloud(ctx: PhaseContext) -> None:
     if plan.cloud.source != "file":
         # What the session keeps, the table gone, is what counts as seen.
         sweep["coverage_swept"] = sweep["coverage"]
-        sweep.update(unseen_of_cloud(s.world.object_mesh, obj_pts, plan.sampling.max_tilt_deg,
-                                     sweep["seen_within_mm"]))
+        assert swept.top is not None
+        sweep.update(unseen_of_cloud(swept.top, obj_pts, sweep["seen_within_mm"]))
         s._log("sweep_unseen", unseen_mm2=sweep["unseen_mm2"], top_surface_mm2=sweep["top_surface_mm2"],
                coverage=sweep["coverage"], patches=sweep["unseen_patches"])
     if normals is None or len(normals) != len(obj_pts):
