@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field, ValidationInfo, field_validator, model_validator
+from pydantic import AfterValidator, Field, ValidationInfo, field_validator, model_validator
 
 from .calfile import believed_cell
 from .errors import InputError, InputErrors
@@ -28,6 +28,17 @@ from .yamlio import Spec, YamlDoc, load_validated
 
 Vec3 = tuple[float, float, float]
 PositiveFloat = Annotated[float, Field(gt=0)]
+
+
+def _file_name(value: str) -> str:
+    # An empty name ('' or "$UNSET") would resolve to the file's own folder or be read as
+    # "not given" and fall back to a default the user did not choose.
+    if not value.strip():
+        raise ValueError("the file name is empty")
+    return value
+
+
+FileName = Annotated[str, AfterValidator(_file_name)]
 
 
 # Regions of different elasticity differ in survey depth by at least this factor (the
@@ -273,7 +284,7 @@ class CellSpec(Spec):
     object: ObjectPlacementSpec
     limits: LimitsSpec
     force_loop: ForceLoopSpec = ForceLoopSpec()
-    calibration_file: str | None = None
+    calibration_file: FileName | None = None
     calibration_max_age_days: float = Field(30.0, gt=0)
     simulation: SimulationSpec = SimulationSpec()
     notify: NotifySpec | None = None
@@ -292,7 +303,7 @@ def _strictly_increasing(values: list[float], what: str) -> list[float]:
 
 class CloudSpec(Spec):
     source: Literal["scan", "file"] = "scan"
-    file: str | None = None
+    file: FileName | None = None
     sweep_spacing_mm: float = Field(3.0, gt=0, le=50)
     sweep_height_mm: float = Field(40.0, gt=0, le=1000)   # tip above the object's top
     max_points: int = Field(200_000, ge=1000, le=5_000_000)
@@ -342,8 +353,8 @@ class SamplingSpec(Spec):
 
 
 class SurveySpec(Spec):
-    angles_deg: list[AngleDeg] = [90.0]
-    forces_n: list[ForceN] = [4.0, 12.0]
+    angles_deg: list[AngleDeg] = Field([90.0], min_length=1)
+    forces_n: list[ForceN] = Field([4.0, 12.0], min_length=1)
     # Two regions are two materials only when their survey dents differ by this factor.
     min_contrast: float = Field(MIN_CONTRAST, ge=1.0, le=100.0)
 
@@ -355,8 +366,8 @@ class SurveySpec(Spec):
 
 class CharacterizeSpec(Spec):
     points_per_region: int = Field(2, ge=1, le=50)
-    angles_deg: list[AngleDeg] = list(NINE_ANGLES_DEG)
-    forces_n: list[ForceN] = [2.0, 5.0, 9.0, 14.0, 20.0]
+    angles_deg: list[AngleDeg] = Field(list(NINE_ANGLES_DEG), min_length=1)
+    forces_n: list[ForceN] = Field([2.0, 5.0, 9.0, 14.0, 20.0], min_length=1)
 
     @field_validator("forces_n")
     @classmethod
@@ -457,8 +468,8 @@ class ExtraTargetSpec(Spec):
 
 class PlanSpec(Spec):
     name: str = Field(min_length=1, max_length=80, pattern=r"^[A-Za-z0-9_.-]+$")
-    cell: str | None = None
-    simulated_object: str | None = None
+    cell: FileName | None = None
+    simulated_object: FileName | None = None
     seed: int = Field(0, ge=0, le=2**31 - 1)
     cloud: CloudSpec = CloudSpec()
     sampling: SamplingSpec = SamplingSpec()
