@@ -137,9 +137,11 @@ def _travel_saved(inputs) -> tuple[float, float] | None:   # type: ignore[no-unt
 
 def cmd_diagram(args: argparse.Namespace) -> int:
     from .core.atomic import atomic_write_text
+    from .journal import refuse_session_file
     from .machine import diagram_markdown
 
     out = Path(args.out)
+    refuse_session_file(out, "diagram --out")
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, diagram_markdown())
     print(f"wrote {out}")
@@ -295,8 +297,10 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def cmd_export(args: argparse.Namespace) -> int:
     from .export import export_hdf5
+    from .journal import refuse_session_file
 
     out = Path(args.out) if args.out else Path(args.dir) / "export.h5"
+    refuse_session_file(out, "export --out")
     print(f"wrote {export_hdf5(Path(args.dir), out)}")
     return EXIT_DONE
 
@@ -323,8 +327,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from elastoprobe.calibration.runner import run_calibration
 
     from .core.config import DEFAULT_CELL
+    from .journal import refuse_session_file
 
     cell = Path(args.cell) if args.cell else DEFAULT_CELL
+    if args.out:
+        refuse_session_file(args.out, "calibrate --out")
     summary = run_calibration(args.kind, cell, seed=args.seed, out_path=Path(args.out) if args.out else None)
     print(json.dumps(summary, indent=None if args.json else 2, allow_nan=False, default=str))
     return EXIT_DONE
