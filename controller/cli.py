@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -547,6 +549,25 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    # Until a command takes the signals itself (a session, an interruptible command), SIGTERM
+    # is what SIGINT is: the command ends before it wrote anything (exit 3; ``run``, which has
+    # no session to resume yet, 1), not with a traceback from the import in progress nor a
+    # death by signal.
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler) if in_main_thread else None
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        words = [a for a in (sys.argv[1:] if argv is None else argv) if not a.startswith("-")]
+        command = words[0] if words else "elastoprobe"
+        print(f"elastoprobe {command}: interrupted before it started; nothing was written", file=sys.stderr)
+        return EXIT_FAULT if command == "run" else EXIT_PAUSED
+    finally:
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     # After parsing: --help and usage errors need neither (the journal brings numpy).
