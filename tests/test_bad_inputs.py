@@ -68,6 +68,8 @@ PLANS = {
 
 CELLS = {
     "cell_fault_without_when.yaml": (65, 7, "exactly one of step, rate_per_100_steps or rate_per_100_faults"),
+    "cell_home_joint_out_of_range.yaml": (9, 55, "less than or equal to 360"),
+    "cell_home_outside_joint_limits.yaml": (9, 20, "joint 6 at 120 deg lies outside its limits [-90, 90]"),
     "cell_missing_limits.yaml": (4, 1, "missing required key 'limits'"),
     "cell_object_missing.yaml": (38, 9, "does not exist"),
     "cell_tip_radius_zero.yaml": (11, 18, "greater than 0"),

@@ -105,11 +105,16 @@ class ToolShapeSpec(Spec):
         return self
 
 
+JointDeg = Annotated[float, Field(ge=-360.0, le=360.0)]
+
+
 class RobotSpec(Spec):
     model: Literal["UR5e"] = "UR5e"
     host: str = "127.0.0.1"
-    home_joints_deg: tuple[float, float, float, float, float, float] = (0.0, -90.0, 90.0, -90.0, -90.0, 0.0)
     joint_limits_deg: list[tuple[float, float]] | None = None
+    # Where the arm rests (and the seed of inverse kinematics): within the UR's +-360 deg per joint.
+    home_joints_deg: tuple[JointDeg, JointDeg, JointDeg, JointDeg, JointDeg, JointDeg] = (0.0, -90.0, 90.0, -90.0,
+                                                                                          -90.0, 0.0)
 
     @field_validator("joint_limits_deg")
     @classmethod
@@ -120,6 +125,15 @@ class RobotSpec(Spec):
             for lo, hi in v:
                 if not (-360.0 <= lo < hi <= 360.0):
                     raise ValueError("each joint limit must satisfy -360 <= min < max <= 360")
+        return v
+
+    @field_validator("home_joints_deg")
+    @classmethod
+    def _home_within_limits(cls, v: tuple[float, ...], info: ValidationInfo) -> tuple[float, ...]:
+        for i, (q, (lo, hi)) in enumerate(zip(v, info.data.get("joint_limits_deg") or [])):
+            if not lo <= q <= hi:
+                raise ValueError(f"joint {i + 1} at {q:g} deg lies outside its limits [{lo:g}, {hi:g}] "
+                                 f"(joint_limits_deg)")
         return v
 
     def joint_limits_rad(self) -> np.ndarray | None:
