@@ -50,6 +50,7 @@ PLANS = {
     "scans_zero.yaml": (3, 19, "greater than or equal to 1"),
     "seed_negative.yaml": (2, 7, "greater than or equal to 0"),
     "simulated_object_empty.yaml": (2, 19, "the file name is empty"),
+    "sweep_spacing_tiny.yaml": (3, 21, "greater than or equal to 0.1"),
     "syntax_bad_indent.yaml": (2, 7, "mapping values are not allowed"),
     "syntax_tab.yaml": (2, 1, "'\\t'"),
     "syntax_unclosed_list.yaml": (5, 1, "expected ',' or ']'"),

@@ -318,7 +318,11 @@ def _strictly_increasing(values: list[float], what: str) -> list[float]:
 class CloudSpec(Spec):
     source: Literal["scan", "file"] = "scan"
     file: FileName | None = None
-    sweep_spacing_mm: float = Field(3.0, gt=0, le=50)
+    # Between profiles along a line (the sweep's speed is this x the scanner's rate). Finer than
+    # 0.1 mm is below what a line scanner resolves along its own line (0.2-0.5 mm between
+    # samples) and only slows the sweep and fills memory: at 1e-300 mm one line never ended
+    # and held gigabytes of profiles.
+    sweep_spacing_mm: float = Field(3.0, ge=0.1, le=50)
     sweep_height_mm: float = Field(40.0, gt=0, le=1000)   # tip above the object's top
     max_points: int = Field(200_000, ge=1000, le=5_000_000)
 
