@@ -7,6 +7,7 @@ simulator, trimesh) are imported inside the commands so start-up stays fast.
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import signal
 import sys
@@ -553,6 +554,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     # is what SIGINT is: the command ends before it wrote anything (exit 3; ``run``, which has
     # no session to resume yet, 1), not with a traceback from the import in progress nor a
     # death by signal.
+    # A file name that is not UTF-8 (Python holds its bytes as surrogates) prints as those bytes.
+    streams = [(s, s.errors) for s in (sys.stdout, sys.stderr) if isinstance(s, io.TextIOWrapper)]
+    for stream, _ in streams:
+        stream.reconfigure(errors="surrogateescape")
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler) if in_main_thread else None
     try:
@@ -565,6 +570,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if in_main_thread:
             signal.signal(signal.SIGTERM, previous)
+        for stream, errors in streams:
+            stream.reconfigure(errors=errors)
 
 
 def _main(argv: Sequence[str] | None) -> int:

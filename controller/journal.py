@@ -661,7 +661,7 @@ class Journal:
         a WAL reader needs (read-only media or mount, a full disk), the file is opened as
         immutable — nothing can be writing it there — unless a write-ahead log lies beside
         it (a session killed there), which cannot be read without that index."""
-        base = "file:" + urllib.parse.quote(str(path)) + "?mode=ro"
+        base = "file:" + urllib.parse.quote(os.fsencode(path)) + "?mode=ro"   # bytes: any name the OS allows
         if not path.is_file():
             raise JournalCorruption(f"{path}: not a file")
         if _writable(path.parent):

@@ -20,6 +20,7 @@ computed again, else it keeps the old status.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import sqlite3
 import urllib.parse
@@ -68,7 +69,7 @@ class SalvageReport:
 
 # ----------------------------------------------------------------------------- robust reads
 def _connect(path: Path) -> sqlite3.Connection:
-    uri = "file:" + urllib.parse.quote(str(path)) + "?mode=ro&immutable=1"
+    uri = "file:" + urllib.parse.quote(os.fsencode(path)) + "?mode=ro&immutable=1"
     return sqlite3.connect(uri, uri=True, isolation_level=None)
 
 

@@ -453,3 +453,23 @@ def test_no_session_is_made_inside_another_sessions_directory(inside: str, finis
         assert f"{session / inside}: lies inside the session directory {session}" in err, err
     assert _sha(session / "journal.sqlite") == before
     assert sorted(p.relative_to(session) for p in session.rglob("*")) == listing
+
+
+def test_a_session_in_a_folder_whose_name_is_not_utf8(finished: Path, setup: dict, tmp_path: Path) -> None:
+    """``run --out $'out\\xff'`` measured the whole session, then its report's read-only open
+    (a SQLite URI quoted as text) raised UnicodeEncodeError: the finished session was recorded
+    as a fault, and ``status`` and ``report`` on it were tracebacks. The name prints as its bytes."""
+    raw = os.path.join(os.fsencode(tmp_path), b"out\xff")
+    session = Path(os.fsdecode(raw))
+    _copy(finished, session)
+    before = _sha(session / "journal.sqlite")
+    for args in READ_COMMANDS:
+        child = subprocess.run(CLI + [args[0], raw, *args[1:]], env=setup["env"], capture_output=True, timeout=600)
+        assert child.returncode == 0, (args, child.returncode, child.stderr[-2000:])
+        assert b"Traceback" not in child.stderr
+    assert raw in subprocess.run(CLI + ["status", raw], env=setup["env"], capture_output=True, timeout=600).stdout
+    new = tmp_path / "new"
+    assert subprocess.run(CLI + ["salvage", raw, "--out", str(new)], env=setup["env"], capture_output=True,
+                          timeout=600).returncode == 0
+    assert _status(new) == _status(finished)
+    assert _sha(session / "journal.sqlite") == before
