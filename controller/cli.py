@@ -222,6 +222,9 @@ def cmd_resume(args: argparse.Namespace) -> int:
     if not plan_path or not cell_path:
         raise InputError("the journal does not name its plan and cell files", path=str(args.dir))
     inputs = load_session_inputs(plan_path, cell_path)
+    # Refused here, read-only: the session's own check comes after it opened the journal to write.
+    with Journal.open_readonly(args.dir, check="none") as j:
+        j.verify_inputs(inputs.plan_path.read_bytes(), inputs.cell_path.read_bytes())
     dry_run = bool(prov.get("dry_run", False))
     if inputs.cell.kind != "simulated" and not dry_run:      # the night goes on with the same guard as its start
         from .cellfactory import check_real_cell_ready

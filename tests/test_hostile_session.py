@@ -473,3 +473,21 @@ def test_a_session_in_a_folder_whose_name_is_not_utf8(finished: Path, setup: dic
                           timeout=600).returncode == 0
     assert _status(new) == _status(finished)
     assert _sha(session / "journal.sqlite") == before
+
+
+def test_a_resume_refused_for_an_edited_plan_writes_nothing(setup: dict, tmp_path: Path) -> None:
+    """The refusal came after the session had opened the journal to write: a run record was
+    added and the write-ahead log checkpointed into the file by a resume that did nothing."""
+    plan = plan_for(setup["cell"], tmp_path)
+    out = tmp_path / "s"
+    proc = _start(setup, out, plan)
+    _wait_for_state(out, proc, {"sweeping", "planning", "probing", "contact", "loading", "scanning", "moving"})
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.communicate(timeout=60)
+    plan.write_text(plan.read_text().replace("scans_per_step: 5", "scans_per_step: 6"))
+    stored = ("journal.sqlite", "journal.sqlite-wal")      # (readers share the -shm index)
+    files = {name: _sha(out / name) for name in stored if (out / name).exists()}
+    child = run_cli(["resume", str(out), "--quiet"], setup["env"])
+    assert child.returncode == 2, child.stderr[-2000:]
+    assert "the plan file changed since this session started" in child.stderr and "Traceback" not in child.stderr
+    assert {name: _sha(out / name) for name in stored if (out / name).exists()} == files
