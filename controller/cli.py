@@ -572,7 +572,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_FAULT if command == "run" else EXIT_PAUSED
     finally:
         if in_main_thread:
-            signal.signal(signal.SIGTERM, previous)
+            if argv is None:
+                # The command line's own process: its command has finished and its exit code
+                # stands; a signal in the last moments of the interpreter must not replace it.
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+                signal.signal(signal.SIGTERM, signal.SIG_IGN)
+            else:
+                signal.signal(signal.SIGTERM, previous)
         for stream, errors in streams:
             stream.reconfigure(errors=errors)
 

@@ -226,3 +226,20 @@ def test_a_signal_before_the_command_took_the_signals_ends_it_cleanly(sig: str, 
     assert "Traceback" not in child.stderr
     assert f"elastoprobe {command}: interrupted before it started; nothing was written" in child.stderr
     assert not (tmp_path / "s").exists()
+
+
+def test_a_signal_as_the_command_line_exits_keeps_its_exit_code(tmp_path) -> None:
+    """SIGTERM at the moment ``status`` had printed everything and was exiting killed it by the
+    signal (exit -15): the handler had been handed back to the default as main() returned."""
+    out = tmp_path / "d.md"
+    script = ("import os, signal, sys, time\n"
+              "from elastoprobe.controller.cli import main\n"
+              f"sys.argv = ['elastoprobe', 'diagram', '--out', {str(out)!r}]\n"
+              "code = main()\n"
+              "for sig in (signal.SIGTERM, signal.SIGINT):\n"
+              "    os.kill(os.getpid(), sig)\n"
+              "time.sleep(0.2)\n"
+              "sys.exit(code)\n")
+    child = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert child.returncode == 0, (child.returncode, child.stderr[-2000:])
+    assert "Traceback" not in child.stderr and out.is_file()
