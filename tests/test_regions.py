@@ -511,3 +511,20 @@ def test_seam_probes_of_two_different_inclusions_are_not_a_region_of_their_own()
     assert sorted(rmap.stats["transition_band_points"]) == np.flatnonzero(on_seam).tolist()
     for material in (hard, elastomer, ~hard & ~elastomer & ~on_seam):
         assert len(set(rmap.labels[material].tolist())) == 1
+
+
+def test_a_dent_seen_only_far_from_the_contact_is_no_misfit_of_its_region_unless_deeper():
+    """The gel at the foot of the wall (peaks read 13 mm out, 4x shallower than the gel read
+    3 mm out) is no evidence of another material for densification; the same probes reading
+    deeper than their region still are."""
+    from elastoprobe.controller.learning.regions import survey_misfit
+
+    feats, names, _, stiff, occluded = _occluded_survey(0)
+    labels = stiff.astype(int)
+    assert np.max(survey_misfit(feats, labels, names, noise_mm=0.005)) < 1.0
+    keep = [k for k, name in enumerate(names) if name != "seen_from_mm"]
+    blind = survey_misfit(feats[:, keep], labels, [names[k] for k in keep], noise_mm=0.005)
+    assert np.all(blind[occluded] > 1.0)                          # what the peaks alone say
+    deeper = feats.copy()
+    deeper[occluded, :2] *= 16.0                                 # 4x deeper than the gel read near
+    assert np.all(survey_misfit(deeper, labels, names, noise_mm=0.005)[occluded] > 1.0)
