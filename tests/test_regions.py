@@ -432,20 +432,27 @@ def test_features_say_how_far_from_the_contact_the_peaks_were_read():
     assert 3.0 <= seen_from[0] < 3.5 and 13.0 <= seen_from[1] < 13.5
 
 
+def _hidden_survey(seed, e_mpa, hidden, hidden_within_mm):
+    """Survey features of Hertz dents (moduli ``e_mpa`` with 5 % variability, 0.005 mm noise):
+    the tip hides |x| < 3 mm of every profile, and the points ``hidden`` are seen only
+    beyond ``hidden_within_mm`` of the contact."""
+    rng = np.random.default_rng(seed)
+    e = np.asarray(e_mpa) * (1 + 0.05 * rng.normal(size=len(e_mpa)))
+    d = np.stack([[hertz_normal_mm(X_MM, f, ei) for f in FORCES_N] for ei in e])
+    d += rng.normal(0, 0.005, d.shape)
+    d[:, :, np.abs(X_MM) < 3.0] = np.nan
+    d[np.asarray(hidden)[:, None, None] & (np.abs(X_MM) < hidden_within_mm)[None, None, :].repeat(2, axis=1)] = np.nan
+    return survey_features(d, X_MM, FORCES_N)
+
+
 def _occluded_survey(seed):
     """A gel (0.8 MPa) beside a hard block (25 MPa, 10x shallower dents): the gel's row next
     to the block's wall is seen only from 13 mm out (the wall hides the contact), the rest
     from the tip's edge. The block's top is a fold away: no surface-graph edge crosses the
     wall. Returns (features, names, edges, stiff mask, occluded mask)."""
-    rng = np.random.default_rng(seed)
     stiff = POS[:, 0] >= 50.0
     occluded = POS[:, 0] == 40.0
-    e = np.where(stiff, 25.0, 0.8) * (1 + 0.05 * rng.normal(size=N * N))
-    d = np.stack([[hertz_normal_mm(X_MM, f, ei) for f in FORCES_N] for ei in e])
-    d += rng.normal(0, 0.005, d.shape)
-    d[:, :, np.abs(X_MM) < 3.0] = np.nan
-    d[occluded[:, None, None] & (np.abs(X_MM) < 13.0)[None, None, :].repeat(2, axis=1)] = np.nan
-    feats, names = survey_features(d, X_MM, FORCES_N)
+    feats, names = _hidden_survey(seed, np.where(stiff, 25.0, 0.8), occluded, 13.0)
     edges = EDGES[stiff[EDGES[:, 0]] == stiff[EDGES[:, 1]]]
     return feats, names, edges, stiff, occluded
 
@@ -474,14 +481,8 @@ def test_a_dent_seen_only_far_from_the_contact_is_not_a_stiffer_material(seed):
 def test_a_material_read_far_out_that_is_deeper_is_still_another_material():
     """A foam's own deep dent hides its contact (its peaks read 8 mm out): its lower bounds are
     still beyond the contrast deeper than the gel read 3 mm out, so it stays a region."""
-    rng = np.random.default_rng(4)
     foam = POS[:, 0] >= 50.0
-    e = np.where(foam, 0.05, 0.8) * (1 + 0.05 * rng.normal(size=N * N))
-    d = np.stack([[hertz_normal_mm(X_MM, f, ei) for f in FORCES_N] for ei in e])
-    d += rng.normal(0, 0.005, d.shape)
-    d[:, :, np.abs(X_MM) < 3.0] = np.nan
-    d[foam[:, None, None] & (np.abs(X_MM) < 8.0)[None, None, :].repeat(2, axis=1)] = np.nan
-    feats, names = survey_features(d, X_MM, FORCES_N)
+    feats, names = _hidden_survey(4, np.where(foam, 0.05, 0.8), foam, 8.0)
     rm = cluster_regions(feats, EDGES, names, seed=0)
     assert rm.n_regions == 2 and np.all(rm.labels[foam] == 1) and np.all(rm.labels[~foam] == 0)
 
