@@ -16,7 +16,8 @@ slope), and the surface graph (neighbour pairs of the neural-gas units).
    peak, at a survey force where a dent is measured): BIC finds any structure,
    including the smooth drift of one material's visible dent with the local geometry
    (rims, slopes, tilt) and with its support (a plate clamped at its edges), which is
-   not a different elasticity. A
+   not a different elasticity; nor is a dent read farther from the contact (a wall hides
+   the contact: ``seen_from_mm``), whose peaks are lower bounds. A
    homogeneous object gives one region.
 3. Spatial coherence on the surface graph: a few passes of iterated conditional
    modes (each point takes the region maximising its feature log-likelihood plus
@@ -24,9 +25,9 @@ slope), and the surface graph (neighbour pairs of the neural-gas units).
    neighbours, clear ones keep their own), then connected components per label
    smaller than ``min_island_points`` are relabelled to their neighbours' majority
    (recorded in ``stats["islands"]``, so densification can look there again); and a
-   region that is only the blend along the seam of two others (sandwiched between them,
-   smaller than both, its dent between theirs) is split between them
-   (``stats["transition_band_points"]``).
+   region that is only the blend along the seams of others (each of its connected pieces
+   sandwiched between two regions, smaller than both, its dent between theirs) is split
+   between them (``stats["transition_band_points"]``).
 4. Region ids are sorted by the mean of one feature (default column 0, the peak depth
    at the smallest survey force: region 0 is the stiffest), so reruns on the same data
    give the same ids.
@@ -619,11 +620,10 @@ def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbour
         for band in np.argsort(sizes, kind="stable"):
             pieces = _pieces(np.flatnonzero(labels == band), neighbours)
             sides = [_sandwich(piece, int(band), labels, neighbours, cols, med, sizes) for piece in pieces]
-            if any(pair is None for pair in sides):
+            pairs = [pair for pair in sides if pair is not None]
+            if len(pairs) < len(pieces):
                 continue
-            for piece, pair in zip(pieces, sides):
-                assert pair is not None
-                a, b = pair
+            for piece, (a, b) in zip(pieces, pairs):
                 with np.errstate(all="ignore"):
                     da = np.nanmean(np.abs(cols[piece] - med[a]), axis=1)
                     db = np.nanmean(np.abs(cols[piece] - med[b]), axis=1)
