@@ -744,7 +744,10 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
         labels, k = _compact(labels * (int(prev.max(initial=-1)) + 2) + (prev + 1))
     merges = 0
     if feature_noise is not None and k > 1:
-        labels, merges = _merge_by_noise(x, labels, np.asarray(feature_noise, dtype=float), merge_sigmas)
+        # Where a peak was read says nothing of the material: not a feature to tell two apart by.
+        material = [j for j, name in enumerate(names) if name != SEEN_FROM_FEATURE]
+        labels, merges = _merge_by_noise(x[:, material], labels,
+                                         np.asarray(feature_noise, dtype=float)[material], merge_sigmas)
         labels, k = _compact(labels)
     stats["merged"] = merges
     if k > 1:
