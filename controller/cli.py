@@ -553,14 +553,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    # Until a command takes the signals itself (a session, an interruptible command), SIGTERM
-    # is what SIGINT is: the command ends before it wrote anything (exit 3; ``run``, which has
-    # no session to resume yet, 1), not with a traceback from the import in progress nor a
-    # death by signal.
     # A file name that is not UTF-8 (Python holds its bytes as surrogates) prints as those bytes.
     streams = [(s, s.errors) for s in (sys.stdout, sys.stderr) if isinstance(s, io.TextIOWrapper)]
     for stream, _ in streams:
         stream.reconfigure(errors="surrogateescape")
+    # Until a command takes the signals itself (a session, an interruptible command), SIGTERM
+    # is what SIGINT is: the command ends before it wrote anything (exit 3; ``run``, which has
+    # no session to resume yet, 1), not with a traceback from the import in progress nor a
+    # death by signal.
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler) if in_main_thread else None
     try:

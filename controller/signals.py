@@ -179,7 +179,8 @@ class OperatorFlags:
             raise OperatorInterrupt(self.stop_now)
 
     def install(self) -> "OperatorFlags":
-        """Take SIGINT and SIGTERM for this process until :meth:`restore`.
+        """Take SIGINT and SIGTERM (and SIGALRM, see :meth:`_raise_in_flight`) for this process
+        until :meth:`restore`.
 
         Only the main thread can take signals; elsewhere (a controller embedded in a
         thread) nothing is installed and the flags stay as they are, so requests go to
