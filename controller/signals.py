@@ -72,6 +72,8 @@ class OperatorFlags:
     _deferred: int = 0               # depth of deferred sections (inside an interruptible one)
     _answered: int = 0               # requests already raised or acknowledged
     _in_flight: bool = False         # an OperatorInterrupt raised, not yet seen leaving a section
+    _ours: bool = False              # the process's one real-time timer is armed for _on_alarm
+    _foreign: tuple[float, float, float] = (0.0, 0.0, 0.0)   # the timer it displaced: delay, interval, when
 
     # Signals seen, counted from both sides (see _on_signal): handler calls and wakeup-pipe bytes.
     _calls: dict[int, int] = field(default_factory=dict)
@@ -135,20 +137,37 @@ class OperatorFlags:
         raise OperatorInterrupt(self.stop_now)
 
     def _on_alarm(self, signum: int, frame: FrameType | None) -> None:
-        if not self._in_flight:
+        if not self._ours:              # the timer someone else had set (a test runner's timeout)
+            previous = self._previous.get(signal.SIGALRM)
+            if callable(previous):
+                previous(signum, frame)
             return
-        if self._interruptible and not self._deferred:
+        if not self._in_flight:
+            self._restore_timer()
+        elif self._interruptible and not self._deferred:
             self._raise_in_flight()
-        self._arm(REASSERT_S)           # inside a block a request must not cut: later
+        else:
+            self._arm(REASSERT_S)       # inside a block a request must not cut: later
 
     def _land(self) -> None:
         """The interrupt in flight reached its handler (or the session acts on it)."""
         self._in_flight = False
-        self._arm(0.0)
+        if self._ours:
+            self._restore_timer()
 
     def _arm(self, seconds: float) -> None:
-        if signal.SIGALRM in self._previous:
-            signal.setitimer(signal.ITIMER_REAL, seconds)
+        if signal.SIGALRM not in self._previous:
+            return
+        delay, interval = signal.setitimer(signal.ITIMER_REAL, seconds)
+        if not self._ours:              # the timer found, given back by _restore_timer
+            self._foreign = (delay, interval, time.monotonic())
+            self._ours = True
+
+    def _restore_timer(self) -> None:
+        delay, interval, at = self._foreign
+        self._ours, self._foreign = False, (0.0, 0.0, 0.0)
+        left = max(delay - (time.monotonic() - at), 1e-3) if delay > 0 else 0.0
+        signal.setitimer(signal.ITIMER_REAL, left, interval)
 
     def acknowledge(self) -> None:
         """The session acts on the requests so far (it pauses): only a new one interrupts again."""

@@ -243,3 +243,25 @@ def test_a_signal_as_the_command_line_exits_keeps_its_exit_code(tmp_path) -> Non
     child = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert child.returncode == 0, (child.returncode, child.stderr[-2000:])
     assert "Traceback" not in child.stderr and out.is_file()
+
+
+def test_the_timer_it_borrows_is_given_back() -> None:
+    """The process has one real-time timer (a test runner's timeout uses it): re-raising a
+    swallowed interrupt borrows it and gives it back, with the time that was left."""
+    signal.setitimer(signal.ITIMER_REAL, 100.0)
+    flags = OperatorFlags().install()
+    try:
+        with pytest.raises(OperatorInterrupt):
+            with flags.interruptible():
+                try:
+                    _sigint()
+                except BaseException:
+                    pass
+                time.sleep(3 * REASSERT_S)
+        left, _ = signal.getitimer(signal.ITIMER_REAL)
+        assert 90.0 < left <= 100.0
+    finally:
+        flags.restore()
+    left, _ = signal.getitimer(signal.ITIMER_REAL)
+    signal.setitimer(signal.ITIMER_REAL, 0.0)
+    assert 90.0 < left <= 100.0
