@@ -345,12 +345,13 @@ class SamplingSpec(Spec):
                              f"surface normal (give a direction across the object, e.g. [0, 1, 0])")
         return v
 
-    @model_validator(mode="after")
-    def _feature_needs_units(self) -> "SamplingSpec":
-        if self.min_feature_mm is not None and self.units == 0:
+    @field_validator("min_feature_mm")
+    @classmethod
+    def _feature_needs_units(cls, v: float | None, info: ValidationInfo) -> float | None:
+        if v is not None and info.data.get("units") == 0:
             raise ValueError("min_feature_mm raises the neural gas's units, and units is 0 (explicit targets "
                              "only): set units, or leave min_feature_mm out")
-        return self
+        return v
 
 
 class SurveySpec(Spec):

@@ -13,7 +13,9 @@ its rim, the plan rule's neural gas, the targets left after make_targets, 40-160
 
     N = ceil(A (2 x COVER_FACTOR / d)^2)
 
-(1.24 targets per hexagonal cell). Targets closer than ``MERGE_FRACTION`` x s are merged
+(d = 15 mm: one unit per 88 mm^2; a perfect hexagonal lattice would need one per
+146 mm^2, spacing 0.87 d: the neural gas's irregularity costs two-thirds more units).
+Targets closer than ``MERGE_FRACTION`` x s are merged
 (learning.targets.TargetRules.min_spacing_mm): the default merge distance, two tip radii,
 is larger than s for small features, and with it more units gave FEWER targets (on 1004,
 160 units gave 51 targets and a covering radius of 13.8 mm; unmerged, 6.6 mm).
@@ -54,11 +56,6 @@ def units_for_min_feature(area_mm2: float, min_feature_mm: float) -> int:
     """Neural-gas units such that every disc of diameter ``min_feature_mm`` on a probe-able
     area of ``area_mm2`` holds a target (module docstring)."""
     return int(math.ceil(area_mm2 * (2.0 * COVER_FACTOR / min_feature_mm) ** 2))
-
-
-def mean_spacing_mm(area_mm2: float, units: int) -> float:
-    """Mean target spacing (mm) of ``units`` targets over ``area_mm2``."""
-    return math.sqrt(area_mm2 / max(units, 1))
 
 
 def survey_units(plan_units: int, min_feature_mm: float | None, probeable_mm: np.ndarray) -> int:
