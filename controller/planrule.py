@@ -30,7 +30,8 @@ plans beside it, is in docs/generated_objects.md):
   above until the targets' spacing over the probe-able top meets it
   (learning/survey_density.py: N = A (1.6 / 15 mm)^2, about one unit per 88 mm^2 against
   625 above); the budget is sized for that survey with the footprint standing in for the
-  probe-able area (at most it). This, not the footprint rule, sets the survey on every
+  probe-able area (the top lies within it; the session's 5 mm squares can over-reach it by
+  a little; on 1012 the session took 596 units, the footprint gives 615). This, not the footprint rule, sets the survey on every
   suite object; the footprint rule stays the floor for plans without the field.
 - **Tilt** 30 degrees: what the sweep sees. The scanner looks 51.3 degrees off the probe
   axis, in the plane across the sweep's lines; a face sloping by t along the lines (base
