@@ -25,14 +25,15 @@ plans beside it, is in docs/generated_objects.md):
   Clamped to [16, 120]: 16 leaves a few survey points to each of up to four materials,
   120 caps the survey at 240 steps (about an hour of robot time).
 - **Smallest inclusion** ``sampling.min_feature_mm`` = 15 mm: the requirement the suite
-  states (docs/generated_objects.md, "The smallest feature the survey finds"): every
-  inclusion 15 mm across or larger holds a survey target. The session raises the units
+  states (docs/generated_objects.md, "The smallest feature the survey finds"): (nearly)
+  every inclusion 15 mm across or larger holds a survey target. The session raises the units
   above until the targets' spacing over the probe-able top meets it
   (learning/survey_density.py: N = A (1.6 / 15 mm)^2, about one unit per 88 mm^2 against
   625 above); the budget is sized for that survey with the footprint standing in for the
   probe-able area (the top lies within it; the session's 5 mm squares can over-reach it by
-  a little; on 1012 the session took 596 units, the footprint gives 615). This, not the footprint rule, sets the survey on every
-  suite object; the footprint rule stays the floor for plans without the field.
+  a little; on 1012 the session took 596 units, the footprint gives 615). This, not the
+  footprint rule, sets the survey on every suite object; the footprint rule's units stay
+  its floor (the session never lowers them).
 - **Tilt** 30 degrees: what the sweep sees. The scanner looks 51.3 degrees off the probe
   axis, in the plane across the sweep's lines; a face sloping by t along the lines (base
   y) meets the laser at incidence acos(cos 51.3 cos t) from either heading, 57 degrees at
