@@ -25,6 +25,7 @@ from .learning import neural_gas as ng
 from .learning import profiles as prof
 from .learning import regions as rg
 from .learning import surface_map as sm
+from .learning import survey_density as sd
 from .learning import targets as tg
 from .learning.densify import averaged_noise_mm
 from .learning.models import RegionModel, ServingLimits, TrainConfig, fit_region_model
@@ -333,12 +334,13 @@ def phase_sampling(ctx: PhaseContext) -> None:
             rules = _target_rules(ctx)
             # The units go where targets may: the probe-able part of the cloud (targets.probeable).
             where = tg.probeable(pts, nrm, curv, rules)
-            if np.count_nonzero(where) < plan.sampling.units:
+            n_units = sd.survey_units(plan.sampling.units, plan.sampling.min_feature_mm, pts[where])
+            if np.count_nonzero(where) < n_units:
                 where = np.ones(len(pts), bool)
             feats, weights = ng.geometry_aware_inputs(pts[where], nrm[where], curv[where],
                                                       normal_weight_mm=10.0 * plan.sampling.geometry_weight)
-            result = ng.train_neural_gas(feats, n_units=plan.sampling.units,
-                                         n_steps=max(200, plan.sampling.units * plan.sampling.steps_per_unit // 16),
+            result = ng.train_neural_gas(feats, n_units=n_units,
+                                         n_steps=max(200, n_units * plan.sampling.steps_per_unit // 16),
                                          batch_size=256, seed=s.seed, sample_weights=weights)
             units = np.asarray(result.units)[:, :3].astype(np.float64)
             ng_qe: float | None = float(result.quantization_error)
@@ -387,8 +389,8 @@ def _target_rules(ctx: PhaseContext) -> Any:
 
     plan = ctx.session.inputs.plan
     radius = ctx.session.inputs.cell.tool.tip_radius_mm
-    return tg.TargetRules(tip_radius_mm=radius, edge_clearance_radii=plan.sampling.edge_clearance_mm / radius,
-                          max_tilt_deg=plan.sampling.max_tilt_deg)
+    return tg.rules_for_plan(radius, plan.sampling.edge_clearance_mm, plan.sampling.max_tilt_deg,
+                             plan.sampling.min_feature_mm)
 
 
 def _reachable(ctx: PhaseContext, pts: np.ndarray, nrm: np.ndarray, t_dirs: np.ndarray, what: str) -> np.ndarray:
