@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Any, Generator, Literal, Mapping, Union
 
 from .probe import ProbeTarget
+from .signals import OperatorFlags
 
 
 @dataclass(frozen=True)
@@ -61,3 +62,9 @@ class SessionPaused(Exception):
     def __init__(self, reason: str, kind: PauseKind = "pause") -> None:
         super().__init__(reason)
         self.kind: PauseKind = kind
+
+
+def operator_pause(flags: OperatorFlags, context: str = "") -> SessionPaused:
+    """The pause that answers the operator's request (a pause, or a stop: ``flags.reason``),
+    ``context`` appended to the reason."""
+    return SessionPaused(flags.reason + context, kind="pause" if flags.stop_now else "operator_pause")

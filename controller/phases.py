@@ -111,8 +111,7 @@ class PhaseContext:
 
     @property
     def grid(self) -> prof.ProfileGrid:
-        m = self.inputs.plan.model
-        return prof.ProfileGrid(span_mm=m.profile_span_mm, samples=m.profile_samples)
+        return plan_grid(self.inputs)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -180,7 +179,6 @@ def _plan_steps(ctx: PhaseContext, target_ids: list[int], angles_deg: list[float
     """Steps for targets in the given order: per target, per angle (``angles_by_target``'s
     when it names the target), increasing force."""
     j = ctx.journal
-    assert j is not None
     step_id = j.next_step_id()
     order = start_order
     steps = []
@@ -197,7 +195,6 @@ def _plan_steps(ctx: PhaseContext, target_ids: list[int], angles_deg: list[float
 
 def _next_order(ctx: PhaseContext) -> int:
     j = ctx.journal
-    assert j is not None
     recs = j.steps()
     return (max(r.plan.order_index for r in recs) + 1) if recs else 0
 
@@ -207,7 +204,6 @@ def _ordered(ctx: PhaseContext, ids: list[int]) -> list[int]:
     if len(ids) < 3:
         return ids
     cell = ctx.cell
-    assert cell is not None
     pts = cell.base_to_object.apply(np.array([ctx.targets[i].point_mm for i in ids]))
     order, _, _ = order_targets(pts, travel_z_mm=float(pts[:, 2].max()) + 60.0)
     return [ids[k] for k in order]
@@ -258,8 +254,8 @@ def phase_cloud(ctx: PhaseContext) -> Plan:
         outputs["sweep"] = sweep
     j.commit_phase("cloud", 0, outputs,
                    {"points_mm": obj_pts.astype(np.float32), "normals": normals.astype(np.float32)})
-    ctx.log("phase", name="cloud", n_points=int(len(obj_pts)),
-            **({"unseen_mm2": sweep["unseen_mm2"], "coverage": sweep["coverage"]} if plan.cloud.source != "file" else {}))
+    swept_facts = {"unseen_mm2": sweep["unseen_mm2"], "coverage": sweep["coverage"]} if plan.cloud.source != "file" else {}
+    ctx.log("phase", name="cloud", n_points=int(len(obj_pts)), **swept_facts)
     # Continue from the committed (float32) cloud, exactly as a resumed session will.
     rec = j.phase("cloud", 0)
     assert rec is not None
@@ -321,7 +317,6 @@ def phase_sampling(ctx: PhaseContext) -> None:
     """Neural gas units -> probe targets (on the surface, away from edges) -> survey steps."""
 
     j = ctx.journal
-    assert j is not None
     rec = j.phase("sampling", 0)
     if rec is None:
         plan = ctx.inputs.plan
@@ -426,7 +421,6 @@ def _clear_angles(ctx: PhaseContext, target: ProbeTarget, angles: list[float]) -
 def _survey_profiles(ctx: PhaseContext, target_ids: list[int]) -> tuple[list[int], np.ndarray, np.ndarray]:
     """Survey profiles (N, F, L) at the first survey angle for targets whose survey is complete."""
     j = ctx.journal
-    assert j is not None
     sv = ctx.inputs.plan.phases.survey
     angle = sv.angles_deg[0]
     forces = sorted(sv.forces_n)
@@ -445,7 +439,6 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
     """Cluster the surveyed targets into regions; plan characterization where a region lacks it."""
 
     j = ctx.journal
-    assert j is not None
     rec = j.phase("regions", round_)
     if rec is None:
         ids, depth, forces = _survey_profiles(ctx, sorted(ctx.targets))
@@ -514,7 +507,6 @@ def _characterize_choice(ctx: PhaseContext, labels: dict[int, int], n_regions: i
     (logged) instead of being refused at run time.
     """
     j = ctx.journal
-    assert j is not None
     per = ctx.inputs.plan.phases.characterize.points_per_region
     angles = list(ctx.inputs.plan.phases.characterize.angles_deg)
     lo, hi = INTERIOR_ANGLES_DEG
@@ -603,7 +595,6 @@ def session_geometry(ctx: PhaseContext) -> ScanGeometry:
 
 def region_dataset(ctx: PhaseContext, region: int) -> RegionSteps:
     """Every done step at targets of ``region`` (see :func:`collect_region_steps`)."""
-    assert ctx.journal is not None
     return collect_region_steps(ctx.journal, ctx.labels, region, session_geometry(ctx))
 
 
@@ -703,7 +694,6 @@ def region_train_config(model_spec: Any, seed: int, region: int, tip_radius_mm: 
 def phase_models(ctx: PhaseContext, round_: int) -> Plan:
     """Fit (or load) one model ensemble per region; files written atomically, hashes committed."""
     j = ctx.journal
-    assert j is not None
     rec = j.phase("models", round_)
     model_dir = ctx.session_dir / "models" / f"round{round_}"
     if rec is None:
@@ -745,7 +735,6 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
     and around survey points their region explains badly; False when resolved or out of budget."""
 
     j = ctx.journal
-    assert j is not None
     rec = j.phase("densify", round_)
     if rec is None:
         plan = ctx.inputs.plan
@@ -799,7 +788,6 @@ def _region_features(ctx: PhaseContext, ids: list[int]) -> tuple[np.ndarray, lis
     """Survey features (len(ids), D) and their names of labelled targets, from the latest
     regions round (None when there is none, or it did not label every one of ``ids``)."""
     j = ctx.journal
-    assert j is not None
     r = 0
     while j.phase("regions", r + 1) is not None:
         r += 1
@@ -837,7 +825,6 @@ def measured_noise_mm(ctx: PhaseContext, max_steps: int = 20) -> float:
     """Standard error (mm) of averaged survey profiles, from the scans themselves."""
 
     j, cell = ctx.journal, ctx.cell
-    assert j is not None and cell is not None
     stds, counts = [], []
     registrations = j.events(kind="object_registered")
     for rec in _done_steps(j, SURVEY_PHASES)[:max_steps]:
@@ -858,7 +845,6 @@ def phase_final(ctx: PhaseContext) -> None:
     """The region map over the whole cloud, and the report."""
 
     j = ctx.journal
-    assert j is not None
     rec = j.phase("final", 0)
     if rec is None:
         ids = sorted(ctx.labels)

@@ -198,7 +198,6 @@ class Session:
 
 
 
-
     def _record_identities(self) -> None:
         assert self.journal is not None and self.cell is not None
         ids = {}
