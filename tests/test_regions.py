@@ -53,10 +53,12 @@ E_STIFF_MPA, E_SOFT_MPA = 4.0, 0.8
 
 def test_features_have_names_and_physical_values():
     f, names = survey(0, [1.0, 3.0], noise_mm=0.0, variability=0.0)
-    assert names == ["peak_mm@4N", "peak_mm@12N", "width_mm@4N", "width_mm@12N", "compliance_mm_per_n"]
+    assert names == ["peak_mm@4N", "peak_mm@12N", "width_mm@4N", "width_mm@12N", "compliance_mm_per_n",
+                     "seen_from_mm"]
     soft, stiff = f
     assert soft[0] > stiff[0] and soft[1] > soft[0]
     assert np.isclose(soft[4], (soft[1] - soft[0]) / 8.0)
+    assert soft[5] == pytest.approx(np.min(np.abs(X_MM)))     # nothing hides the contact here
     # Peak equals the Hertz approach δ = a²/R, resolved by the grid.
     a = (3 * 4.0 * 5.0 * (1 - 0.45 ** 2) / 4.0) ** (1 / 3)
     assert abs(soft[0] - a ** 2 / 5.0) < 0.01
@@ -419,3 +421,111 @@ def test_recorded_composite_box_foam_and_hard_rubber_is_two_regions_each_its_mat
     away = data["seam_mm"] > 5.0
     # Region 0 is the stiffer: the hard rubber (truth 1).
     assert np.array_equal(rm.labels[away], 1 - data["truth"][away])
+
+
+def test_features_say_how_far_from_the_contact_the_peaks_were_read():
+    d = np.stack([hertz_normal_mm(X_MM, f, 2.0) for f in FORCES_N])[None].repeat(2, axis=0)
+    d[:, :, np.abs(X_MM) < 3.0] = np.nan                 # the tip hides the centre
+    d[1, 1, X_MM < 13.0] = np.nan                        # a wall hides the rest at the larger force
+    f, names = survey_features(d, X_MM, FORCES_N)
+    seen_from = f[:, names.index("seen_from_mm")]
+    assert 3.0 <= seen_from[0] < 3.5 and 13.0 <= seen_from[1] < 13.5
+
+
+def _hidden_survey(seed, e_mpa, hidden, hidden_within_mm):
+    """Survey features of Hertz dents (moduli ``e_mpa`` with 5 % variability, 0.005 mm noise):
+    the tip hides |x| < 3 mm of every profile, and the points ``hidden`` are seen only
+    beyond ``hidden_within_mm`` of the contact."""
+    rng = np.random.default_rng(seed)
+    e = np.asarray(e_mpa) * (1 + 0.05 * rng.normal(size=len(e_mpa)))
+    d = np.stack([[hertz_normal_mm(X_MM, f, ei) for f in FORCES_N] for ei in e])
+    d += rng.normal(0, 0.005, d.shape)
+    d[:, :, np.abs(X_MM) < 3.0] = np.nan
+    d[np.asarray(hidden)[:, None, None] & (np.abs(X_MM) < hidden_within_mm)[None, None, :].repeat(2, axis=1)] = np.nan
+    return survey_features(d, X_MM, FORCES_N)
+
+
+def _occluded_survey(seed):
+    """A gel (0.8 MPa) beside a hard block (25 MPa, 10x shallower dents): the gel's row next
+    to the block's wall is seen only from 13 mm out (the wall hides the contact), the rest
+    from the tip's edge. The block's top is a fold away: no surface-graph edge crosses the
+    wall. Returns (features, names, edges, stiff mask, occluded mask)."""
+    stiff = POS[:, 0] >= 50.0
+    occluded = POS[:, 0] == 40.0
+    feats, names = _hidden_survey(seed, np.where(stiff, 25.0, 0.8), occluded, 13.0)
+    edges = EDGES[stiff[EDGES[:, 0]] == stiff[EDGES[:, 1]]]
+    return feats, names, edges, stiff, occluded
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_dent_seen_only_far_from_the_contact_is_not_a_stiffer_material(seed):
+    """Generated composite 3007: the gel at the foot of the box wall is seen only from 13 mm
+    out, where its dent is a third of what the other gel probes read 3 mm out; the mixture
+    makes those probes a cluster between the gel and the hard rubber, and by their peaks
+    alone they are another material (a third region). Their peaks are lower bounds: they
+    belong to the gel."""
+    feats, names, edges, stiff, occluded = _occluded_survey(seed)
+    peaks = feats[:, :2]
+    gel = ~stiff & ~occluded
+    # The cause: the occluded gel reads beyond the contrast shallower than the other gel.
+    assert np.median(peaks[gel, 1]) / np.median(peaks[occluded, 1]) > 2.5
+    rm = cluster_regions(feats, edges, names, seed=0)
+    assert rm.n_regions == 2
+    assert np.all(rm.labels[stiff] == 0) and np.all(rm.labels[~stiff] == 1)
+    # Without the distance the peaks were read at, the same readings make a third region.
+    keep = [k for k, name in enumerate(names) if name != "seen_from_mm"]
+    blind = cluster_regions(feats[:, keep], edges, [names[k] for k in keep], seed=0)
+    assert blind.n_regions == 3
+
+
+def test_a_material_read_far_out_that_is_deeper_is_still_another_material():
+    """A foam's own deep dent hides its contact (its peaks read 8 mm out): its lower bounds are
+    still beyond the contrast deeper than the gel read 3 mm out, so it stays a region."""
+    foam = POS[:, 0] >= 50.0
+    feats, names = _hidden_survey(4, np.where(foam, 0.05, 0.8), foam, 8.0)
+    rm = cluster_regions(feats, EDGES, names, seed=0)
+    assert rm.n_regions == 2 and np.all(rm.labels[foam] == 1) and np.all(rm.labels[~foam] == 0)
+
+
+def test_seam_probes_of_two_different_inclusions_are_not_a_region_of_their_own():
+    """Suite slab 1003: an elastomer and a hard-rubber inclusion in a gel; the probes on both
+    inclusions' seams press both materials and read alike (between the stiff inclusion and
+    the gel), and together made a fifth region of four materials. Each piece of that region
+    is sandwiched between its own inclusion and the gel: both pieces join their neighbours."""
+    rng = np.random.default_rng(5)
+    gx, gy = np.meshgrid(np.arange(-60.0, 61.0, 10.0), np.arange(-30.0, 31.0, 10.0), indexing="ij")
+    xy = np.column_stack([gx.ravel(), gy.ravel()])
+    seams = [np.column_stack([np.full(7, sx), np.arange(-30.0, 31.0, 10.0) + 5.0]) for sx in (-35.0, 35.0)]
+    xy = np.vstack([xy] + seams)
+    from scipy.spatial import cKDTree
+
+    _, nb = cKDTree(xy).query(xy, k=7)
+    edges = np.array([(i, j) for i, row in enumerate(nb) for j in row[1:] if i < j])
+    hard, elastomer = xy[:, 0] < -36.0, xy[:, 0] > 36.0
+    seam_hard, seam_elastomer = xy[:, 0] == -35.0, xy[:, 0] == 35.0
+    peak = np.select([hard, elastomer, seam_hard, seam_elastomer], [0.02, 0.07, 0.2, 0.3], 1.0)
+    peak = peak * (1 + 0.05 * rng.normal(size=len(xy)))
+    feats = np.column_stack([peak, 2.5 * peak])
+    rmap = cluster_regions(feats, edges, ["peak_mm@2N", "peak_mm@6N"], seed=0)
+    assert rmap.n_regions == 3
+    on_seam = seam_hard | seam_elastomer
+    assert sorted(rmap.stats["transition_band_points"]) == np.flatnonzero(on_seam).tolist()
+    for material in (hard, elastomer, ~hard & ~elastomer & ~on_seam):
+        assert len(set(rmap.labels[material].tolist())) == 1
+
+
+def test_a_dent_seen_only_far_from_the_contact_is_no_misfit_of_its_region_unless_deeper():
+    """The gel at the foot of the wall (peaks read 13 mm out, 4x shallower than the gel read
+    3 mm out) is no evidence of another material for densification; the same probes reading
+    deeper than their region still are."""
+    from elastoprobe.controller.learning.regions import survey_misfit
+
+    feats, names, _, stiff, occluded = _occluded_survey(0)
+    labels = stiff.astype(int)
+    assert np.max(survey_misfit(feats, labels, names, noise_mm=0.005)) < 1.0
+    keep = [k for k, name in enumerate(names) if name != "seen_from_mm"]
+    blind = survey_misfit(feats[:, keep], labels, [names[k] for k in keep], noise_mm=0.005)
+    assert np.all(blind[occluded] > 1.0)                          # what the peaks alone say
+    deeper = feats.copy()
+    deeper[occluded, :2] *= 16.0                                 # 4x deeper than the gel read near
+    assert np.all(survey_misfit(deeper, labels, names, noise_mm=0.005)[occluded] > 1.0)

@@ -16,7 +16,8 @@ slope), and the surface graph (neighbour pairs of the neural-gas units).
    peak, at a survey force where a dent is measured): BIC finds any structure,
    including the smooth drift of one material's visible dent with the local geometry
    (rims, slopes, tilt) and with its support (a plate clamped at its edges), which is
-   not a different elasticity. A
+   not a different elasticity; nor is a dent read farther from the contact (a wall hides
+   the contact: ``seen_from_mm``), whose peaks are lower bounds. A
    homogeneous object gives one region.
 3. Spatial coherence on the surface graph: a few passes of iterated conditional
    modes (each point takes the region maximising its feature log-likelihood plus
@@ -24,9 +25,9 @@ slope), and the surface graph (neighbour pairs of the neural-gas units).
    neighbours, clear ones keep their own), then connected components per label
    smaller than ``min_island_points`` are relabelled to their neighbours' majority
    (recorded in ``stats["islands"]``, so densification can look there again); and a
-   region that is only the blend along the seam of two others (sandwiched between them,
-   smaller than both, its dent between theirs) is split between them
-   (``stats["transition_band_points"]``).
+   region that is only the blend along the seams of others (each of its connected pieces
+   sandwiched between two regions, smaller than both, its dent between theirs) is split
+   between them (``stats["transition_band_points"]``).
 4. Region ids are sorted by the mean of one feature (default column 0, the peak depth
    at the smallest survey force: region 0 is the stiffest), so reruns on the same data
    give the same ids.
@@ -59,6 +60,8 @@ MIN_POINTS_FOR_ONE_FORCE = 3
 # -- features ----------------------------------------------------------------------------------
 
 NEAR_CONTACT_BAND_MM = 3.0
+# The feature that says how far from the contact a point's peaks were read (mm).
+SEEN_FROM_FEATURE = "seen_from_mm"
 
 
 def _half_max_width_mm(x_mm: np.ndarray, depth_mm: np.ndarray,
@@ -102,7 +105,11 @@ def survey_features(depth_mm: np.ndarray, x_mm: np.ndarray, forces_n: np.ndarray
     ``depth_mm`` (N,F,L): each point's averaged profile at each survey force (same angle,
     e.g. 90°); ``forces_n`` (F,) the measured (or commanded) forces, increasing.
     Features: ``peak_mm@F`` and ``width_mm@F`` (full width at half peak) for each force,
-    and ``compliance_mm_per_n`` (least-squares slope of peak depth against force) when F > 1.
+    and ``compliance_mm_per_n`` (least-squares slope of peak depth against force) when F > 1,
+    and ``seen_from_mm`` (:data:`SEEN_FROM_FEATURE`): how far from the contact the peaks were
+    read. A wall or a deep dent hides the surface near the contact, and a peak read 13 mm out
+    is a third of one read 3 mm out on the same gel: only a lower bound of the dent, which
+    the contrast rule must not take for a stiffer material (:func:`_merge_by_contrast`).
     """
     d = np.asarray(depth_mm, dtype=float)
     x = np.asarray(x_mm, dtype=float)
@@ -125,7 +132,19 @@ def survey_features(depth_mm: np.ndarray, x_mm: np.ndarray, forces_n: np.ndarray
             slope = ((peaks - np.nanmean(peaks, axis=1, keepdims=True)) * fc).sum(axis=1) / (fc ** 2).sum()
         cols.append(slope[:, None])
         names.append("compliance_mm_per_n")
+    cols.append(_seen_from_mm(d, x)[:, None])
+    names.append(SEEN_FROM_FEATURE)
     return np.concatenate(cols, axis=1), names
+
+
+def _seen_from_mm(depth_mm: np.ndarray, x_mm: np.ndarray) -> np.ndarray:
+    """(N,) how far from the contact (mm) each point's peaks were read: per survey force the
+    distance of the seen sample nearest the contact, the largest over the forces (NaN where
+    a profile has no peak, see :func:`_half_max_width_mm`)."""
+    seen = np.isfinite(depth_mm)
+    dist = np.where(seen, np.abs(x_mm)[None, None, :], np.inf).min(axis=2)        # (N,F)
+    dist[seen.sum(axis=2) < 3] = np.nan
+    return dist.max(axis=1)
 
 
 # -- graph helpers -----------------------------------------------------------------------------
@@ -340,7 +359,8 @@ def _merge_by_noise(features: np.ndarray, labels: np.ndarray, noise: np.ndarray,
 
 def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: list[int],
                        min_contrast: float, floor_mm: float = 0.0,
-                       far_field_mm: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+                       far_field_mm: np.ndarray | None = None,
+                       seen_from_mm: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Merge clusters that are not two materials, closest pair first. Two clusters are two
     materials when, at some survey force at which either dent is measured (deeper than
     ``MEASURED_DENT_NOISES`` x the scatter of one of its points' peak depth, measured from
@@ -351,6 +371,18 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     measured force is the other one deeper by more than 3 standard errors; a cluster of
     fewer than ``MIN_POINTS_FOR_ONE_FORCE`` points must be deeper (or shallower) by 3
     standard errors at every measured force. ``depth_columns``: the peak-depth features.
+    ``seen_from_mm`` (N,): how far from the contact each point's peaks were read
+    (:data:`SEEN_FROM_FEATURE`); a cluster whose median lies beyond another's by more than
+    the band a peak is read in (:data:`NEAR_CONTACT_BAND_MM`) has only lower bounds of its
+    dents beside the other's peaks: that it is deeper is evidence, that it is shallower is
+    none (and refutes nothing).
+
+    Why: where a wall hides the surface near the contact, the scanner sees a dent from
+    ~13 mm out. On generated composite 3007 the gel at the foot of the box wall read
+    0.18-0.20 mm at 9 N there, the gel elsewhere 0.50-0.58 mm from 3.3 mm out (the truth
+    reads 0.18 mm 13 mm out of either): 2.7x, a third region between the gel and the hard
+    rubber. A soft foam's own dent hides its contact too (read 7-9 mm out on suite slabs
+    1002-1004), but it is the deepest material there, which its lower bounds still show.
 
     The mixture splits one material wherever geometry shifts the visible dent (the rim of
     a pillow, a slope, a tilted ball surface: up to ~30 % deeper in the simulator, where
@@ -380,6 +412,9 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     far = np.full((labels.shape[0], 2), np.nan) if far_field_mm is None else np.asarray(far_field_mm, dtype=float)
     noise = np.array([peak_noise_mm(far[labels == c], floor) for c in range(k)])
     count = _finite_counts(cols, labels, k)
+    seen_from = (np.zeros(labels.shape[0]) if seen_from_mm is None
+                 else np.asarray(seen_from_mm, dtype=float).reshape(-1))
+    read_at = _region_medians(seen_from[:, None], labels, k)[:, 0]              # (k,) mm
     while k > 1:
         logs = np.log(med)
         signed = logs[:, None, :] - logs[None, :, :]                       # (k,k,F)
@@ -392,6 +427,10 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
         # i deeper than j by the contrast and by 3 standard errors at some measured force,
         # and j nowhere clearly deeper (and the other way round).
         deeper = measured & (diff_mm > margin)
+        # j's peaks read farther out than i's: "i deeper than j" is no evidence.
+        with np.errstate(invalid="ignore"):
+            farther = read_at[None, :] > read_at[:, None] + NEAR_CONTACT_BAND_MM   # (i, j): j farther
+        deeper &= ~farther[:, :, None]
         shows = np.any(deeper & (signed >= log_c), axis=2)
         # A cluster of one or two points is one or two measurements: one scattered return can
         # fake a contrast at one force, so it must be clearly deeper (or shallower) at every
@@ -421,6 +460,10 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
         count[i] = np.sum(np.isfinite(cols[members]), axis=0)
         noise = np.delete(noise, j)
         noise[i] = peak_noise_mm(far[members], floor)
+        read_at = np.delete(read_at, j)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            read_at[i] = np.nanmedian(seen_from[members])
         merges += 1
     return labels, merges
 
@@ -547,16 +590,19 @@ def _region_medians(columns: np.ndarray, labels: np.ndarray, k: int) -> np.ndarr
 
 def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray],
                              depth_columns: list[int]) -> tuple[np.ndarray, list[int]]:
-    """Relabel a region that is only the blend between two others into those two.
+    """Relabel a region that is only the blend between others into those others.
 
     Where two materials meet, a probe on the seam presses both: its dent lies between
     theirs, and densification, which bisects the seam, puts several probes there. They
     form a "region" of their own that is no material. A region is such a transition
-    band when every one of its points borders a point of region A and a point of region
-    B on the surface graph (it is sandwiched between them), it has fewer points than
-    either, and its median peak depth lies strictly between A's and B's at every survey
-    force. Each of its points joins A or B, whichever median it is nearer to in log depth.
-    A real material probed only along a seam looks the same; once probed off the seam it
+    band when each of its pieces (connected on the surface graph) is sandwiched between two
+    regions A and B: every point of the piece borders a point of A and a point of B, the
+    piece's median peak depth lies strictly between A's and B's at every survey force, and
+    the region has fewer points than either. Each point of the piece joins A or B, whichever
+    median it is nearer to in log depth. The pieces may lie on different seams (A, B
+    differing per piece): on suite slab 1003 (two inclusions, hard rubber and elastomer,
+    in a gel) the probes on both inclusions' seams read alike and formed one fifth region.
+    A real material probed only along seams looks the same; once probed off the seam it
     has interior points and is kept. Returns (labels, relabelled point indices).
     """
     relabelled: list[int] = []
@@ -572,25 +618,54 @@ def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbour
         sizes = np.bincount(labels, minlength=k)
         done = True
         for band in np.argsort(sizes, kind="stable"):
-            members = np.flatnonzero(labels == band)
-            touching = [set(int(v) for v in labels[neighbours[i]]) - {int(band)} for i in members]
-            common = set.intersection(*touching) if touching else set()
-            pair = next(((a, b) for a in sorted(common) for b in sorted(common)
-                         if a < b and sizes[a] > sizes[band] and sizes[b] > sizes[band]
-                         and np.all(np.isfinite(med[[a, b, band]]))
-                         and np.all((med[band] - med[a]) * (med[band] - med[b]) < 0)), None)
-            if pair is None:
+            pieces = _pieces(np.flatnonzero(labels == band), neighbours)
+            sides = [_sandwich(piece, int(band), labels, neighbours, cols, med, sizes) for piece in pieces]
+            pairs = [pair for pair in sides if pair is not None]
+            if len(pairs) < len(pieces):
                 continue
-            a, b = pair
-            with np.errstate(all="ignore"):
-                da = np.nanmean(np.abs(cols[members] - med[a]), axis=1)
-                db = np.nanmean(np.abs(cols[members] - med[b]), axis=1)
-            labels[members] = np.where(np.nan_to_num(da, nan=np.inf) <= np.nan_to_num(db, nan=np.inf), a, b)
-            relabelled.extend(int(i) for i in members)
+            for piece, (a, b) in zip(pieces, pairs):
+                with np.errstate(all="ignore"):
+                    da = np.nanmean(np.abs(cols[piece] - med[a]), axis=1)
+                    db = np.nanmean(np.abs(cols[piece] - med[b]), axis=1)
+                labels[piece] = np.where(np.nan_to_num(da, nan=np.inf) <= np.nan_to_num(db, nan=np.inf), a, b)
+                relabelled.extend(int(i) for i in piece)
             done = False
             break
         if done:
             return labels, relabelled
+
+
+def _pieces(members: np.ndarray, neighbours: list[np.ndarray]) -> list[np.ndarray]:
+    """The connected pieces of a set of points on the surface graph (sorted point indices each)."""
+    inside = set(int(i) for i in members)
+    pieces: list[np.ndarray] = []
+    while inside:
+        stack, piece = [min(inside)], set()
+        while stack:
+            i = stack.pop()
+            if i in piece:
+                continue
+            piece.add(i)
+            stack.extend(int(j) for j in neighbours[i] if int(j) in inside and int(j) not in piece)
+        inside -= piece
+        pieces.append(np.array(sorted(piece), dtype=np.int64))
+    return pieces
+
+
+def _sandwich(piece: np.ndarray, band: int, labels: np.ndarray, neighbours: list[np.ndarray],
+              log_depth: np.ndarray, region_median: np.ndarray, sizes: np.ndarray) -> tuple[int, int] | None:
+    """The pair of regions (a, b) a piece of region ``band`` is the blend of, or None: every
+    point of the piece borders both, both regions are larger than ``band``, and the piece's
+    median log depth lies strictly between theirs at every force."""
+    touching = [set(int(v) for v in labels[neighbours[i]]) - {band} for i in piece]
+    common = set.intersection(*touching) if touching else set()
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mid = np.nanmedian(log_depth[piece], axis=0)
+    return next(((a, b) for a in sorted(common) for b in sorted(common)
+                 if a < b and sizes[a] > sizes[band] and sizes[b] > sizes[band]
+                 and np.all(np.isfinite(region_median[[a, b]])) and np.all(np.isfinite(mid))
+                 and np.all((mid - region_median[a]) * (mid - region_median[b]) < 0)), None)
 
 
 def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list[str] | None = None, *,
@@ -623,6 +698,7 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
     e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
     neighbours = _adjacency(n, e)
     depth_cols = [j for j, name in enumerate(names) if name.startswith("peak")]
+    seen_from = x[:, names.index(SEEN_FROM_FEATURE)] if SEEN_FROM_FEATURE in names else None
     floor_mm = DEFAULT_LOG_FLOOR_MM if noise_mm is None else max(float(noise_mm), 1e-6)
     log_cols = list(depth_cols)
     if log_cols:
@@ -657,7 +733,7 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
         # The mixture may put two lone probes of two different inclusions in one component
         # (one component per probe costs more than the likelihood it buys): split every
         # cluster by the materials that the contrast rule alone finds among single points.
-        alone, _ = _merge_by_contrast(x, np.arange(n), depth_cols, min_contrast, floor_mm, far)
+        alone, _ = _merge_by_contrast(x, np.arange(n), depth_cols, min_contrast, floor_mm, far, seen_from)
         labels, k = _compact(labels * (int(alone.max()) + 1) + alone)
     if previous_labels is not None:
         prev = np.asarray(previous_labels, dtype=np.int64).reshape(-1)
@@ -668,11 +744,15 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
         labels, k = _compact(labels * (int(prev.max(initial=-1)) + 2) + (prev + 1))
     merges = 0
     if feature_noise is not None and k > 1:
-        labels, merges = _merge_by_noise(x, labels, np.asarray(feature_noise, dtype=float), merge_sigmas)
+        # Where a peak was read says nothing of the material: not a feature to tell two apart by.
+        material = [j for j, name in enumerate(names) if name != SEEN_FROM_FEATURE]
+        labels, merges = _merge_by_noise(x[:, material], labels,
+                                         np.asarray(feature_noise, dtype=float)[material], merge_sigmas)
         labels, k = _compact(labels)
     stats["merged"] = merges
     if k > 1:
-        labels, contrast_merges = _merge_by_contrast(x, labels, depth_cols, min_contrast, floor_mm, far)
+        labels, contrast_merges = _merge_by_contrast(x, labels, depth_cols, min_contrast, floor_mm, far,
+                                                     seen_from)
         labels, k = _compact(labels)
         stats["merged_by_contrast"] = contrast_merges
 
@@ -687,7 +767,8 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
             both = np.concatenate([members, region])
             two = np.concatenate([np.zeros(members.size, np.int64), np.ones(region.size, np.int64)])
             return int(_merge_by_contrast(x[both], two, depth_cols, min_contrast, floor_mm,
-                                          None if far is None else far[both])[0].max()) > 0
+                                          None if far is None else far[both],
+                                          None if seen_from is None else seen_from[both])[0].max()) > 0
 
         labels, islands, kept = _remove_islands(labels, e, neighbours, min_island_points,
                                                 distinct if log_cols and min_contrast > 1.0 else None)
@@ -741,7 +822,10 @@ def survey_misfit(features: np.ndarray, labels: np.ndarray, feature_names: list[
     (log(min_contrast): a point that far from its region is another material by the rule
     that made the regions; within one material geometry alone moves a dent by up to ~2x,
     e.g. where the scan line runs off a block's shoulder). The result is the largest ratio
-    over the forces; NaN features give 0.
+    over the forces; NaN features give 0. A point whose peaks were read beyond its region's
+    band (``seen_from_mm``, see :func:`_merge_by_contrast`) has lower bounds only: reading
+    shallower than its region is no misfit (the gel at the foot of a wall on generated
+    composite 3007 reads 2.7x shallower from 13 mm out), reading deeper still is.
 
     A model fitted to the region's survey profiles predicts about their mean at the survey
     settings, pulled toward the misfit itself; the median is not.
@@ -752,14 +836,19 @@ def survey_misfit(features: np.ndarray, labels: np.ndarray, feature_names: list[
         return out
     y, rel_noise = log_peaks(features, feature_names, noise_mm)
     contrast = float(np.log(min_contrast))
+    seen_from = (np.asarray(features, dtype=float)[:, feature_names.index(SEEN_FROM_FEATURE)]
+                 if SEEN_FROM_FEATURE in feature_names else np.zeros(lab.shape[0]))
     for region in np.unique(lab):
         members = np.flatnonzero(lab == region)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             med = np.nanmedian(y[members], axis=0)
             mad = 1.4826 * np.nanmedian(np.abs(y[members] - med), axis=0)
+            read_far = seen_from[members] > np.nanmedian(seen_from[members]) + NEAR_CONTACT_BAND_MM
         allowed = np.maximum(np.maximum(sigmas * np.nan_to_num(mad), sigmas * rel_noise[members]), contrast)
-        ratio = np.abs(y[members] - med) / allowed
+        deviation = y[members] - med
+        deviation = np.where(read_far[:, None], np.maximum(deviation, 0.0), np.abs(deviation))
+        ratio = deviation / allowed
         out[members] = np.nanmax(np.where(np.isfinite(ratio), ratio, 0.0), axis=1)
     return out
 
