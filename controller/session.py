@@ -33,6 +33,7 @@ from .core.validation import build_validator
 from .journal import Journal, JournalCorruption, JournalError, SessionMeta, StepRecord, StepResult
 from .locking import CellLock
 from .machine import SessionMachine
+from .memory import ContactCounter, release_freed_memory
 from .notify import DiskWatch, Notifier
 from .phases import FOOT_LINK_SPACINGS, SWEEP_STEP_KEY, remove_table_below
 from .placement import PlacementMonitor, reregister
@@ -130,6 +131,7 @@ class Session:
         self.dry_run = dry_run
         self.flags = OperatorFlags()
         self.progress = Progress()
+        self._memory = ContactCounter()      # resident memory stays what is live, all night
         self.on_progress = on_progress or (lambda p: None)
         self.journal: Journal | None = None
         self._journal_damaged = False
@@ -274,7 +276,7 @@ class Session:
         cell.base_to_object = after
         self.executor.validator = None               # type: ignore[assignment]  # one scene in memory, not two
         self.executor.validator = build_validator(self.inputs, cell, mesh)
-        _release_freed_memory()
+        release_freed_memory()
         self._log("object_registered", **record)     # journal event too: resume starts from it
 
     def sweep_object(self, key_step: int) -> SweepResult:
@@ -501,6 +503,7 @@ class Session:
                 group = self._contact_group(pending)
                 target = targets[group[0].plan.target_index]
                 self._run_contact(target, group, targets)
+                self._memory.contact_done()
         self._update_progress()
 
     def _contact_group(self, pending: list[StepRecord]) -> list[StepRecord]:
@@ -951,19 +954,3 @@ SWEEP_FAULT_PREFIX = "during a sweep of the object"
 # (phases.SWEEP_STEP_KEY = 2**32 - 2, re-registration sweeps just under it), far above
 # every planned step id.
 LEARN_STEP_KEY = 2**32 - 1002
-
-
-def _release_freed_memory() -> None:
-    """Hand freed heap back to the OS after a burst of large temporaries (a re-registration's
-    sweep, ICP and collision scene): glibc keeps such pages, and an overnight session's
-    resident memory would ratchet up by tens of MB per re-registration. No-op elsewhere."""
-    import ctypes
-    import gc
-
-    gc.collect()
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
-
-
