@@ -13,26 +13,38 @@ from __future__ import annotations
 import ctypes
 import gc
 
-# Contacts between two releases: a release costs a full collection and a heap walk (tens of
-# ms with torch loaded) against a contact's several robot seconds; every 20 contacts is
-# ~0.1 % of the wall time, and the heap cannot drift far between two.
-CONTACTS_PER_RELEASE = 20
+# Contacts between two full releases: a full garbage collection costs ~0.1 s with torch
+# loaded (~200k objects), against a contact's several robot seconds; a heap trim costs
+# ~0-4 ms and runs after every contact, so what the allocator keeps never builds up.
+CONTACTS_PER_COLLECTION = 20
+
+
+def _libc() -> ctypes.CDLL | None:
+    try:
+        return ctypes.CDLL("libc.so.6")
+    except OSError:
+        return None
+
+
+_LIBC = _libc()
+
+
+def trim_heap() -> None:
+    """Return free heap pages to the OS (glibc's ``malloc_trim``); no-op without glibc."""
+    if _LIBC is not None and hasattr(_LIBC, "malloc_trim"):
+        _LIBC.malloc_trim(0)
 
 
 def release_freed_memory() -> None:
-    """Collect reference cycles, then return free heap pages to the OS (glibc's
-    ``malloc_trim``). No-op for the second part where the C library has no such call."""
+    """Collect reference cycles, then trim the heap."""
     gc.collect()
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
+    trim_heap()
 
 
 class ContactCounter:
-    """Calls :func:`release_freed_memory` after every ``every`` contacts."""
+    """Between contacts: trim the heap after each, collect cycles too after every ``every``."""
 
-    def __init__(self, every: int = CONTACTS_PER_RELEASE) -> None:
+    def __init__(self, every: int = CONTACTS_PER_COLLECTION) -> None:
         self.every = every
         self._since = 0
 
@@ -41,3 +53,5 @@ class ContactCounter:
         if self._since >= self.every:
             self._since = 0
             release_freed_memory()
+        else:
+            trim_heap()

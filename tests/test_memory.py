@@ -40,10 +40,12 @@ def test_release_returns_arrays_held_by_dropped_cycles_to_the_os() -> None:
     assert after - base < 0.25 * (held - base), (base, held, after)
 
 
-def test_the_release_runs_once_every_so_many_contacts(monkeypatch: pytest.MonkeyPatch) -> None:
-    calls = []
-    monkeypatch.setattr(memory, "release_freed_memory", lambda: calls.append(1))
+def test_the_heap_is_trimmed_after_every_contact_and_cycles_collected_every_so_many(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[str] = []
+    monkeypatch.setattr(memory, "release_freed_memory", lambda: calls.append("collect"))
+    monkeypatch.setattr(memory, "trim_heap", lambda: calls.append("trim"))
     counter = ContactCounter(every=3)
-    for _ in range(10):
+    for _ in range(7):
         counter.contact_done()
-    assert len(calls) == 3
+    assert calls == ["trim", "trim", "collect", "trim", "trim", "collect", "trim"]
