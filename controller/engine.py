@@ -32,6 +32,7 @@ from .core.validation import build_validator
 from .faultpolicy import FaultPolicy
 from .journal import Journal, JournalCorruption, JournalError, StepRecord, StepResult
 from .machine import SessionMachine
+from .memory import ContactCounter, release_freed_memory
 from .messages import Lifecycle, Message, Plan, ProbeRound, SessionPaused, Sweep, operator_pause
 from .notify import DiskWatch, Notifier
 from .phases import FOOT_LINK_SPACINGS, SWEEP_STEP_KEY, measure_step_data, plan_grid, remove_table_below
@@ -96,6 +97,7 @@ class Engine:
         self.log = log
         self._log = log_event
         self.progress = progress
+        self.memory = ContactCounter()          # resident memory stays what is live, all night
         self.on_progress = on_progress
         self.journal_damaged = False          # the session abandons a damaged journal
         self._current_step: int | None = None
@@ -360,7 +362,7 @@ class Engine:
         cell.base_to_object = after
         self.executor.validator = None               # type: ignore[assignment]  # one scene in memory, not two
         self.executor.validator = build_validator(self.inputs, cell, mesh)
-        _release_freed_memory()
+        release_freed_memory()
         self._log("object_registered", **record)     # journal event too: resume starts from it
 
     def run_steps(self, phase: str, round_: int, targets: dict[int, ProbeTarget]) -> None:
@@ -378,6 +380,7 @@ class Engine:
                 group = self._contact_group(pending)
                 target = targets[group[0].plan.target_index]
                 self._run_contact(target, group, targets)
+                self.memory.contact_done()
         self._update_progress()
 
     def _contact_group(self, pending: list[StepRecord]) -> list[StepRecord]:
@@ -505,27 +508,3 @@ class Engine:
         except (Exception, OperatorInterrupt) as exc:   # a report problem must not change the exit code
             self.log.write("report_failed", error=f"{type(exc).__name__}: {exc}")
         self._notify(event, message)
-
-
-
-
-
-
-
-
-
-
-
-
-def _release_freed_memory() -> None:
-    """Hand freed heap back to the OS after a burst of large temporaries (a re-registration's
-    sweep, ICP and collision scene): glibc keeps such pages, and an overnight session's
-    resident memory would ratchet up by tens of MB per re-registration. No-op elsewhere."""
-    import ctypes
-    import gc
-
-    gc.collect()
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
