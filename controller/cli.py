@@ -87,17 +87,19 @@ def _load_object(inputs):   # type: ignore[no-untyped-def]
 
 def cmd_check(args: argparse.Namespace) -> int:
     from .core.config import load_session_inputs
-    from .estimate import estimate_plan
+    from .estimate import estimate_plan, survey_units
 
     inputs = load_session_inputs(args.plan, args.cell)
-    _load_object(inputs)
-    est = estimate_plan(inputs)
+    model = _load_object(inputs)
+    est = estimate_plan(inputs, n_units=survey_units(inputs, model.mesh))
     budget_warning = est.budget_warning()
     report = {
         "plan": inputs.plan.name,
         "cell": inputs.cell.name,
         "contacts": est.contacts,
         "force_steps": est.steps,
+        "survey_targets": est.survey_targets,
+        "min_feature_mm": inputs.plan.sampling.min_feature_mm,
         "robot_hours": round(est.hours(), 3),
         "robot_s_per_phase": {k: round(v, 1) for k, v in est.per_phase_s.items()},
         "budget_warning": budget_warning,
@@ -111,6 +113,12 @@ def cmd_check(args: argparse.Namespace) -> int:
     else:
         print(f"{args.plan}: valid (cell {inputs.cell.name!r})")
         print(f"  estimated robot time: {est.hours():.2f} h over {est.contacts} contacts, {est.steps} force steps")
+        feature_mm = inputs.plan.sampling.min_feature_mm
+        print(f"  survey: about {est.survey_targets} targets"
+              + (f" (units {inputs.plan.sampling.units} raised so every {feature_mm:g} mm disc on the "
+                 "probe-able top holds one: sampling.min_feature_mm)"
+                 if feature_mm is not None and est.survey_targets > inputs.plan.sampling.units + len(inputs.plan.targets)
+                 else ""))
         for k, v in est.per_phase_s.items():
             print(f"    {k:<13} {v / 60:7.1f} min")
         if budget_warning is not None:

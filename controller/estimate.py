@@ -12,6 +12,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from .core.config import SessionInputs, effective_motion_limits
+from .learning import cloud as cl
+from .learning import survey_density as sd
+from .learning import targets as tg
+
+MESH_POINTS_PER_MM2 = 0.5      # a nominal cloud of the mesh: ~40 points within the targets' 5 mm density radius
+MAX_MESH_POINTS = 200_000
 
 
 def trapezoid_s(distance_mm: float, speed_mm_s: float, accel_mm_s2: float) -> float:
@@ -32,6 +38,7 @@ class Estimate:
     robot_s: float                      # what the budget lets run
     per_phase_s: dict[str, float]
     budget_s: float = float("inf")      # the plan's max_robot_hours
+    survey_targets: int = 0             # neural-gas units + explicit targets, each pressed at the survey angles
 
     def hours(self) -> float:
         return self.robot_s / 3600.0
@@ -72,8 +79,28 @@ def contact_time_s(inputs: SessionInputs, forces_n: list[float], travel_mm: floa
     return t
 
 
-def estimate_plan(inputs: SessionInputs, expected_regions: int = 2, mean_travel_mm: float = 80.0) -> Estimate:
-    """Estimate contacts, force steps and robot time of the whole plan."""
+def survey_units(inputs: SessionInputs, mesh: object | None) -> int:
+    """The neural-gas units the session will train: the plan's ``sampling.units``, raised for
+    ``sampling.min_feature_mm`` by the rule the session applies to its scanned cloud
+    (learning.survey_density), here applied to a nominal cloud of the object's mesh (object
+    frame, mm; area-uniform samples with the faces' normals): the same probe-able test (tilt,
+    edge clearance, density), so the count is the session's to within what the scan misses
+    (shadows make the scanned probe-able area smaller, never larger). ``mesh`` None: the plan's."""
+    sampling = inputs.plan.sampling
+    if sampling.min_feature_mm is None or sampling.units == 0 or mesh is None:
+        return sampling.units
+    area = float(getattr(mesh, "area"))
+    pts, nrm = cl.sample_mesh(mesh, int(min(MAX_MESH_POINTS, max(1000.0, area * MESH_POINTS_PER_MM2))), seed=0)
+    rules = tg.rules_for_plan(inputs.cell.tool.tip_radius_mm, sampling.edge_clearance_mm, sampling.max_tilt_deg,
+                              sampling.min_feature_mm)
+    where = tg.probeable(pts, nrm, cl.curvature(pts, k=16), rules)
+    return sd.survey_units(sampling.units, sampling.min_feature_mm, pts[where])
+
+
+def estimate_plan(inputs: SessionInputs, expected_regions: int = 2, mean_travel_mm: float = 80.0,
+                  n_units: int | None = None) -> Estimate:
+    """Estimate contacts, force steps and robot time of the whole plan; ``n_units``: the survey's
+    neural-gas units (:func:`survey_units`; None: the plan's ``sampling.units``)."""
     plan = inputs.plan
     ph = plan.phases
     per: dict[str, float] = {}
@@ -82,7 +109,7 @@ def estimate_plan(inputs: SessionInputs, expected_regions: int = 2, mean_travel_
     per["cloud"] = 0.0
     if plan.cloud.source == "scan":
         per["cloud"] = 400.0 / (plan.cloud.sweep_spacing_mm * inputs.cell.scanner.rate_hz) * 4 + 20.0
-    n_survey = plan.sampling.units + len(plan.targets)
+    n_survey = (plan.sampling.units if n_units is None else n_units) + len(plan.targets)
     per["survey"] = n_survey * len(ph.survey.angles_deg) * contact_time_s(inputs, ph.survey.forces_n, mean_travel_mm)
     contacts += n_survey * len(ph.survey.angles_deg)
     steps += n_survey * len(ph.survey.angles_deg) * len(ph.survey.forces_n)
@@ -97,4 +124,4 @@ def estimate_plan(inputs: SessionInputs, expected_regions: int = 2, mean_travel_
     steps = min(steps, plan.budget.max_steps)
     total = min(sum(per.values()), plan.budget.max_robot_hours * 3600.0)
     return Estimate(contacts=contacts, steps=steps, robot_s=total, per_phase_s=per,
-                    budget_s=plan.budget.max_robot_hours * 3600.0)
+                    budget_s=plan.budget.max_robot_hours * 3600.0, survey_targets=n_survey)

@@ -4,38 +4,41 @@ densify rounds, final map.
 Each ``phase_*`` either reads its committed outputs back from the journal (a resumed
 session continues from exactly the same targets) or computes them and commits them
 in one transaction together with the steps it plans. ``run_all`` strings them
-together; the session runs the planned steps between them.
+together into the session's plan: a generator that yields a message
+(:mod:`.messages`) for each thing the engine does for it (sweep the object, run a
+round of planned steps, move the lifecycle on to planning or learning).
 """
 from __future__ import annotations
 
 import datetime as _dt
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Callable
 
 import numpy as np
 
 from .acquire import unseen_of_cloud
+from .core.config import SessionInputs
+from .core.devices import Cell
 from .core.errors import BudgetSpent, SessionAborted
 from .core.geometry import INTERIOR_ANGLES_DEG, Pose, scan_direction
-from .journal import StepPlan
+from .journal import Journal, StepPlan
 from .learning import cloud as cl
 from .learning import densify as dn
 from .learning import neural_gas as ng
 from .learning import profiles as prof
 from .learning import regions as rg
 from .learning import surface_map as sm
+from .learning import survey_density as sd
 from .learning import targets as tg
 from .learning.densify import averaged_noise_mm
 from .learning.models import RegionModel, ServingLimits, TrainConfig, fit_region_model
 from .learning.support import UNSUPPORTED, CompletedTargets, RegionSteps, complete_targets, support_table
+from .messages import Lifecycle, Plan, ProbeRound, Sweep
 from .ordering import order_targets
-from .probe import ProbeTarget, StepData
+from .probe import ProbeExecutor, ProbeTarget, StepData
 from .report import write_report
 from .testing import crash_point
-
-if TYPE_CHECKING:
-    from .session import Session
 
 # Steps belong to the phase that planned them: the survey of the neural-gas targets is
 # planned by "sampling", the survey of densified points by "densify", characterization
@@ -72,7 +75,17 @@ def _done_steps(j: Any, phases: tuple[str, ...]) -> list[Any]:
 
 @dataclass
 class PhaseContext:
-    session: "Session"
+    """What the phases work with: the session's inputs and journal, the cell (its placement of
+    the object and scanner mount), the executor's motion checks (reach, collisions) and the
+    session's event log; and what the phases found so far."""
+
+    journal: Journal
+    inputs: SessionInputs
+    cell: Cell
+    seed: int
+    session_dir: Path
+    executor: ProbeExecutor
+    log: Callable[..., None]                                       # log(event, **record)
     cloud_mm: np.ndarray | None = None
     cloud_normals: np.ndarray | None = None
     targets: dict[int, ProbeTarget] = field(default_factory=dict)
@@ -99,33 +112,22 @@ class PhaseContext:
 
     @property
     def grid(self) -> prof.ProfileGrid:
-        m = self.session.inputs.plan.model
-        return prof.ProfileGrid(span_mm=m.profile_span_mm, samples=m.profile_samples)
+        return plan_grid(self.inputs)
 
 
 # --------------------------------------------------------------------------- helpers
-def step_profile(session: "Session", target: ProbeTarget, data: StepData) -> tuple[np.ndarray, np.ndarray]:
-    """Averaged depth profile (L,) of one force step on the plan's grid, and the grid x (mm)."""
-    return measure_step_data(session, target, data).depth_mm, session_grid(session).x_mm
-
-
 def plan_grid(inputs: Any) -> prof.ProfileGrid:
     """The profile grid a session's plan asks for."""
     m = inputs.plan.model
     return prof.ProfileGrid(span_mm=m.profile_span_mm, samples=m.profile_samples)
 
 
-def session_grid(session: "Session") -> prof.ProfileGrid:
-    return plan_grid(session.inputs)
-
-
-def measure_step_data(session: "Session", target: ProbeTarget, data: StepData) -> prof.StepMeasurement:
+def measure_step_data(inputs: SessionInputs, cell: Cell, target: ProbeTarget, data: StepData
+                      ) -> prof.StepMeasurement:
     """The step's profile and its facts (tip, rejected samples) from the scans and the arm's poses."""
-    cell = session.cell
-    assert cell is not None
     return measure_step_arrays(data.scans_xz_mm, data.scan_pose, data.reference_xz_mm, data.reference_pose,
-                               target, session_grid(session), cell.tcp_to_scanner, cell.base_to_object,
-                               session.inputs.cell.tool.tip_radius_mm)
+                               target, plan_grid(inputs), cell.tcp_to_scanner, cell.base_to_object,
+                               inputs.cell.tool.tip_radius_mm)
 
 
 def measure_step_arrays(scans_xz_mm: np.ndarray, scan_pose: np.ndarray, reference_xz_mm: np.ndarray,
@@ -177,8 +179,7 @@ def _plan_steps(ctx: PhaseContext, target_ids: list[int], angles_deg: list[float
                 start_order: int, angles_by_target: dict[int, list[float]] | None = None) -> list[StepPlan]:
     """Steps for targets in the given order: per target, per angle (``angles_by_target``'s
     when it names the target), increasing force."""
-    j = ctx.session.journal
-    assert j is not None
+    j = ctx.journal
     step_id = j.next_step_id()
     order = start_order
     steps = []
@@ -194,8 +195,7 @@ def _plan_steps(ctx: PhaseContext, target_ids: list[int], angles_deg: list[float
 
 
 def _next_order(ctx: PhaseContext) -> int:
-    j = ctx.session.journal
-    assert j is not None
+    j = ctx.journal
     recs = j.steps()
     return (max(r.plan.order_index for r in recs) + 1) if recs else 0
 
@@ -204,49 +204,46 @@ def _ordered(ctx: PhaseContext, ids: list[int]) -> list[int]:
 
     if len(ids) < 3:
         return ids
-    cell = ctx.session.cell
-    assert cell is not None
+    cell = ctx.cell
     pts = cell.base_to_object.apply(np.array([ctx.targets[i].point_mm for i in ids]))
     order, _, _ = order_targets(pts, travel_z_mm=float(pts[:, 2].max()) + 60.0)
     return [ids[k] for k in order]
 
 
 # --------------------------------------------------------------------------- phases
-def phase_cloud(ctx: PhaseContext) -> None:
-
-    s = ctx.session
-    j, cell = s.journal, s.cell
-    assert j is not None and cell is not None
+def phase_cloud(ctx: PhaseContext) -> Plan:
+    """The object's cloud, table removed: from a file or a sweep (the engine's), committed."""
+    j = ctx.journal
     rec = j.phase("cloud", 0)
     if rec is not None:
         ctx.cloud_mm, ctx.cloud_normals = rec.arrays["points_mm"].astype(float), rec.arrays["normals"].astype(float)
         return
-    plan = s.inputs.plan
+    plan = ctx.inputs.plan
     if plan.cloud.source == "file":
-        pts, normals = cl.load_cloud(s.inputs.resolve(s.inputs.plan_path, plan.cloud.file or ""),
-                                     n_samples=plan.cloud.max_points, seed=s.seed)
+        pts, normals = cl.load_cloud(ctx.inputs.resolve(ctx.inputs.plan_path, plan.cloud.file or ""),
+                                     n_samples=plan.cloud.max_points, seed=ctx.seed)
         robot_s = 0.0
     else:
         # Keyed at the sweep, not before: a resumed session reaches it after other
         # motions (the resume retract) than an uninterrupted one.
-        swept = s.sweep_object(SWEEP_STEP_KEY)
+        swept = yield Sweep(SWEEP_STEP_KEY)
         pts, robot_s = swept.points_mm, swept.robot_s
         for why in swept.replanned:
-            s._log("sweep_line_replanned", reason=why)
+            ctx.log("sweep_line_replanned", reason=why)
         for why in swept.refused:
-            s._log("sweep_line_skipped", reason=why)
+            ctx.log("sweep_line_skipped", reason=why)
         sweep = swept.outputs()
         normals = None
         j.add_robot_time("sweep", robot_s)
-    obj_pts, plane = remove_table_below(pts, seed=s.seed,
+    obj_pts, plane = remove_table_below(pts, seed=ctx.seed,
                                          link_mm=FOOT_LINK_SPACINGS * plan.cloud.sweep_spacing_mm)
     if plan.cloud.source != "file":
         # What the session keeps, the table gone, is what counts as seen.
         sweep["coverage_swept"] = sweep["coverage"]
         assert swept.top is not None
         sweep.update(unseen_of_cloud(swept.top, obj_pts, sweep["seen_within_mm"]))
-        s._log("sweep_unseen", unseen_mm2=sweep["unseen_mm2"], top_surface_mm2=sweep["top_surface_mm2"],
-               coverage=sweep["coverage"], patches=sweep["unseen_patches"])
+        ctx.log("sweep_unseen", unseen_mm2=sweep["unseen_mm2"], top_surface_mm2=sweep["top_surface_mm2"],
+                coverage=sweep["coverage"], patches=sweep["unseen_patches"])
     if normals is None or len(normals) != len(obj_pts):
         normals = orient_outward_from_above(obj_pts, cl.estimate_normals(obj_pts, k=16))
     normals = canonical(normals, 6)
@@ -258,8 +255,8 @@ def phase_cloud(ctx: PhaseContext) -> None:
         outputs["sweep"] = sweep
     j.commit_phase("cloud", 0, outputs,
                    {"points_mm": obj_pts.astype(np.float32), "normals": normals.astype(np.float32)})
-    s._log("phase", name="cloud", n_points=int(len(obj_pts)),
-           **({"unseen_mm2": sweep["unseen_mm2"], "coverage": sweep["coverage"]} if plan.cloud.source != "file" else {}))
+    swept_facts = {"unseen_mm2": sweep["unseen_mm2"], "coverage": sweep["coverage"]} if plan.cloud.source != "file" else {}
+    ctx.log("phase", name="cloud", n_points=int(len(obj_pts)), **swept_facts)
     # Continue from the committed (float32) cloud, exactly as a resumed session will.
     rec = j.phase("cloud", 0)
     assert rec is not None
@@ -320,12 +317,10 @@ def orient_outward_from_above(points_mm: np.ndarray, normals: np.ndarray) -> np.
 def phase_sampling(ctx: PhaseContext) -> None:
     """Neural gas units -> probe targets (on the surface, away from edges) -> survey steps."""
 
-    s = ctx.session
-    j = s.journal
-    assert j is not None
+    j = ctx.journal
     rec = j.phase("sampling", 0)
     if rec is None:
-        plan = s.inputs.plan
+        plan = ctx.inputs.plan
         pts, nrm = ctx.cloud_mm, ctx.cloud_normals
         assert pts is not None and nrm is not None
         if plan.sampling.units > 0:
@@ -333,13 +328,14 @@ def phase_sampling(ctx: PhaseContext) -> None:
             rules = _target_rules(ctx)
             # The units go where targets may: the probe-able part of the cloud (targets.probeable).
             where = tg.probeable(pts, nrm, curv, rules)
-            if np.count_nonzero(where) < plan.sampling.units:
+            n_units = sd.survey_units(plan.sampling.units, plan.sampling.min_feature_mm, pts[where])
+            if np.count_nonzero(where) < n_units:
                 where = np.ones(len(pts), bool)
             feats, weights = ng.geometry_aware_inputs(pts[where], nrm[where], curv[where],
                                                       normal_weight_mm=10.0 * plan.sampling.geometry_weight)
-            result = ng.train_neural_gas(feats, n_units=plan.sampling.units,
-                                         n_steps=max(200, plan.sampling.units * plan.sampling.steps_per_unit // 16),
-                                         batch_size=256, seed=s.seed, sample_weights=weights)
+            result = ng.train_neural_gas(feats, n_units=n_units,
+                                         n_steps=max(200, n_units * plan.sampling.steps_per_unit // 16),
+                                         batch_size=256, seed=ctx.seed, sample_weights=weights)
             units = np.asarray(result.units)[:, :3].astype(np.float64)
             ng_qe: float | None = float(result.quantization_error)
             found = tg.make_targets(units, pts, nrm, curv, rules=rules,
@@ -373,7 +369,7 @@ def phase_sampling(ctx: PhaseContext) -> None:
                        {"units": units.astype(np.float64), "target_points_mm": pts_t, "target_normals": nrm_t,
                         "target_t": t_dirs, "target_index": np.arange(len(pts_t)), "edge_flag": edge.astype(np.int8)},
                        steps)
-        s._log("phase", name="sampling", targets=int(len(pts_t)), survey_steps=len(steps))
+        ctx.log("phase", name="sampling", targets=int(len(pts_t)), survey_steps=len(steps))
         rec = j.phase("sampling", 0)
         assert rec is not None
     ctx.targets.update(_targets_from_arrays(rec.arrays))
@@ -385,10 +381,10 @@ def phase_sampling(ctx: PhaseContext) -> None:
 def _target_rules(ctx: PhaseContext) -> Any:
     """The plan's rules for where a target may sit (learning.targets.TargetRules)."""
 
-    plan = ctx.session.inputs.plan
-    radius = ctx.session.inputs.cell.tool.tip_radius_mm
-    return tg.TargetRules(tip_radius_mm=radius, edge_clearance_radii=plan.sampling.edge_clearance_mm / radius,
-                          max_tilt_deg=plan.sampling.max_tilt_deg)
+    plan = ctx.inputs.plan
+    radius = ctx.inputs.cell.tool.tip_radius_mm
+    return tg.rules_for_plan(radius, plan.sampling.edge_clearance_mm, plan.sampling.max_tilt_deg,
+                             plan.sampling.min_feature_mm)
 
 
 def _reachable(ctx: PhaseContext, pts: np.ndarray, nrm: np.ndarray, t_dirs: np.ndarray, what: str) -> np.ndarray:
@@ -397,40 +393,37 @@ def _reachable(ctx: PhaseContext, pts: np.ndarray, nrm: np.ndarray, t_dirs: np.n
     with nothing but the probe's tip. A target by the foot of a wall, where the scanner
     would meet the wall on the way down, is dropped here rather than refused at run time
     (a refused motion is a fault in the night's record and a wasted trip)."""
-    s = ctx.session
-    plan = s.inputs.plan
+    plan = ctx.inputs.plan
     survey = sorted(set(plan.phases.survey.angles_deg))
     angles = sorted(set(survey) | set(plan.phases.characterize.angles_deg))
-    validator = s.executor.validator
+    validator = ctx.executor.validator
     keep = np.zeros(len(pts), bool)
     unreachable = collides = 0
     for i in range(len(pts)):
         target = ProbeTarget(-1, pts[i], nrm[i], t_dirs[i])
         if not validator.reachable_at_all_angles(   # type: ignore[attr-defined]
-                [s.executor.contact_search_path(target, a)[0] for a in angles]):
+                [ctx.executor.contact_search_path(target, a)[0] for a in angles]):
             unreachable += 1
         elif len(_clear_angles(ctx, target, survey)) < len(survey):
             collides += 1
         else:
             keep[i] = True
     if unreachable or collides:
-        s._log("targets_dropped", what=what, unreachable=unreachable, contact_search_collides=collides)
+        ctx.log("targets_dropped", what=what, unreachable=unreachable, contact_search_collides=collides)
     return keep
 
 
 def _clear_angles(ctx: PhaseContext, target: ProbeTarget, angles: list[float]) -> list[float]:
     """The ``angles`` at which the contact search is free of collisions (the tip may touch)."""
-    ex = ctx.session.executor
+    ex = ctx.executor
     collision = ex.validator.collision   # type: ignore[attr-defined]
     return [a for a in angles if collision(*ex.contact_search_path(target, a), contact_allowed=True) is None]
 
 
 def _survey_profiles(ctx: PhaseContext, target_ids: list[int]) -> tuple[list[int], np.ndarray, np.ndarray]:
     """Survey profiles (N, F, L) at the first survey angle for targets whose survey is complete."""
-    s = ctx.session
-    j = s.journal
-    assert j is not None
-    sv = s.inputs.plan.phases.survey
+    j = ctx.journal
+    sv = ctx.inputs.plan.phases.survey
     angle = sv.angles_deg[0]
     forces = sorted(sv.forces_n)
     by_target: dict[int, dict[float, np.ndarray]] = {}
@@ -447,9 +440,7 @@ def _survey_profiles(ctx: PhaseContext, target_ids: list[int]) -> tuple[list[int
 def phase_regions(ctx: PhaseContext, round_: int) -> None:
     """Cluster the surveyed targets into regions; plan characterization where a region lacks it."""
 
-    s = ctx.session
-    j = s.journal
-    assert j is not None
+    j = ctx.journal
     rec = j.phase("regions", round_)
     if rec is None:
         ids, depth, forces = _survey_profiles(ctx, sorted(ctx.targets))
@@ -468,7 +459,7 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
         # makes a spurious region of its own.
         seen = np.all(np.isfinite(feats), axis=1)
         if not seen.all():
-            s._log("targets_unseen", round=round_, targets=[int(i) for i, ok in zip(ids, seen) if not ok])
+            ctx.log("targets_unseen", round=round_, targets=[int(i) for i, ok in zip(ids, seen) if not ok])
         ids = [i for i, ok in zip(ids, seen) if ok]
         depth, feats = depth[seen], feats[seen]
         if len(ids) == 0:
@@ -486,20 +477,20 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
         # its profile at the smallest survey force), so the contrast rule knows which dents
         # are measured (regions.peak_noise_mm).
         far = prof.far_field_error_mm(depth[:, 0, :], ctx.grid.x_mm, FEATURE_HALF_WINDOW_MM)
-        rmap = rg.cluster_regions(feats, edges, names, seed=s.seed,
-                                  min_contrast=s.inputs.plan.phases.survey.min_contrast,
+        rmap = rg.cluster_regions(feats, edges, names, seed=ctx.seed,
+                                  min_contrast=ctx.inputs.plan.phases.survey.min_contrast,
                                   noise_mm=measured_noise_mm(ctx), previous_labels=previous,
                                   far_field_mm=far)
         labels = {i: int(l) for i, l in zip(ids, rmap.labels)}
         chosen, angles_by_target = _characterize_choice(ctx, labels, rmap.n_regions, pts, ids)
-        ch = s.inputs.plan.phases.characterize
+        ch = ctx.inputs.plan.phases.characterize
         steps = _plan_steps(ctx, _ordered(ctx, chosen), ch.angles_deg, ch.forces_n, _next_order(ctx),
                             angles_by_target) if chosen else []
         j.commit_phase("regions", round_, {"n_regions": int(rmap.n_regions), "feature_names": names,
                                            "stats": rg._jsonable(rmap.stats), "characterize_targets": chosen},
                        {"labelled_targets": np.array(ids, dtype=np.int64), "labels": rmap.labels.astype(np.int64),
                         "features": feats}, steps)
-        s._log("phase", name="regions", round=round_, n_regions=int(rmap.n_regions), characterize=chosen)
+        ctx.log("phase", name="regions", round=round_, n_regions=int(rmap.n_regions), characterize=chosen)
         rec = j.phase("regions", round_)
         assert rec is not None
     ids = rec.arrays["labelled_targets"]
@@ -517,11 +508,9 @@ def _characterize_choice(ctx: PhaseContext, labels: dict[int, int], n_regions: i
     tool meets the F/T sensor or flange, and that angle is left out for that target
     (logged) instead of being refused at run time.
     """
-    s = ctx.session
-    j = s.journal
-    assert j is not None
-    per = s.inputs.plan.phases.characterize.points_per_region
-    angles = list(s.inputs.plan.phases.characterize.angles_deg)
+    j = ctx.journal
+    per = ctx.inputs.plan.phases.characterize.points_per_region
+    angles = list(ctx.inputs.plan.phases.characterize.angles_deg)
     lo, hi = INTERIOR_ANGLES_DEG
     interior_angles = [a for a in angles if lo <= a <= hi]
     clear_at: dict[int, list[float]] = {}
@@ -557,7 +546,7 @@ def _characterize_choice(ctx: PhaseContext, labels: dict[int, int], n_regions: i
         chosen += [ids[k] for k in picked]
     blocked = {str(t): [a for a in angles if a not in clear] for t, clear in clear_at.items()}
     if any(blocked.values()):
-        s._log("angles_blocked", targets={t: b for t, b in blocked.items() if b})
+        ctx.log("angles_blocked", targets={t: b for t, b in blocked.items() if b})
     return chosen, clear_at
 
 
@@ -601,17 +590,14 @@ def placement_at(registrations: list[dict[str, Any]], started_utc: str | None, c
     return placed
 
 
-def session_geometry(session: "Session") -> ScanGeometry:
-    cell = session.cell
-    assert cell is not None
-    return scan_geometry(session.inputs, cell.tcp_to_scanner, cell.base_to_object)
+def session_geometry(ctx: PhaseContext) -> ScanGeometry:
+    """The scan geometry of the running session (the cell's placement of the object now)."""
+    return scan_geometry(ctx.inputs, ctx.cell.tcp_to_scanner, ctx.cell.base_to_object)
 
 
 def region_dataset(ctx: PhaseContext, region: int) -> RegionSteps:
     """Every done step at targets of ``region`` (see :func:`collect_region_steps`)."""
-    s = ctx.session
-    assert s.journal is not None
-    return collect_region_steps(s.journal, ctx.labels, region, session_geometry(s))
+    return collect_region_steps(ctx.journal, ctx.labels, region, session_geometry(ctx))
 
 
 def collect_region_steps(j: Any, labels: dict[int, int], region: int, geometry: ScanGeometry) -> RegionSteps:
@@ -707,17 +693,14 @@ def region_train_config(model_spec: Any, seed: int, region: int, tip_radius_mm: 
                        basis_spacing_mm=tip_radius_mm / 5.0)
 
 
-def phase_models(ctx: PhaseContext, round_: int) -> None:
+def phase_models(ctx: PhaseContext, round_: int) -> Plan:
     """Fit (or load) one model ensemble per region; files written atomically, hashes committed."""
-    s = ctx.session
-    j = s.journal
-    assert j is not None
+    j = ctx.journal
     rec = j.phase("models", round_)
-    model_dir = s.dir / "models" / f"round{round_}"
+    model_dir = ctx.session_dir / "models" / f"round{round_}"
     if rec is None:
-        if s.machine.can("learn"):
-            s.machine.fire("learn")
-        m = s.inputs.plan.model
+        yield Lifecycle("learn")
+        m = ctx.inputs.plan.model
         model_dir.mkdir(parents=True, exist_ok=True)
         outputs: dict[str, Any] = {"regions": {}}
         noise = measured_noise_mm(ctx)
@@ -727,26 +710,25 @@ def phase_models(ctx: PhaseContext, round_: int) -> None:
             if len(data) < 3:
                 outputs["regions"][str(region)] = {"skipped": f"only {len(data)} profiles"}
                 continue
-            radius = s.inputs.cell.tool.tip_radius_mm
-            model, info = fit_region(data, region_train_config(m, s.seed, region, radius), radius, noise)
+            radius = ctx.inputs.cell.tool.tip_radius_mm
+            model, info = fit_region(data, region_train_config(m, ctx.seed, region, radius), radius, noise)
             crash_point("models:before_save")
             path = model.save(model_dir / f"region{region}.npz")
             crash_point("models:after_save")
             digest = j.record_model(region, 0, path, {"round": round_, "n_profiles": int(len(data))})
-            outputs["regions"][str(region)] = {"path": str(Path(path).relative_to(s.dir)), "sha256": digest,
+            outputs["regions"][str(region)] = {"path": str(Path(path).relative_to(ctx.session_dir)), "sha256": digest,
                                                "model_hash": model.model_hash(),
                                                "n_profiles": int(len(data)), **info}
         crash_point("models:before_commit")
         j.commit_phase("models", round_, outputs)
-        s._log("phase", name="models", round=round_, regions=list(outputs["regions"]))
-        if s.machine.can("plan"):
-            s.machine.fire("plan")
+        ctx.log("phase", name="models", round=round_, regions=list(outputs["regions"]))
+        yield Lifecycle("plan")
         rec = j.phase("models", round_)
         assert rec is not None
     ctx.models = {}
     for region, info in rec.outputs["regions"].items():
         if "path" in info:
-            ctx.models[int(region)] = RegionModel.load(s.dir / info["path"])
+            ctx.models[int(region)] = RegionModel.load(ctx.session_dir / info["path"])
     ctx.model_round = round_
 
 
@@ -754,12 +736,10 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
     """Add survey targets where adjacent regions differ (their models or their survey dents)
     and around survey points their region explains badly; False when resolved or out of budget."""
 
-    s = ctx.session
-    j = s.journal
-    assert j is not None
+    j = ctx.journal
     rec = j.phase("densify", round_)
     if rec is None:
-        plan = s.inputs.plan
+        plan = ctx.inputs.plan
         dp = plan.phases.densify
         ids = sorted(ctx.labels)
         pts = np.array([ctx.targets[i].point_mm for i in ids])
@@ -798,7 +778,7 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
                                            "n_new": int(len(idx)), "record": rnd.to_dict()},
                        {"target_points_mm": new_pts.reshape(-1, 3), "target_normals": new_nrm.reshape(-1, 3),
                         "target_t": t_dirs.reshape(-1, 3), "target_index": idx.astype(np.int64)}, steps)
-        s._log("phase", name="densify", round=round_, new_targets=int(len(idx)), reason=rnd.reason)
+        ctx.log("phase", name="densify", round=round_, new_targets=int(len(idx)), reason=rnd.reason)
         rec = j.phase("densify", round_)
         assert rec is not None
     if len(rec.arrays["target_index"]):
@@ -809,8 +789,7 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
 def _region_features(ctx: PhaseContext, ids: list[int]) -> tuple[np.ndarray, list[str]] | None:
     """Survey features (len(ids), D) and their names of labelled targets, from the latest
     regions round (None when there is none, or it did not label every one of ``ids``)."""
-    j = ctx.session.journal
-    assert j is not None
+    j = ctx.journal
     r = 0
     while j.phase("regions", r + 1) is not None:
         r += 1
@@ -847,9 +826,7 @@ def _cloud_normals_at(ctx: PhaseContext, points_mm: np.ndarray) -> np.ndarray:
 def measured_noise_mm(ctx: PhaseContext, max_steps: int = 20) -> float:
     """Standard error (mm) of averaged survey profiles, from the scans themselves."""
 
-    s = ctx.session
-    j, cell = s.journal, s.cell
-    assert j is not None and cell is not None
+    j, cell = ctx.journal, ctx.cell
     stds, counts = [], []
     registrations = j.events(kind="object_registered")
     for rec in _done_steps(j, SURVEY_PHASES)[:max_steps]:
@@ -869,9 +846,7 @@ def measured_noise_mm(ctx: PhaseContext, max_steps: int = 20) -> float:
 def phase_final(ctx: PhaseContext) -> None:
     """The region map over the whole cloud, and the report."""
 
-    s = ctx.session
-    j = s.journal
-    assert j is not None
+    j = ctx.journal
     rec = j.phase("final", 0)
     if rec is None:
         ids = sorted(ctx.labels)
@@ -886,46 +861,40 @@ def phase_final(ctx: PhaseContext) -> None:
                        {"cloud_labels": cloud_labels.astype(np.int64)})
     crash_point("final:before_report")
     crash_point("report:begin")
-    write_report(s.dir)
+    write_report(ctx.session_dir)
     crash_point("final:after_report")
 
 
-def run_all(ctx: PhaseContext) -> None:
-    s = ctx.session
-    plan = s.inputs.plan
-    phase_cloud(ctx)
-    if s.machine.state == "sweeping" or s.machine.can("plan") and s.machine.state == "preflight":
-        s.machine.fire("plan")
+def run_all(ctx: PhaseContext) -> Plan:
+    """The session's plan: cloud, sampling and its survey, regions and characterization,
+    models, densify rounds, the final map. With the budget spent (thrown in by the engine at
+    a round of steps), it models what was measured and ends with the map."""
+    plan = ctx.inputs.plan
+    yield from phase_cloud(ctx)
+    yield Lifecycle("plan")
     phase_sampling(ctx)
-    s.progress.steps_total = len(s.journal.steps())   # type: ignore[union-attr]
     try:
-        s.run_steps("sampling", 0, ctx.targets)
+        yield ProbeRound("sampling", 0, ctx.targets)
         phase_regions(ctx, 0)
-        s.progress.steps_total = len(s.journal.steps())   # type: ignore[union-attr]
-        s.run_steps(CHARACTERIZE, 0, ctx.targets)
-        phase_models(ctx, 0)
+        yield ProbeRound(CHARACTERIZE, 0, ctx.targets)
+        yield from phase_models(ctx, 0)
         for r in range(1, plan.phases.densify.rounds + 1):
             if not phase_densify(ctx, r):
                 break
-            s.progress.steps_total = len(s.journal.steps())   # type: ignore[union-attr]
-            s.run_steps("densify", r, ctx.targets)
+            yield ProbeRound("densify", r, ctx.targets)
             phase_regions(ctx, r)
-            s.progress.steps_total = len(s.journal.steps())   # type: ignore[union-attr]
-            s.run_steps(CHARACTERIZE, r, ctx.targets)
-            phase_models(ctx, r)
+            yield ProbeRound(CHARACTERIZE, r, ctx.targets)
+            yield from phase_models(ctx, r)
     except BudgetSpent as exc:
-        s._log("budget_spent", reason=str(exc))
-        _wrap_up_after_budget(ctx)
-    if s.machine.can("learn"):
-        s.machine.fire("learn")
+        ctx.log("budget_spent", reason=str(exc))
+        yield from _wrap_up_after_budget(ctx)
+    yield Lifecycle("learn")
     phase_final(ctx)
 
 
-def _wrap_up_after_budget(ctx: PhaseContext) -> None:
+def _wrap_up_after_budget(ctx: PhaseContext) -> Plan:
     """With the budget spent, model what was measured: regions and models from the data at hand."""
-    s = ctx.session
-    j = s.journal
-    assert j is not None
+    j = ctx.journal
     r = 0
     while j.phase("regions", r + 1) is not None:
         r += 1
@@ -936,4 +905,4 @@ def _wrap_up_after_budget(ctx: PhaseContext) -> None:
     m = r
     while j.phase("models", m) is not None:
         m += 1
-    phase_models(ctx, m)
+    yield from phase_models(ctx, m)

@@ -78,12 +78,14 @@ def read_rows(con: sqlite3.Connection, table: str, columns: str, lost: list[str]
 
     The whole table in one read when it can; else rowid ranges, halved around the
     damage down to single rows, so one damaged page loses only the rows on it."""
+    missing = _missing_from_schema(con, table, columns)
+    if missing is not None:             # not damage: nothing of it to read, row by row or at once
+        raise sqlite3.OperationalError(missing)
     sql = f"SELECT rowid, {columns} FROM {table}"
     try:
         return con.execute(sql + " ORDER BY rowid").fetchall()
-    except sqlite3.DatabaseError as exc:
-        if "no such" in str(exc):       # the table (or a column) is not in the schema at all
-            raise
+    except sqlite3.DatabaseError:
+        pass
     try:
         top = int(con.execute(f"SELECT max(rowid) FROM {table}").fetchone()[0] or 0)
     except sqlite3.DatabaseError:
@@ -106,6 +108,20 @@ def read_rows(con: sqlite3.Connection, table: str, columns: str, lost: list[str]
     if bad:
         lost.append(f"{bad} unreadable {table} rows")
     return sorted(out, key=lambda r: r[0])
+
+
+def _missing_from_schema(con: sqlite3.Connection, table: str, columns: str) -> str | None:
+    """What the schema lacks of ``table`` and its ``columns`` (plain names, comma-separated),
+    said as SQLite says it; None when all are there, or when the schema itself cannot be read
+    (then the rows are read as damaged ones are)."""
+    try:
+        have = {row[1] for row in con.execute(f"PRAGMA table_info({table})").fetchall()}
+    except sqlite3.DatabaseError:
+        return None
+    if not have:
+        return f"no such table: {table}"
+    missing = [c.strip() for c in columns.split(",") if c.strip() not in have]
+    return f"no such column: {', '.join(missing)}" if missing else None
 
 
 _BAD = object()     # a JSON column that does not parse

@@ -192,14 +192,14 @@ def test_top_surface_is_what_is_seen_from_above_within_the_tilt():
     assert seen_mask(pts, pts + [0.0, 0.0, 1.9]).all() and not seen_mask(pts, pts + [0.0, 0.0, 2.1]).any()
 
 
-def _pause_after_the_cloud(monkeypatch: pytest.MonkeyPatch) -> None:
+def _pause_after_the_cloud(monkeypatch: pytest.MonkeyPatch, session: Session) -> None:
     """The operator asks for a pause as the cloud phase ends (a request before the run would
     pause the sweep itself, before the cloud is committed)."""
     sweep = phases.phase_cloud
 
-    def cloud_then_pause(ctx: phases.PhaseContext) -> None:
-        sweep(ctx)
-        ctx.session.flags.pause_requested = True
+    def cloud_then_pause(ctx: phases.PhaseContext) -> phases.Plan:
+        yield from sweep(ctx)
+        session.flags.pause_requested = True
 
     monkeypatch.setattr(phases, "phase_cloud", cloud_then_pause)
 
@@ -209,7 +209,7 @@ def test_session_journals_and_reports_the_unseen_area(tmp_path: Path, monkeypatc
     # column and is planned again. Paused after the cloud phase: it is committed.
     inputs = load_session_inputs(ROOT / "config" / "plans" / "user_object.yaml")
     session = Session(inputs, tmp_path / "s", seed=1)
-    _pause_after_the_cloud(monkeypatch)
+    _pause_after_the_cloud(monkeypatch, session)
     assert session.run() == EXIT_PAUSED
     with Journal.open_readonly(tmp_path / "s") as j:
         sweep = j.phase("cloud", 0).outputs["sweep"]
@@ -236,7 +236,7 @@ def test_a_generated_object_is_covered_on_its_true_surface(tmp_path: Path, monke
     assert main(["sim", "object", "--seed", str(object_seed), "--out", str(tmp_path / "obj")]) == 0
     inputs = load_session_inputs(tmp_path / "obj" / "plan.yaml")
     session = Session(inputs, tmp_path / "s", seed=1)
-    _pause_after_the_cloud(monkeypatch)
+    _pause_after_the_cloud(monkeypatch, session)
     assert session.run() == EXIT_PAUSED
     with Journal.open_readonly(tmp_path / "s") as j:
         cloud = j.phase("cloud", 0)

@@ -37,6 +37,8 @@ PLANS = {
     "limit_looser_than_cell.yaml": (5, 16, "looser than the cell's 45.0"),
     "merge_key.yaml": (4, 3, "merge keys"),
     "min_contrast_below_one.yaml": (4, 19, "greater than or equal to 1"),
+    "min_feature_too_small.yaml": (3, 19, "greater than or equal to 5"),
+    "min_feature_without_units.yaml": (4, 19, "units is 0 (explicit targets only)"),
     "missing_name.yaml": (1, 1, "missing required key 'name'"),
     "nan_value.yaml": (3, 13, "NaN and infinity are not allowed"),
     "nested_block_deep.yaml": (66, 65, "nested more than 64 levels deep"),

@@ -14,6 +14,7 @@ from elastoprobe.controller.journal import (
 )
 from elastoprobe.controller.locking import LockHeld
 from elastoprobe.controller.provenance import collect_provenance, sha256_text
+from elastoprobe.controller.salvage import read_rows
 
 PLAN = "name: demo\nseed: 7\ntargets: []\n"
 CELL = "name: sim\nkind: sim\n"
@@ -362,3 +363,20 @@ def test_fault_and_transition_queries(journal: Journal) -> None:
         journal.record_transition("a", "b", f"t{k}", float(k))
     assert [t["trigger"] for t in journal.transitions(last=2)] == ["t3", "t4"]
     assert len(journal.transitions()) == 5
+
+
+def test_salvage_tells_a_table_missing_from_the_schema_by_the_schema_not_by_the_message(tmp_path: Path) -> None:
+    """A table or column the schema lacks is not damage: read_rows says so (as SQLite would) at
+    once, without reading row ranges; what the schema has is read whole."""
+    con = sqlite3.connect(tmp_path / "j.sqlite")
+    con.execute("CREATE TABLE steps (step_id INTEGER, phase TEXT)")
+    con.executemany("INSERT INTO steps VALUES (?, ?)", [(0, "sampling"), (1, "regions")])
+    con.commit()
+    lost: list[str] = []
+    assert [r[1:] for r in read_rows(con, "steps", "step_id, phase", lost)] == [(0, "sampling"), (1, "regions")]
+    with pytest.raises(sqlite3.OperationalError, match="no such column: status"):
+        read_rows(con, "steps", "step_id, status", lost)
+    with pytest.raises(sqlite3.OperationalError, match="no such table: faults"):
+        read_rows(con, "faults", "fault_id", lost)
+    assert lost == []
+    con.close()

@@ -15,6 +15,7 @@ follow-ups during recovery, 24 kills) is marked soak.
 """
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -274,3 +275,27 @@ def test_rss_growth_sees_a_leak_in_sparse_steps_and_not_a_warm_up_or_a_pause_spi
     carried = [_child_samples(0.4 * k, 0.3, lambda h, k=k: settled(h) + 8.0 * 0.4 * k) for k in range(12)]
     across, _ = soak.rss_growth_across_children_mb_per_h(carried)
     assert across is not None and abs(across - 8.0) < 0.5
+
+
+def test_a_contact_fault_after_its_contacts_retry_fault_is_absorbed_by_the_retry() -> None:
+    # The night of issue #15 met it: the link dropped at 151.77 s during step 2091 (journaled,
+    # retry), and a slip drawn under the same key fired 1 s later, while the recovery
+    # retracted; the contact was pressed again from its first level under a new key and
+    # step 2091 was done. The slip touched nothing that was kept: absorbed, not undetected.
+    from elastoprobe.controller.journal import FaultRecord
+
+    lost = FaultRecord(fault_id=378, kind="connection", t_robot_s=151.77, t_wall_utc="", step_id=2091,
+                       message="lost the connection to the robot", policy_action="retry", raw=None, run_id=49)
+    slip = {"pid": 7869, "kind": "slip", "t_s": 152.749, "key": [1, 2091, 0], "plan": 7}
+    assert soak.absorbed_by_retry(slip, 49, [lost], {378: 49}, {2091: "done"}) == 378
+    # The attempt the retry made (key attempt 1) is the one in flight: a slip there is its own.
+    assert soak.absorbed_by_retry({**slip, "key": [1, 2091, 1]}, 49, [lost], {378: 49}, {2091: "done"}) is None
+    # Not a contact's fault (a moved object stays moved), not done, another run, a pause,
+    # or long after: no absorption.
+    assert soak.absorbed_by_retry({**slip, "kind": "object_moved"}, 49, [lost], {378: 49}, {2091: "done"}) is None
+    assert soak.absorbed_by_retry(slip, 49, [lost], {378: 49}, {2091: "planned"}) is None
+    assert soak.absorbed_by_retry(slip, 50, [lost], {378: 49}, {2091: "done"}) is None
+    paused = dataclasses.replace(lost, policy_action="pause")
+    assert soak.absorbed_by_retry(slip, 49, [paused], {378: 49}, {2091: "done"}) is None
+    late = {**slip, "t_s": 151.77 + soak.MATCH_WINDOW_S + 1.0}
+    assert soak.absorbed_by_retry(late, 49, [lost], {378: 49}, {2091: "done"}) is None

@@ -342,6 +342,11 @@ class SamplingSpec(Spec):
     edge_clearance_mm: float = Field(15.0, ge=0, le=200)
     max_tilt_deg: float = Field(60.0, gt=0, le=90)
     reference_direction: Vec3 = (1.0, 0.0, 0.0)
+    # The smallest inclusion (mm across) the survey must land on: the session raises
+    # `units` until every disc this wide on the probe-able top holds a target
+    # (learning/survey_density.py). None: `units` as given. At least 5 mm: a dent is wider
+    # than the tip (2.5-5 mm radius on the shipped cells), a narrower inclusion is not read.
+    min_feature_mm: float | None = Field(None, ge=5, le=500)
 
     @field_validator("units")
     @classmethod
@@ -367,6 +372,14 @@ class SamplingSpec(Spec):
             raise ValueError(f"reference_direction is {from_vertical_deg:.1f} deg from vertical, within "
                              f"max_tilt_deg = {max_tilt_deg:g} of it: it would be parallel to some probe-able "
                              f"surface normal (give a direction across the object, e.g. [0, 1, 0])")
+        return v
+
+    @field_validator("min_feature_mm")
+    @classmethod
+    def _feature_needs_units(cls, v: float | None, info: ValidationInfo) -> float | None:
+        if v is not None and info.data.get("units") == 0:
+            raise ValueError("min_feature_mm raises the neural gas's units, and units is 0 (explicit targets "
+                             "only): set units, or leave min_feature_mm out")
         return v
 
 

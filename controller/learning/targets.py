@@ -19,6 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.geometry import scan_direction
+from . import survey_density
 
 
 @dataclass(frozen=True)
@@ -74,6 +75,16 @@ class TargetRules:
     @property
     def spacing_mm(self) -> float:
         return 2.0 * self.tip_radius_mm if self.min_spacing_mm is None else self.min_spacing_mm
+
+
+def rules_for_plan(tip_radius_mm: float, edge_clearance_mm: float, max_tilt_deg: float,
+                   min_feature_mm: float | None = None) -> TargetRules:
+    """The rules a plan's ``sampling`` sets (its edge clearance and tilt in mm and degrees, the
+    cell's tip radius in mm); a ``min_feature_mm`` survey merges targets only closer than
+    half its spacing (learning.survey_density)."""
+    return TargetRules(tip_radius_mm=tip_radius_mm, edge_clearance_radii=edge_clearance_mm / tip_radius_mm,
+                       max_tilt_deg=max_tilt_deg,
+                       min_spacing_mm=survey_density.merge_spacing_mm(2.0 * tip_radius_mm, min_feature_mm))
 
 
 class _Surface:
