@@ -7,8 +7,11 @@ simulator, trimesh) are imported inside the commands so start-up stays fast.
 from __future__ import annotations
 
 import argparse
+import io
 import json
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -145,9 +148,11 @@ def _travel_saved(inputs) -> tuple[float, float] | None:   # type: ignore[no-unt
 
 def cmd_diagram(args: argparse.Namespace) -> int:
     from .core.atomic import atomic_write_text
+    from .journal import refuse_session_file
     from .machine import diagram_markdown
 
     out = Path(args.out)
+    refuse_session_file(out, "diagram --out")
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, diagram_markdown())
     print(f"wrote {out}")
@@ -225,6 +230,9 @@ def cmd_resume(args: argparse.Namespace) -> int:
     if not plan_path or not cell_path:
         raise InputError("the journal does not name its plan and cell files", path=str(args.dir))
     inputs = load_session_inputs(plan_path, cell_path)
+    # Refused here, read-only: the session's own check comes after it opened the journal to write.
+    with Journal.open_readonly(args.dir, check="none") as j:
+        j.verify_inputs(inputs.plan_path.read_bytes(), inputs.cell_path.read_bytes())
     dry_run = bool(prov.get("dry_run", False))
     if inputs.cell.kind != "simulated" and not dry_run:      # the night goes on with the same guard as its start
         from .cellfactory import check_real_cell_ready
@@ -303,8 +311,10 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def cmd_export(args: argparse.Namespace) -> int:
     from .export import export_hdf5
+    from .journal import refuse_session_file
 
     out = Path(args.out) if args.out else Path(args.dir) / "export.h5"
+    refuse_session_file(out, "export --out")
     print(f"wrote {export_hdf5(Path(args.dir), out)}")
     return EXIT_DONE
 
@@ -331,8 +341,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from elastoprobe.calibration.runner import run_calibration
 
     from .core.config import DEFAULT_CELL
+    from .journal import refuse_session_file
 
     cell = Path(args.cell) if args.cell else DEFAULT_CELL
+    if args.out:
+        refuse_session_file(args.out, "calibrate --out")
     summary = run_calibration(args.kind, cell, seed=args.seed, out_path=Path(args.out) if args.out else None)
     print(json.dumps(summary, indent=None if args.json else 2, allow_nan=False, default=str))
     return EXIT_DONE
@@ -548,6 +561,37 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    # A file name that is not UTF-8 (Python holds its bytes as surrogates) prints as those bytes.
+    streams = [(s, s.errors) for s in (sys.stdout, sys.stderr) if isinstance(s, io.TextIOWrapper)]
+    for stream, _ in streams:
+        stream.reconfigure(errors="surrogateescape")
+    # Until a command takes the signals itself (a session, an interruptible command), SIGTERM
+    # is what SIGINT is: the command ends before it wrote anything (exit 3; ``run``, which has
+    # no session to resume yet, 1), not with a traceback from the import in progress nor a
+    # death by signal.
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler) if in_main_thread else None
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        words = [a for a in (sys.argv[1:] if argv is None else argv) if not a.startswith("-")]
+        command = words[0] if words else "elastoprobe"
+        print(f"elastoprobe {command}: interrupted before it started; nothing was written", file=sys.stderr)
+        return EXIT_FAULT if command == "run" else EXIT_PAUSED
+    finally:
+        if in_main_thread:
+            if argv is None:
+                # The command line's own process: its command has finished and its exit code
+                # stands; a signal in the last moments of the interpreter must not replace it.
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+                signal.signal(signal.SIGTERM, signal.SIG_IGN)
+            else:
+                signal.signal(signal.SIGTERM, previous)
+        for stream, errors in streams:
+            stream.reconfigure(errors=errors)
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     # After parsing: --help and usage errors need neither (the journal brings numpy).

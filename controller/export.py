@@ -27,7 +27,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from .core.atomic import ensure_dir, fsync_dir
+from .core.atomic import ensure_dir, fsync_dir, readable_text
 from .core.errors import DiskError
 from .journal import STEP_ARRAYS_OPTIONAL, STEP_ARRAYS_REQUIRED, Journal, StepRecord, to_json
 from .predict import read_manifest
@@ -335,7 +335,7 @@ def export_hdf5(session_dir: str | os.PathLike[str], out_path: str | os.PathLike
     hook, sys.unraisablehook = sys.unraisablehook, lambda unraisable: None
     try:
         with h5py.File(tmp_name, "w") as f:
-            f.attrs.update({"format": FORMAT, "exported_utc": _utc_now(), "session_dir": str(d.resolve()),
+            f.attrs.update({"format": FORMAT, "exported_utc": _utc_now(), "session_dir": readable_text(str(d.resolve())),
                             "layout": "docs/hdf5.md"})
             _write_session(f, j)
             phase_groups = _write_phases(f, j)

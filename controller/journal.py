@@ -36,7 +36,7 @@ import numpy as np
 
 from .core.atomic import ensure_dir, json_default
 from .core.errors import DiskError, ElastoprobeError, InputError
-from .locking import SessionLock
+from .locking import SESSION_LOCK_NAME, SessionLock
 from .signals import deferred_interrupts
 from .testing import crash_point
 
@@ -74,6 +74,13 @@ class JournalCorruption(JournalError):
     """Stored data fails its checksum, or SQLite finds the file damaged: the journal cannot be
     trusted there (exit 2: the journal is the input of ``resume``; ``elastoprobe salvage``
     copies what is intact into a new one)."""
+
+    exit_code = 2
+
+
+class JournalVersionError(JournalError):
+    """The journal was written by a newer elastoprobe, under a schema this one cannot read: exit 2,
+    it is the input of every session command. (A version no release wrote is damage.)"""
 
     exit_code = 2
 
@@ -388,6 +395,56 @@ def _writable(directory: Path) -> bool:
     return os.access(directory, os.W_OK)
 
 
+# A session directory's own stored data (docs/journal.md): an output file never replaces one
+# of these (nor anything under models/), and no session is made inside another's directory.
+LOG_NAME = "log.jsonl"
+SESSION_FILES = frozenset({JOURNAL_NAME, JOURNAL_NAME + "-wal", JOURNAL_NAME + "-shm", LOG_NAME,
+                           SESSION_LOCK_NAME, "models"})
+_SQLITE_MAGIC = b"SQLite format 3\x00"
+
+
+def is_journal_file(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` is a regular file whose SQLite header carries the journal's application id
+    (a session journal wherever it lies and whatever it is called)."""
+    if not os.path.isfile(path):         # never open a pipe or a device to look
+        return False
+    try:
+        with open(path, "rb") as f:
+            header = f.read(72)
+    except OSError:
+        return False
+    return header.startswith(_SQLITE_MAGIC) and int.from_bytes(header[68:72], "big") == APPLICATION_ID
+
+
+def enclosing_session(path: str | os.PathLike[str]) -> Path | None:
+    """The session directory (one holding a journal) that ``path`` lies inside, or None."""
+    for parent in Path(os.path.abspath(path)).parents:
+        if (parent / JOURNAL_NAME).exists():
+            return parent
+    return None
+
+
+def refuse_session_file(path: str | os.PathLike[str], what: str) -> None:
+    """InputError when writing ``path`` (an output a command was asked for) would replace a
+    session's stored data: a journal anywhere, or a session directory's journal, log, lock or
+    model files. Other new files inside a session directory (``export.h5``) are fine."""
+    p = Path(os.path.abspath(path))
+    session = enclosing_session(p)
+    owned = session is not None and p.relative_to(session).parts[0] in SESSION_FILES
+    if is_journal_file(p) or owned:
+        raise InputError(f"{what} would replace stored data of the session in {session or p.parent}; "
+                         f"choose another file", path=os.fspath(path))
+
+
+def refuse_nested_session(session_dir: str | os.PathLike[str]) -> None:
+    """InputError when a new session directory would lie inside another session's directory
+    (its journal, models and report would be mixed up with that session's files)."""
+    outer = enclosing_session(session_dir)
+    if outer is not None:
+        raise InputError(f"lies inside the session directory {outer}; choose a folder outside it",
+                         path=os.fspath(session_dir))
+
+
 def check_free_disk(path: str | os.PathLike[str], min_free_bytes: int) -> int:
     """Free bytes at ``path``; InputError when below ``min_free_bytes``."""
     free = shutil.disk_usage(os.fspath(path)).free
@@ -604,7 +661,7 @@ class Journal:
         a WAL reader needs (read-only media or mount, a full disk), the file is opened as
         immutable — nothing can be writing it there — unless a write-ahead log lies beside
         it (a session killed there), which cannot be read without that index."""
-        base = "file:" + urllib.parse.quote(str(path)) + "?mode=ro"
+        base = "file:" + urllib.parse.quote(os.fsencode(path)) + "?mode=ro"   # bytes: any name the OS allows
         if not path.is_file():
             raise JournalCorruption(f"{path}: not a file")
         if _writable(path.parent):
@@ -651,6 +708,7 @@ class Journal:
         if not isinstance(meta, SessionMeta):
             meta = SessionMeta(**dict(meta))
         d = Path(session_dir)
+        refuse_nested_session(d)
         cls._prepare_dir(d, min_free_bytes, mounts_text)
         held = SessionLock(d).acquire() if lock else None
         try:
@@ -767,10 +825,13 @@ class Journal:
             raise JournalCorruption(f"{path}: not a readable session journal ({exc})") from None
         if row is None or row[0] is None:
             raise JournalCorruption(f"{path}: session journal without a schema version")
-        version = int(row[0])
+        version = row[0]
+        if not isinstance(version, int) or version < 1:
+            raise JournalCorruption(f"{path}: journal schema version {version!r} is not one any elastoprobe "
+                                    f"wrote (stored data is damaged)")
         if version > SCHEMA_VERSION:
-            raise JournalError(f"{path}: journal schema version {version} is newer than this "
-                               f"elastoprobe understands ({SCHEMA_VERSION}); upgrade elastoprobe")
+            raise JournalVersionError(f"{path}: journal schema version {version} is newer than this "
+                                      f"elastoprobe understands ({SCHEMA_VERSION}); upgrade elastoprobe")
         # Older versions would be migrated here; version 1 is the first.
 
     def abandon(self) -> None:

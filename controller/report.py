@@ -33,7 +33,7 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from .core.atomic import atomic_write_text, ensure_dir
+from .core.atomic import atomic_write_text, ensure_dir, readable_text
 from .coverage import cloud_summary, describe_cloud
 from .journal import FaultRecord, Journal, StepRecord
 from .learning.support import INFERRED, MEASURED, SUPPORT_NAMES, UNSUPPORTED
@@ -973,6 +973,7 @@ def write_report(session_dir: Path) -> Path:
     finally:
         j.close()
     page, _errors = render_html(data)
+    page = readable_text(page)          # a session folder whose name is not UTF-8
     out = Path(session_dir) / "report" / "index.html"
     ensure_dir(out.parent)
     atomic_write_text(out, page)

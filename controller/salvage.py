@@ -20,6 +20,7 @@ computed again, else it keeps the old status.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import sqlite3
 import urllib.parse
@@ -29,7 +30,8 @@ from typing import Any, Sequence
 
 from .core.atomic import ensure_dir
 from .core.errors import InputError
-from .journal import (JOURNAL_NAME, STEP_ARRAYS_REQUIRED, Journal, SessionMeta, _array_digest, _phase_digest,
+from .journal import (JOURNAL_NAME, SCHEMA_VERSION, STEP_ARRAYS_REQUIRED, Journal, JournalVersionError, SessionMeta,
+                      _array_digest, _phase_digest, refuse_nested_session,
                       _plan_from_row, _STEP_PLAN_COLS)
 from .locking import SessionLock, session_lock_holder
 
@@ -67,7 +69,7 @@ class SalvageReport:
 
 # ----------------------------------------------------------------------------- robust reads
 def _connect(path: Path) -> sqlite3.Connection:
-    uri = "file:" + urllib.parse.quote(str(path)) + "?mode=ro&immutable=1"
+    uri = "file:" + urllib.parse.quote(os.fsencode(path)) + "?mode=ro&immutable=1"
     return sqlite3.connect(uri, uri=True, isolation_level=None)
 
 
@@ -149,6 +151,7 @@ def salvage(src_dir: Path, out_dir: Path) -> SalvageReport:
     if holder and holder.get("alive"):
         raise InputError(f"the session is running (pid {holder.get('pid')}); stop it first "
                          f"(elastoprobe stop {src_dir})", path=str(src_dir))
+    refuse_nested_session(out_dir)
     out = ensure_dir(out_dir)
     if (out / JOURNAL_NAME).exists():
         raise InputError("already holds a session journal; choose an empty --out", path=str(out))
@@ -160,6 +163,7 @@ def salvage(src_dir: Path, out_dir: Path) -> SalvageReport:
                          path=str(src)) from None
     report = SalvageReport()
     try:
+        _refuse_newer_schema(con, src)
         tables = _read_all(con, report.lost)
     finally:
         con.close()
@@ -172,6 +176,18 @@ def salvage(src_dir: Path, out_dir: Path) -> SalvageReport:
         session = fill.session_row()
         Journal._build(out, SessionMeta(plan_name=session[2], seed=int(session[3])), fill)
     return report
+
+
+def _refuse_newer_schema(con: sqlite3.Connection, src: Path) -> None:
+    """A journal a newer elastoprobe wrote is not damaged: its rows mean what that release says,
+    so it is not copied into this release's schema (an unreadable version is salvaged as damage)."""
+    try:
+        version = con.execute("SELECT max(version) FROM schema_version").fetchone()[0]
+    except sqlite3.DatabaseError:
+        return
+    if isinstance(version, int) and version > SCHEMA_VERSION:
+        raise JournalVersionError(f"{src}: journal schema version {version} is newer than this elastoprobe "
+                                  f"understands ({SCHEMA_VERSION}); salvage it with the release that wrote it")
 
 
 TABLES = {

@@ -17,6 +17,10 @@ Two kinds of work answer a request differently:
   numpy, torch or SQLite call's return). Nothing it computed is committed yet, so the
   checkpoint is the last committed phase and ``resume`` recomputes from there.
 
+Library code that swallows the interrupt (trimesh imports its optional modules under
+``except BaseException``) cannot lose the request: until the interrupt is seen leaving the
+computation, SIGALRM raises it again every :data:`REASSERT_S`.
+
 Each request interrupts at most one computation: once the session has acknowledged it
 (:meth:`OperatorFlags.acknowledge`, when it starts to pause), only a new request raises
 again. What the session does then (parking, saving) is never cut short; a further
@@ -37,6 +41,9 @@ from typing import Iterator
 
 from .core.errors import InputError
 from .locking import session_lock_holder
+
+# How often an interrupt that library code swallowed is raised again (s).
+REASSERT_S = 0.2
 
 # The active flags of this process (the handlers are process-wide): what
 # :func:`deferred_interrupts` consults.
@@ -64,6 +71,9 @@ class OperatorFlags:
     _interruptible: int = 0          # depth of interruptible sections
     _deferred: int = 0               # depth of deferred sections (inside an interruptible one)
     _answered: int = 0               # requests already raised or acknowledged
+    _in_flight: bool = False         # an OperatorInterrupt raised, not yet seen leaving a section
+    _ours: bool = False              # the process's one real-time timer is armed for _on_alarm
+    _foreign: tuple[float, float, float] = (0.0, 0.0, 0.0)   # the timer it displaced: delay, interval, when
 
     # Signals seen, counted from both sides (see _on_signal): handler calls and wakeup-pipe bytes.
     _calls: dict[int, int] = field(default_factory=dict)
@@ -117,11 +127,52 @@ class OperatorFlags:
     def _raise_if_pending(self) -> None:
         if self.requests > self._answered and self._interruptible and not self._deferred:
             self._answered = self.requests
-            raise OperatorInterrupt(self.stop_now)
+            self._raise_in_flight()
+
+    def _raise_in_flight(self) -> None:
+        # Library code may swallow the exception (trimesh imports its optional modules under
+        # ``except BaseException``): until it is seen leaving a section, SIGALRM raises it again.
+        self._in_flight = True
+        self._arm(REASSERT_S)
+        raise OperatorInterrupt(self.stop_now)
+
+    def _on_alarm(self, signum: int, frame: FrameType | None) -> None:
+        if not self._ours:              # the timer someone else had set (a test runner's timeout)
+            previous = self._previous.get(signal.SIGALRM)
+            if callable(previous):
+                previous(signum, frame)
+            return
+        if not self._in_flight:
+            self._restore_timer()
+        elif self._interruptible and not self._deferred:
+            self._raise_in_flight()
+        else:
+            self._arm(REASSERT_S)       # inside a block a request must not cut: later
+
+    def _land(self) -> None:
+        """The interrupt in flight reached its handler (or the session acts on it)."""
+        self._in_flight = False
+        if self._ours:
+            self._restore_timer()
+
+    def _arm(self, seconds: float) -> None:
+        if signal.SIGALRM not in self._previous:
+            return
+        delay, interval = signal.setitimer(signal.ITIMER_REAL, seconds)
+        if not self._ours:              # the timer found, given back by _restore_timer
+            self._foreign = (delay, interval, time.monotonic())
+            self._ours = True
+
+    def _restore_timer(self) -> None:
+        delay, interval, at = self._foreign
+        self._ours, self._foreign = False, (0.0, 0.0, 0.0)
+        left = max(delay - (time.monotonic() - at), 1e-3) if delay > 0 else 0.0
+        signal.setitimer(signal.ITIMER_REAL, left, interval)
 
     def acknowledge(self) -> None:
         """The session acts on the requests so far (it pauses): only a new one interrupts again."""
         self._answered = self.requests
+        self._land()
 
     @property
     def reason(self) -> str:
@@ -135,11 +186,20 @@ class OperatorFlags:
         try:
             self._raise_if_pending()
             yield
+        except OperatorInterrupt:
+            self._land()
+            raise
         finally:
             self._interruptible -= 1
+        if self._in_flight and not self._deferred:
+            # Raised, yet the section ended normally (swallowed before SIGALRM came): the
+            # request still stands.
+            self._land()
+            raise OperatorInterrupt(self.stop_now)
 
     def install(self) -> "OperatorFlags":
-        """Take SIGINT and SIGTERM for this process until :meth:`restore`.
+        """Take SIGINT and SIGTERM (and SIGALRM, see :meth:`_raise_in_flight`) for this process
+        until :meth:`restore`.
 
         Only the main thread can take signals; elsewhere (a controller embedded in a
         thread) nothing is installed and the flags stay as they are, so requests go to
@@ -160,6 +220,7 @@ class OperatorFlags:
         try:
             self._previous[signal.SIGINT] = signal.signal(signal.SIGINT, self._on_signal)
             self._previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, self._on_signal)
+            self._previous[signal.SIGALRM] = signal.signal(signal.SIGALRM, self._on_alarm)
         except BaseException:
             self.restore()
             raise
@@ -170,6 +231,7 @@ class OperatorFlags:
         """Give back the handlers and wakeup fd found by :meth:`install` (nested installs
         restore in reverse order, as the session inside the CLI does)."""
         global _active
+        self._land()
         for signum, handler in self._previous.items():
             signal.signal(signum, handler)   # type: ignore[arg-type]
         self._previous.clear()

@@ -17,10 +17,12 @@ DEMO = HERE.parent / "config" / "plans" / "demo.yaml"
 PLANS = {
     "alias_bomb.yaml": (1, 12, "alias bomb"),
     "angle_180.yaml": (4, 22, "less than 180"),
+    "angles_empty.yaml": (4, 17, "at least 1 item"),
     "angle_string.yaml": (4, 18, "valid number"),
     "angle_zero.yaml": (4, 18, "greater than 0"),
     "bad_name_chars.yaml": (1, 7, "pattern"),
     "binary_garbage.yaml": (1, 1, "YAML syntax"),
+    "cell_name_blank.yaml": (2, 7, "the file name is empty"),
     "custom_tag.yaml": (2, 7, "'!fancy' is not allowed"),
     "duplicate_key_nested.yaml": (4, 3, "duplicate key 'settle_s'"),
     "duplicate_key_top.yaml": (3, 1, "duplicate key 'seed'"),
@@ -30,6 +32,7 @@ PLANS = {
     "finish_by_garbage.yaml": (2, 12, "ISO 8601"),
     "force_above_cell_limit.yaml": (6, 26, "exceeds the limit max_force_n = 45.0 N"),
     "force_negative.yaml": (4, 21, "greater than 0"),
+    "forces_empty.yaml": (4, 15, "at least 1 item"),
     "force_not_increasing.yaml": (4, 15, "strictly increasing"),
     "limit_looser_than_cell.yaml": (5, 16, "looser than the cell's 45.0"),
     "merge_key.yaml": (4, 3, "merge keys"),
@@ -48,6 +51,8 @@ PLANS = {
     "scans_too_many.yaml": (3, 19, "less than or equal to 200"),
     "scans_zero.yaml": (3, 19, "greater than or equal to 1"),
     "seed_negative.yaml": (2, 7, "greater than or equal to 0"),
+    "simulated_object_empty.yaml": (2, 19, "the file name is empty"),
+    "sweep_spacing_tiny.yaml": (3, 21, "greater than or equal to 0.1"),
     "syntax_bad_indent.yaml": (2, 7, "mapping values are not allowed"),
     "syntax_tab.yaml": (2, 1, "'\\t'"),
     "syntax_unclosed_list.yaml": (5, 1, "expected ',' or ']'"),
@@ -66,6 +71,8 @@ PLANS = {
 
 CELLS = {
     "cell_fault_without_when.yaml": (65, 7, "exactly one of step, rate_per_100_steps or rate_per_100_faults"),
+    "cell_home_joint_out_of_range.yaml": (9, 55, "less than or equal to 360"),
+    "cell_home_outside_joint_limits.yaml": (9, 20, "joint 6 at 120 deg lies outside its limits [-90, 90]"),
     "cell_missing_limits.yaml": (4, 1, "missing required key 'limits'"),
     "cell_object_missing.yaml": (38, 9, "does not exist"),
     "cell_tip_radius_zero.yaml": (11, 18, "greater than 0"),

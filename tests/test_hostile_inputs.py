@@ -388,10 +388,11 @@ def test_a_damaged_calibration_file_is_bad_input_and_is_left_as_it_was(
 
 def test_check_says_when_the_budget_stops_the_plan_before_anything_is_probed(
         tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    """A sweep spacing of 0.001 mm is a valid number, and a sweep at 0.1 mm/s: `check` said
-    "valid, 4.00 h" while `run` would spend the whole budget sweeping and probe nothing."""
+    """The finest sweep spacing (0.1 mm: a sweep at 5 mm/s) under a 3 minute budget: `check`
+    said "valid" while `run` would spend the whole budget sweeping and probe nothing."""
     demo = REPO / "config" / "plans" / "demo.yaml"
-    text = demo.read_text().replace("sweep_spacing_mm: 4.0", "sweep_spacing_mm: 0.001")
+    text = demo.read_text().replace("sweep_spacing_mm: 4.0", "sweep_spacing_mm: 0.1")
+    text = text.replace("max_robot_hours: 4.0", "max_robot_hours: 0.05")
     text = text.replace("../cells/", f"{REPO}/config/cells/").replace("../objects/", f"{REPO}/config/objects/")
     plan = tmp_path / "slow_sweep.yaml"
     plan.write_text(text)

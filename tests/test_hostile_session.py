@@ -365,3 +365,129 @@ def test_case7_pause_and_stop_are_honoured_in_every_phase(phase: str, request_: 
     resumed = start_or_resume(plan, out, SEED, setup["env"])
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert _status(out)[0] == "done"
+
+
+# ----------------------------------------------------------------------------- a second sweep
+# Cases a later hostile sweep found (journals from another schema version, outputs aimed at a
+# session's own files, sessions made inside another session's directory).
+def _set_schema_version(session: Path, version: object) -> None:
+    con = sqlite3.connect(session / "journal.sqlite")
+    try:
+        con.execute("UPDATE schema_version SET version=?", (version,))
+        con.commit()
+    finally:
+        con.close()
+
+
+@pytest.mark.parametrize("version,text", [(99, "newer than this elastoprobe"), (0, "not one any elastoprobe wrote"),
+                                          ("one", "not one any elastoprobe wrote")])
+def test_a_journal_of_another_schema_version_is_bad_input_and_left_alone(
+        version: object, text: str, finished: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Version 99 was exit 1 (a fault) and salvage copied it into this release's schema;
+    version 0 was read and resumed as if current; 'one' was a ValueError traceback. A version
+    no release wrote is damage (salvage recovers the rest); a newer one is not salvaged here."""
+    session = _copy(finished, tmp_path / "s")
+    _set_schema_version(session, version)
+    before = _sha(session / "journal.sqlite")
+    newer = version == 99
+    for args in READ_COMMANDS + (["resume", "--quiet"],) + ((["salvage", "--out", str(tmp_path / "new")],) if newer else ()):
+        code = main([args[0], str(session), *args[1:]])
+        err = capsys.readouterr().err
+        assert code == 2, (args, code, err[-2000:])
+        assert text in err and "Traceback" not in err, (args, err[-2000:])
+        assert ("elastoprobe salvage" in err) is not newer, err
+    assert _sha(session / "journal.sqlite") == before
+    if newer:
+        assert not (tmp_path / "new" / "journal.sqlite").exists()
+    else:
+        assert main(["salvage", str(session), "--out", str(tmp_path / "new")]) == 0
+        with Journal.open_readonly(tmp_path / "new") as j:
+            assert j.verify() == []
+
+
+@pytest.mark.parametrize("command", ["export", "diagram", "calibrate"])
+@pytest.mark.parametrize("target", ["journal.sqlite", "log.jsonl", "models/round0/region0.npz", "a copy of the journal"])
+def test_an_output_never_replaces_a_sessions_stored_data(command: str, target: str, finished: Path, tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """``export --out DIR/journal.sqlite`` replaced the session's journal with an HDF5 file (exit 0),
+    and ``diagram --out`` did the same with Markdown."""
+    session = _copy(finished, tmp_path / "s")
+    if target == "a copy of the journal":
+        path = tmp_path / "backup.db"
+        shutil.copyfile(session / "journal.sqlite", path)
+    else:
+        path = session / target
+    before = _sha(path)
+    argv = {"export": ["export", str(session), "--format", "hdf5", "--out", str(path)],
+            "diagram": ["diagram", "--out", str(path)],
+            "calibrate": ["calibrate", "ft", "--out", str(path)]}[command]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"{path}: " in err and "stored data" in err and "Traceback" not in err, err
+    assert _sha(path) == before
+
+
+def test_export_still_writes_beside_the_session_and_over_its_own_file(finished: Path, tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    session = _copy(finished, tmp_path / "s")
+    assert main(["export", str(session), "--format", "hdf5"]) == 0
+    assert (session / "export.h5").is_file()
+    out = tmp_path / "x.h5"
+    for _ in range(2):
+        assert main(["export", str(session), "--format", "hdf5", "--out", str(out)]) == 0
+    assert out.is_file()
+
+
+@pytest.mark.parametrize("inside", ["models", "a/b"])
+def test_no_session_is_made_inside_another_sessions_directory(inside: str, finished: Path, setup: dict,
+                                                              tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """``run --out DIR/models`` ran a whole session inside a finished one's model folder."""
+    session = _copy(finished, tmp_path / "s")
+    before = _sha(session / "journal.sqlite")
+    listing = sorted(p.relative_to(session) for p in session.rglob("*"))
+    for argv in (["run", str(setup["plan"]), "--out", str(session / inside), "--quiet"],
+                 ["salvage", str(session), "--out", str(session / inside)]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert f"{session / inside}: lies inside the session directory {session}" in err, err
+    assert _sha(session / "journal.sqlite") == before
+    assert sorted(p.relative_to(session) for p in session.rglob("*")) == listing
+
+
+def test_a_session_in_a_folder_whose_name_is_not_utf8(finished: Path, setup: dict, tmp_path: Path) -> None:
+    """``run --out $'out\\xff'`` measured the whole session, then its report's read-only open
+    (a SQLite URI quoted as text) raised UnicodeEncodeError: the finished session was recorded
+    as a fault, and ``status`` and ``report`` on it were tracebacks. The name prints as its bytes."""
+    raw = os.path.join(os.fsencode(tmp_path), b"out\xff")
+    session = Path(os.fsdecode(raw))
+    _copy(finished, session)
+    before = _sha(session / "journal.sqlite")
+    for args in READ_COMMANDS:
+        child = subprocess.run(CLI + [args[0], raw, *args[1:]], env=setup["env"], capture_output=True, timeout=600)
+        assert child.returncode == 0, (args, child.returncode, child.stderr[-2000:])
+        assert b"Traceback" not in child.stderr
+    assert raw in subprocess.run(CLI + ["status", raw], env=setup["env"], capture_output=True, timeout=600).stdout
+    new = tmp_path / "new"
+    assert subprocess.run(CLI + ["salvage", raw, "--out", str(new)], env=setup["env"], capture_output=True,
+                          timeout=600).returncode == 0
+    assert _status(new) == _status(finished)
+    assert _sha(session / "journal.sqlite") == before
+
+
+def test_a_resume_refused_for_an_edited_plan_writes_nothing(setup: dict, tmp_path: Path) -> None:
+    """The refusal came after the session had opened the journal to write: a run record was
+    added and the write-ahead log checkpointed into the file by a resume that did nothing."""
+    plan = plan_for(setup["cell"], tmp_path)
+    out = tmp_path / "s"
+    proc = _start(setup, out, plan)
+    _wait_for_state(out, proc, {"sweeping", "planning", "probing", "contact", "loading", "scanning", "moving"})
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.communicate(timeout=60)
+    plan.write_text(plan.read_text().replace("scans_per_step: 5", "scans_per_step: 6"))
+    stored = ("journal.sqlite", "journal.sqlite-wal")      # (readers share the -shm index)
+    files = {name: _sha(out / name) for name in stored if (out / name).exists()}
+    child = run_cli(["resume", str(out), "--quiet"], setup["env"])
+    assert child.returncode == 2, child.stderr[-2000:]
+    assert "the plan file changed since this session started" in child.stderr and "Traceback" not in child.stderr
+    assert {name: _sha(out / name) for name in stored if (out / name).exists()} == files

@@ -5,11 +5,15 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import threading
+import time
+from pathlib import Path
 
 import pytest
 
-from elastoprobe.controller.signals import OperatorFlags, OperatorInterrupt, deferred_interrupts
+from elastoprobe.controller.signals import REASSERT_S, OperatorFlags, OperatorInterrupt, deferred_interrupts
 
 
 @pytest.fixture()
@@ -155,3 +159,110 @@ def test_off_the_main_thread_install_takes_nothing_and_restore_is_harmless() -> 
     t.start()
     t.join()
     assert errors == [] and signal.getsignal(signal.SIGINT) is before
+
+
+def test_an_interrupt_that_library_code_swallows_is_raised_again(flags: OperatorFlags) -> None:
+    """trimesh imports its optional modules under ``except BaseException``: a SIGTERM during
+    that import was swallowed, and ``check`` and ``evaluate`` ran on to exit 0."""
+    swallowed, ticks = [], 0
+    with pytest.raises(OperatorInterrupt):
+        with flags.interruptible():
+            try:
+                _sigint()
+            except BaseException as exc:      # what the library does
+                swallowed.append(exc)
+            while ticks < 2000:               # the rest of the computation: far longer than REASSERT_S
+                time.sleep(0.01)
+                ticks += 1
+    assert len(swallowed) == 1 and isinstance(swallowed[0], OperatorInterrupt)
+    assert ticks < 2000                       # raised again while it still ran, not only at its end
+    assert not flags.stop_now                 # the same request, not a second one
+
+
+def _sigint_swallowed() -> None:
+    try:
+        _sigint()
+    except BaseException:                     # what trimesh's optional imports do
+        pass
+
+
+def test_a_swallowed_interrupt_is_raised_when_the_computation_ends(flags: OperatorFlags) -> None:
+    with pytest.raises(OperatorInterrupt):
+        with flags.interruptible():
+            _sigint_swallowed()
+    assert flags.requests == 1
+
+
+def test_an_acknowledged_request_is_not_raised_again(flags: OperatorFlags) -> None:
+    with flags.interruptible():
+        try:
+            _sigint()
+        except OperatorInterrupt:
+            flags.acknowledge()               # what a pausing session does
+        time.sleep(3 * REASSERT_S)
+
+
+_EARLY = """
+import importlib.abc, os, signal, sys
+class Hook(importlib.abc.MetaPathFinder):
+    # the signal arrives while the command's modules are still being imported
+    def find_spec(self, name, path, target=None):
+        if name == {module!r}:
+            os.kill(os.getpid(), signal.{signal})
+        return None
+sys.meta_path.insert(0, Hook())
+from elastoprobe.controller.cli import main
+sys.exit(main({argv!r}))
+"""
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("command,code", [("check", 3), ("run", 1)])
+def test_a_signal_before_the_command_took_the_signals_ends_it_cleanly(sig: str, command: str, code: int,
+                                                                      tmp_path) -> None:
+    """SIGINT in the first fraction of a second (the imports) was a KeyboardInterrupt traceback;
+    SIGTERM there killed the process by the signal (exit -15)."""
+    plan = Path(__file__).parent / "data" / "minimal_plan.yaml"
+    argv = [command, str(plan)] + (["--out", str(tmp_path / "s"), "--quiet"] if command == "run" else [])
+    script = _EARLY.format(module="elastoprobe.controller.journal", signal=sig, argv=argv)
+    child = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert child.returncode == code, (child.returncode, child.stderr[-2000:])
+    assert "Traceback" not in child.stderr
+    assert f"elastoprobe {command}: interrupted before it started; nothing was written" in child.stderr
+    assert not (tmp_path / "s").exists()
+
+
+def test_a_signal_as_the_command_line_exits_keeps_its_exit_code(tmp_path) -> None:
+    """SIGTERM at the moment ``status`` had printed everything and was exiting killed it by the
+    signal (exit -15): the handler had been handed back to the default as main() returned."""
+    out = tmp_path / "d.md"
+    script = ("import os, signal, sys, time\n"
+              "from elastoprobe.controller.cli import main\n"
+              f"sys.argv = ['elastoprobe', 'diagram', '--out', {str(out)!r}]\n"
+              "code = main()\n"
+              "for sig in (signal.SIGTERM, signal.SIGINT):\n"
+              "    os.kill(os.getpid(), sig)\n"
+              "time.sleep(0.2)\n"
+              "sys.exit(code)\n")
+    child = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert child.returncode == 0, (child.returncode, child.stderr[-2000:])
+    assert "Traceback" not in child.stderr and out.is_file()
+
+
+def test_the_timer_it_borrows_is_given_back() -> None:
+    """The process has one real-time timer (a test runner's timeout uses it): re-raising a
+    swallowed interrupt borrows it and gives it back, with the time that was left."""
+    signal.setitimer(signal.ITIMER_REAL, 100.0)
+    flags = OperatorFlags().install()
+    try:
+        with pytest.raises(OperatorInterrupt):
+            with flags.interruptible():
+                _sigint_swallowed()
+                time.sleep(3 * REASSERT_S)
+        left, _ = signal.getitimer(signal.ITIMER_REAL)
+        assert 90.0 < left <= 100.0
+    finally:
+        flags.restore()
+    left, _ = signal.getitimer(signal.ITIMER_REAL)
+    signal.setitimer(signal.ITIMER_REAL, 0.0)
+    assert 90.0 < left <= 100.0

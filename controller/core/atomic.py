@@ -112,6 +112,12 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes, mode: int = 0o
     return target
 
 
+def readable_text(text: str) -> str:
+    """``text`` with the bytes of a file name that is not UTF-8 (which Python holds as lone
+    surrogates) shown as U+FFFD: what a report or an export may store as UTF-8."""
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+
+
 def atomic_write_text(path: str | os.PathLike[str], text: str, encoding: str = "utf-8",
                       mode: int = 0o644) -> Path:
     """Atomic :func:`atomic_write_bytes` of ``text`` encoded with ``encoding`` (no newline translation)."""

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field, ValidationInfo, field_validator, model_validator
+from pydantic import AfterValidator, Field, ValidationInfo, field_validator, model_validator
 
 from .calfile import believed_cell
 from .errors import InputError, InputErrors
@@ -28,6 +28,17 @@ from .yamlio import Spec, YamlDoc, load_validated
 
 Vec3 = tuple[float, float, float]
 PositiveFloat = Annotated[float, Field(gt=0)]
+
+
+def _file_name(value: str) -> str:
+    # An empty name ('' or "$UNSET") would resolve to the file's own folder or be read as
+    # "not given" and fall back to a default the user did not choose.
+    if not value.strip():
+        raise ValueError("the file name is empty")
+    return value
+
+
+FileName = Annotated[str, AfterValidator(_file_name)]
 
 
 # Regions of different elasticity differ in survey depth by at least this factor (the
@@ -94,11 +105,16 @@ class ToolShapeSpec(Spec):
         return self
 
 
+JointDeg = Annotated[float, Field(ge=-360.0, le=360.0)]
+
+
 class RobotSpec(Spec):
     model: Literal["UR5e"] = "UR5e"
     host: str = "127.0.0.1"
-    home_joints_deg: tuple[float, float, float, float, float, float] = (0.0, -90.0, 90.0, -90.0, -90.0, 0.0)
     joint_limits_deg: list[tuple[float, float]] | None = None
+    # Where the arm rests (and the seed of inverse kinematics): within the UR's +-360 deg per joint.
+    home_joints_deg: tuple[JointDeg, JointDeg, JointDeg, JointDeg, JointDeg, JointDeg] = (0.0, -90.0, 90.0, -90.0,
+                                                                                          -90.0, 0.0)
 
     @field_validator("joint_limits_deg")
     @classmethod
@@ -109,6 +125,15 @@ class RobotSpec(Spec):
             for lo, hi in v:
                 if not (-360.0 <= lo < hi <= 360.0):
                     raise ValueError("each joint limit must satisfy -360 <= min < max <= 360")
+        return v
+
+    @field_validator("home_joints_deg")
+    @classmethod
+    def _home_within_limits(cls, v: tuple[float, ...], info: ValidationInfo) -> tuple[float, ...]:
+        for i, (q, (lo, hi)) in enumerate(zip(v, info.data.get("joint_limits_deg") or [])):
+            if not lo <= q <= hi:
+                raise ValueError(f"joint {i + 1} at {q:g} deg lies outside its limits [{lo:g}, {hi:g}] "
+                                 f"(joint_limits_deg)")
         return v
 
     def joint_limits_rad(self) -> np.ndarray | None:
@@ -273,7 +298,7 @@ class CellSpec(Spec):
     object: ObjectPlacementSpec
     limits: LimitsSpec
     force_loop: ForceLoopSpec = ForceLoopSpec()
-    calibration_file: str | None = None
+    calibration_file: FileName | None = None
     calibration_max_age_days: float = Field(30.0, gt=0)
     simulation: SimulationSpec = SimulationSpec()
     notify: NotifySpec | None = None
@@ -292,8 +317,12 @@ def _strictly_increasing(values: list[float], what: str) -> list[float]:
 
 class CloudSpec(Spec):
     source: Literal["scan", "file"] = "scan"
-    file: str | None = None
-    sweep_spacing_mm: float = Field(3.0, gt=0, le=50)
+    file: FileName | None = None
+    # Between profiles along a line (the sweep's speed is this x the scanner's rate). Finer than
+    # 0.1 mm is below what a line scanner resolves along its own line (0.2-0.5 mm between
+    # samples) and only slows the sweep and fills memory: at 1e-300 mm one line never ended
+    # and held gigabytes of profiles.
+    sweep_spacing_mm: float = Field(3.0, ge=0.1, le=50)
     sweep_height_mm: float = Field(40.0, gt=0, le=1000)   # tip above the object's top
     max_points: int = Field(200_000, ge=1000, le=5_000_000)
 
@@ -355,8 +384,8 @@ class SamplingSpec(Spec):
 
 
 class SurveySpec(Spec):
-    angles_deg: list[AngleDeg] = [90.0]
-    forces_n: list[ForceN] = [4.0, 12.0]
+    angles_deg: list[AngleDeg] = Field([90.0], min_length=1)
+    forces_n: list[ForceN] = Field([4.0, 12.0], min_length=1)
     # Two regions are two materials only when their survey dents differ by this factor.
     min_contrast: float = Field(MIN_CONTRAST, ge=1.0, le=100.0)
 
@@ -368,8 +397,8 @@ class SurveySpec(Spec):
 
 class CharacterizeSpec(Spec):
     points_per_region: int = Field(2, ge=1, le=50)
-    angles_deg: list[AngleDeg] = list(NINE_ANGLES_DEG)
-    forces_n: list[ForceN] = [2.0, 5.0, 9.0, 14.0, 20.0]
+    angles_deg: list[AngleDeg] = Field(list(NINE_ANGLES_DEG), min_length=1)
+    forces_n: list[ForceN] = Field([2.0, 5.0, 9.0, 14.0, 20.0], min_length=1)
 
     @field_validator("forces_n")
     @classmethod
@@ -470,8 +499,8 @@ class ExtraTargetSpec(Spec):
 
 class PlanSpec(Spec):
     name: str = Field(min_length=1, max_length=80, pattern=r"^[A-Za-z0-9_.-]+$")
-    cell: str | None = None
-    simulated_object: str | None = None
+    cell: FileName | None = None
+    simulated_object: FileName | None = None
     seed: int = Field(0, ge=0, le=2**31 - 1)
     cloud: CloudSpec = CloudSpec()
     sampling: SamplingSpec = SamplingSpec()
