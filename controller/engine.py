@@ -29,6 +29,7 @@ from .core.config import SessionInputs, effective_motion_limits
 from .core.devices import Cell
 from .core.errors import BudgetSpent, DeviceError, DiskError, ElastoprobeError, MotionRefused, SessionAborted
 from .core.validation import build_validator
+from .documents import Document, Publisher, TransitionDoc
 from .faultpolicy import FaultPolicy
 from .journal import Journal, JournalCorruption, JournalError, StepRecord, StepResult
 from .machine import SessionMachine
@@ -102,17 +103,20 @@ class Engine:
         self.journal_damaged = False          # the session abandons a damaged journal
         self._current_step: int | None = None
         self._disk_warned = False
-        journal_transition = journal.transition_callback(cell.clock.now_s, lambda: self._current_step)
-
-        def on_transition(source: str, dest: str, trigger: str) -> None:
-            journal_transition(source, dest, trigger)
-            if dest == "learning":
-                self._key_learning()
-
-        self.machine = SessionMachine(on_transition)
+        # What happens is published; the journal records it, then the simulator is keyed.
+        self.documents = Publisher(journal.receive, self._on_document)
+        self.machine = SessionMachine(self._emit_transition)
         self.executor = self._make_executor(self.machine)
         self.faults = FaultPolicy(inputs, journal, cell, self.executor, self.machine, flags, log_event,
                                   self._notify, self._reregister)
+
+    # ------------------------------------------------------------------ documents
+    def _emit_transition(self, source: str, dest: str, trigger: str) -> None:
+        self.documents.emit(TransitionDoc(source, dest, trigger, float(self.cell.clock.now_s()), self._current_step))
+
+    def _on_document(self, doc: Document) -> None:
+        if doc.dest == "learning":
+            self._key_learning()
 
     # ------------------------------------------------------------------ the plan
     def _drive(self, plan: Plan) -> None:
