@@ -115,8 +115,7 @@ class FaultPolicy:
         self._log("fault", kind=fault.kind, message=fault.message, step=step_id, action=action,
                   fault_id=fault_id, arm=arm_state)
         self._notify("fault", f"{fault.kind} at step {step_id}: {fault.message} -> {action}")
-        if self.machine.can("fault"):
-            self.machine.fire("fault")
+        self.machine.fire("fault")
         self.machine.fire("recover")
         failed = self._recover(fault, step_id, since_generation=arm_state["link_generation"])
         if failed is not None and action in ("retry", "skip_target"):
@@ -151,8 +150,7 @@ class FaultPolicy:
                                              t_robot_s=self.cell.clock.now_s(), policy_action=action, raw=raw)
         self._log("fault", kind=fault.kind, message=fault.message, step=None, action=action,
                   fault_id=fault_id, arm=arm_state, phase="cloud")
-        if self.machine.can("fault"):
-            self.machine.fire("fault")
+        self.machine.fire("fault")
         self.machine.fire("recover")
         failed = self._recover(fault, since_generation=arm_state["link_generation"])
         if failed is not None and action == "retry":

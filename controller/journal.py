@@ -36,6 +36,7 @@ import numpy as np
 
 from .core.atomic import ensure_dir, json_default
 from .core.errors import DiskError, ElastoprobeError, InputError
+from .documents import Document
 from .locking import SESSION_LOCK_NAME, SessionLock
 from .signals import deferred_interrupts
 from .testing import crash_point
@@ -1237,13 +1238,9 @@ class Journal:
                       "step_id) VALUES (?,?,?,?,?,?,?)",
                       (self.run_id, t_robot_s, _utc_now(), from_state, to_state, trigger, step_id))
 
-    def transition_callback(self, now_s: Callable[[], float],
-                            current_step: Callable[[], int | None] = lambda: None) -> Callable[[str, str, str], None]:
-        """An ``on_transition(source, dest, trigger)`` for the session machine that journals
-        each transition with the robot time ``now_s()`` and the step in progress."""
-        def on_transition(source: str, dest: str, trigger: str) -> None:
-            self.record_transition(source, dest, trigger, float(now_s()), current_step())
-        return on_transition
+    def receive(self, doc: Document) -> None:
+        """The journal's subscription to the engine's documents: each transition one row."""
+        self.record_transition(doc.source, doc.dest, doc.trigger, doc.t_robot_s, doc.step_id)
 
     def transitions(self, run_id: int | None = None, last: int | None = None) -> list[dict[str, Any]]:
         """Journaled transitions, oldest first (only the ``last`` n if given)."""

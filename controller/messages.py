@@ -19,10 +19,14 @@ from .signals import OperatorFlags
 @dataclass(frozen=True)
 class Lifecycle:
     """Move the session's lifecycle on: ``plan`` (the controller plans steps) or ``learn``
-    (it fits models). The engine fires the trigger where the state machine allows it (a
-    resumed session may already stand there). Reply: None."""
+    (it fits models). The engine fires the trigger unless the session already stands in
+    its state (``LIFECYCLE_STATES``). Reply: None."""
 
     trigger: Literal["plan", "learn"]
+
+
+# Where each lifecycle trigger leaves the session.
+LIFECYCLE_STATES: dict[str, str] = {"plan": "planning", "learn": "learning"}
 
 
 @dataclass(frozen=True, eq=False)

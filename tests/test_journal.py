@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 
 from elastoprobe.controller.core.errors import InputError
+from elastoprobe.controller.documents import Publisher, TransitionDoc
 from elastoprobe.controller.journal import (
     InputsChanged, Journal, JournalCorruption, JournalError, SessionMeta, StepPlan, StepResult,
     StepStateError, check_local_filesystem, decode_array, encode_array, filesystem_type,
 )
 from elastoprobe.controller.locking import LockHeld
+from elastoprobe.controller.machine import SessionMachine
 from elastoprobe.controller.provenance import collect_provenance, sha256_text
 from elastoprobe.controller.salvage import read_rows
 
@@ -221,14 +223,20 @@ def test_verify_inputs(journal: Journal) -> None:
 
 
 def test_transitions_events_robot_time_models(journal: Journal, tmp_path: Path) -> None:
+    # The journal as the engine wires it: a subscriber to the documents the machine's moves become.
     t = [0.0]
-    cb = journal.transition_callback(lambda: t[0], lambda: None)
-    cb("idle", "preflight", "start")
+    docs = Publisher(journal.receive)
+    machine = SessionMachine(lambda a, b, trig: docs.emit(TransitionDoc(a, b, trig, t[0], None)))
+    machine.fire("start")
     t[0] = 2.5
-    cb("preflight", "planning", "plan")
+    machine.fire("plan")
+    machine.fire("go_to_target")
+    machine.fire("fault")
     tr = journal.transitions()
-    assert [(x["from_state"], x["to_state"], x["trigger"], x["t_robot_s"]) for x in tr] == \
-           [("idle", "preflight", "start", 0.0), ("preflight", "planning", "plan", 2.5)]
+    assert [(x["from_state"], x["to_state"], x["trigger"], x["t_robot_s"], x["step_id"]) for x in tr] == \
+           [("idle", "preflight", "start", 0.0, None), ("preflight", "planning", "plan", 2.5, None),
+            ("planning", "moving_to_standoff", "go_to_target", 2.5, None),
+            ("moving_to_standoff", "fault", "fault", 2.5, None)]
     e1 = journal.log_event("note", {"msg": "hello", "value": np.float32(1.5)})
     journal.log_event("warn", {"msg": "x"}, t_robot_s=3.0)
     assert [e["kind"] for e in journal.events(after_id=e1)] == ["warn"]
