@@ -225,8 +225,8 @@ class SeedRun:
         seen = st.seen_from_above(pts, nrm)
         self.surface = st.make_surface(pts[seen], nrm[seen], plan.sampling.max_tilt_deg)
         radius = float(inputs.cell.tool.tip_radius_mm)
-        self.rules = tg.TargetRules(tip_radius_mm=radius, edge_clearance_radii=plan.sampling.edge_clearance_mm / radius,
-                                    max_tilt_deg=plan.sampling.max_tilt_deg)
+        self.rules = tg.rules_for_plan(radius, plan.sampling.edge_clearance_mm, plan.sampling.max_tilt_deg,
+                                       plan.sampling.min_feature_mm)
         self.reference_dir = np.array(plan.sampling.reference_direction, dtype=float)
         # The session's map: labels spread along the surface, split at folds.
         self.graph = sm.build_graph(self.surface.points_mm, self.surface.normals)
