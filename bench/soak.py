@@ -44,6 +44,7 @@ Prints ONE JSON object.
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import math
 import os
@@ -899,6 +900,75 @@ def _children_from_state(state: dict[str, Any]) -> list[ChildRun]:
     return [ChildRun(**{**c, "samples": [tuple(x) for x in c["samples"]]}) for c in state["children"]]
 
 
+# The args of a child reconstructed from the session (see with_lost_children).
+LOST_BY_DRIVER = ("(lost by the driver)",)
+
+
+def with_lost_children(session_dir: Path, children: list[ChildRun]) -> list[ChildRun]:
+    """``children`` with those the driver lost, in journal run order: a run of the session
+    whose process is not among them is a child that ended while the driver was not there to
+    record it (the driver itself was stopped between the child's exit and the state's save,
+    before a --carry-on). Its ending is read from the session: a pause its log records within
+    the run's span (exit 3, with that reason), done (0), or, with no end journaled, killed with
+    the driver (-9, ``killed="with the driver"``, no kill of the schedule). Nothing is known of
+    its memory: no samples.
+
+    Why: the night of stop 24 lost one child this way (the driver's own process was stopped
+    at 11:02; the child had journaled a disk-error pause and exited 3 a moment before), and
+    its one fault counted as unresolved although the session's log names the pause."""
+    from elastoprobe.controller.journal import Journal
+
+    if not (session_dir / "journal.sqlite").exists():
+        return children
+    j = Journal.open_readonly(session_dir, check="none")
+    try:
+        runs = j.runs()
+    finally:
+        j.close()
+    known = {c.pid for c in children}
+    run_of_pid = {int(r["pid"]): int(r["run_id"]) for r in runs}
+    log = _session_log(session_dir)
+    merged = list(children)
+    for r in runs:
+        if int(r["pid"]) in known:
+            continue
+        ended = r["ended_utc"]
+        within = ([e for e in log if _utc(r["started_utc"]) <= _utc(e.get("t_wall_utc")) <= _utc(ended)]
+                  if ended is not None else [])
+        paused = [e for e in within if e.get("event") == "session_paused"]
+        done = any(e.get("event") == "session_done" for e in within)
+        code, reason, killed = ((3, paused[-1].get("reason"), None) if paused else (0, None, None) if done
+                                else (-9, None, "with the driver"))
+        lost = ChildRun(args=list(LOST_BY_DRIVER), pid=int(r["pid"]), returncode=code, killed=killed,
+                        wall_s=0.0, max_rss_mb=0.0, samples=[], pause_reason=reason)
+        # After the last child whose run came before it.
+        at = max((i + 1 for i, c in enumerate(merged) if run_of_pid.get(c.pid, -1) < int(r["run_id"])
+                  and c.pid in run_of_pid), default=0)
+        merged.insert(at, lost)
+    return merged
+
+
+def _utc(stamp: Any) -> datetime.datetime:
+    """An ISO wall time (the journal's runs, the log's events) as a datetime; the epoch if unreadable."""
+    try:
+        return datetime.datetime.fromisoformat(str(stamp).replace("Z", "+00:00"))
+    except ValueError:
+        return datetime.datetime.fromtimestamp(0, datetime.timezone.utc)
+
+
+def _session_log(session_dir: Path) -> list[dict[str, Any]]:
+    """The session's event log (log.jsonl); a torn last line is left out."""
+    path = session_dir / "log.jsonl"
+    events = []
+    if path.exists():
+        for line in path.read_text(errors="replace").splitlines():
+            try:
+                events.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue
+    return events
+
+
 def run_soak(cfg: SoakConfig, work_dir: Path, carry_on: bool = False) -> dict[str, Any]:
     """Run one soak in ``work_dir`` (created); returns the JSON-able result.
 
@@ -1008,9 +1078,9 @@ def run_soak(cfg: SoakConfig, work_dir: Path, carry_on: bool = False) -> dict[st
 def summarize(work_dir: Path) -> dict[str, Any]:
     """The soak's figures from a work directory (its session, fault record and state.json)."""
     state = json.loads((work_dir / "state.json").read_text())
-    children = _children_from_state(state)
-    ever_done = set(state["ever_done"])
     out = work_dir / "session"
+    children = with_lost_children(out, _children_from_state(state))
+    ever_done = set(state["ever_done"])
     status, reason = _session_status(out)
     facts = step_accounting(out, ever_done) if (out / "journal.sqlite").exists() else {}
     judged = judge_faults(read_fault_record(work_dir / "sim_faults.jsonl"), out, children) if facts else {"fates": []}
@@ -1056,6 +1126,7 @@ def summarize(work_dir: Path) -> dict[str, Any]:
         "follow_ups_per_100_faults": state.get("follow_ups", {}),
         "status": status, "status_reason": reason,
         "children": len(children), "resumes": max(len(children) - 1, 0),
+        "children_lost_by_driver": sum(c.args == list(LOST_BY_DRIVER) for c in children),
         "operator_clears": state["operator_clears"],
         "exit_codes": [c.returncode for c in children],
         "kill_moments": [f"{c.killed} ({c.kill_phase})" for c in children if c.killed],

@@ -77,6 +77,27 @@ def test_short_soak_figures_are_reported(quick: dict[str, Any]) -> None:
     assert quick["peak_rss_mb"] > quick["baseline_rss_mb"] > 0
 
 
+def test_a_paused_child_the_driver_lost_is_judged_from_the_session(quick: dict[str, Any], tmp_path: Path) -> None:
+    """The driver stopped after a child paused but before it saved that child (the night of
+    stop 24): the session's own runs and log say how the child ended, and its fault is
+    judged paused, as it was, not unresolved."""
+    import json
+    import shutil
+
+    work = tmp_path / "soak"
+    shutil.copytree(Path(quick["session_dir"]).parent, work)
+    state = json.loads((work / "state.json").read_text())
+    paused = [i for i, c in enumerate(state["children"][:-1]) if c["returncode"] == 3]
+    assert paused
+    lost = state["children"].pop(paused[0])
+    (work / "state.json").write_text(json.dumps(state))
+    judged = soak.summarize(work)
+    assert judged["children_lost_by_driver"] == 1
+    assert judged["faults_paused"] == quick["faults_paused"]
+    assert judged["faults_unresolved"] == quick["faults_unresolved"] == 0
+    assert judged["pauses"] == quick["pauses"] and lost["pause_reason"] in judged["pauses"]
+
+
 @pytest.mark.soak
 @pytest.mark.timeout(4 * 3600)
 def test_overnight_soak(tmp_path: Path) -> None:
