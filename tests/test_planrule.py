@@ -59,7 +59,8 @@ def test_forces_follow_the_height_within_the_cells_limits(tmp_path: Path) -> Non
     assert plan["limits"]["search_distance_mm"] == 12.0
     assert plan["sampling"]["units"] == 48
     dens = valid(plan, tmp_path).phases.densify
-    assert dens.resolution_mm >= 2 * dens.min_spacing_mm and dens.points_per_round == 14
+    # 2 x ceil(sqrt(342)): the 15 mm survey puts 342 units on 30,000 mm^2.
+    assert dens.resolution_mm >= 2 * dens.min_spacing_mm and dens.points_per_round == 38
 
 
 def test_an_object_that_does_not_fit_the_cell_is_named(tmp_path: Path) -> None:

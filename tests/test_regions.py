@@ -529,3 +529,47 @@ def test_a_dent_seen_only_far_from_the_contact_is_no_misfit_of_its_region_unless
     deeper = feats.copy()
     deeper[occluded, :2] *= 16.0                                 # 4x deeper than the gel read near
     assert np.all(survey_misfit(deeper, labels, names, noise_mm=0.005)[occluded] > 1.0)
+
+
+def _recorded_round(data, r):
+    feats = data[f"r{r}_feats"].astype(float)
+    return feats, data[f"r{r}_edges"].astype(np.int64), data[f"r{r}_far"].astype(float), \
+        data[f"r{r}_previous"].astype(np.int64), data[f"r{r}_true"].astype(np.int64)
+
+
+def test_recorded_two_inclusions_told_apart_in_round_0_stay_apart_when_points_arrive():
+    """Recorded survey of suite slab 1003 (gel 0, foam strip 1, hard-rubber disc 2, elastomer
+    ellipse 3; run seed 1), round 1: 385 round-0 points with round 0's four regions, 16
+    densified. The elastomer reads 0.057 mm at 4.5 N, the hard rubber 0.016 mm (the truth's
+    peak scatter ~0.005 and ~0.009 mm). The ellipse's eight interior points' far fields
+    scatter by 0.020 mm, so neither dent counted as measured and the two inclusions became
+    one region (three of four). Told apart in round 0, they are joined again only on a
+    measured contrast: four regions, each inclusion its own."""
+    data, names, noise = _recorded("slab_two_inclusions_1003.npz")
+    feats, edges, far, previous, truth = _recorded_round(data, 1)
+    rm = cluster_regions(feats, edges, names, seed=1, noise_mm=noise, previous_labels=previous, far_field_mm=far)
+    assert rm.n_regions == 4
+    inside = data["r1_seam"] > 3.0
+    for material in range(4):
+        found = np.bincount(rm.labels[inside & (truth == material)], minlength=4)
+        assert found.max() >= 0.9 * found.sum()
+    regions = [int(np.argmax(np.bincount(rm.labels[inside & (truth == m)], minlength=4))) for m in range(4)]
+    assert sorted(regions) == [0, 1, 2, 3]
+    # Without the previous round the same data is three regions: the rule alone cannot tell.
+    assert cluster_regions(feats, edges, names, seed=1, noise_mm=noise, far_field_mm=far).n_regions == 3
+
+
+def test_recorded_seam_band_bigger_than_an_inclusion_but_each_piece_smaller_is_absorbed():
+    """Recorded survey of suite slab 1003, round 3 (433 points, 48 of them densified along
+    the seams): 12 probes on the two inclusions' seams read between each inclusion and the
+    gel and formed a fifth region as large as the hard-rubber disc's 12 interior probes, so
+    "smaller than both neighbours" kept it. Each of its pieces is smaller than the two
+    regions it lies between: it joins them, four regions."""
+    data, names, noise = _recorded("slab_two_inclusions_1003.npz")
+    feats, edges, far, previous, truth = _recorded_round(data, 3)
+    rm = cluster_regions(feats, edges, names, seed=1, noise_mm=noise, previous_labels=previous, far_field_mm=far)
+    assert rm.n_regions == 4
+    assert len(rm.stats["transition_band_points"]) >= 12
+    inside = data["r3_seam"] > 3.0
+    regions = [int(np.argmax(np.bincount(rm.labels[inside & (truth == m)], minlength=4))) for m in range(4)]
+    assert sorted(regions) == [0, 1, 2, 3]

@@ -13,7 +13,8 @@ slope), and the surface graph (neighbour pairs of the neural-gas units).
    mixture may split a material whose features are not Gaussian). Then clusters that the
    contrast rule does not call two materials are merged (:func:`_merge_by_contrast`:
    median peak depths a factor ``min_contrast`` apart, beyond the measured noise of a
-   peak, at a survey force where a dent is measured): BIC finds any structure,
+   peak, at a survey force where a dent is measured; two regions of the previous round only on a
+   contrast measured and found wanting): BIC finds any structure,
    including the smooth drift of one material's visible dent with the local geometry
    (rims, slopes, tilt) and with its support (a plate clamped at its edges), which is
    not a different elasticity; nor is a dent read farther from the contact (a wall hides
@@ -360,7 +361,8 @@ def _merge_by_noise(features: np.ndarray, labels: np.ndarray, noise: np.ndarray,
 def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: list[int],
                        min_contrast: float, floor_mm: float = 0.0,
                        far_field_mm: np.ndarray | None = None,
-                       seen_from_mm: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+                       seen_from_mm: np.ndarray | None = None,
+                       previous_labels: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Merge clusters that are not two materials, closest pair first. Two clusters are two
     materials when, at some survey force at which either dent is measured (deeper than
     ``MEASURED_DENT_NOISES`` x the scatter of one of its points' peak depth, measured from
@@ -375,7 +377,18 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     (:data:`SEEN_FROM_FEATURE`); a cluster whose median lies beyond another's by more than
     the band a peak is read in (:data:`NEAR_CONTACT_BAND_MM`) has only lower bounds of its
     dents beside the other's peaks: that it is deeper is evidence, that it is shallower is
-    none (and refutes nothing).
+    none (and refutes nothing). ``previous_labels`` (N,): each point's region in the previous
+    round (-1: new); two clusters drawn from two different previous regions were told apart
+    by this rule then, and are joined now only by a contrast measured and found wanting, not
+    because neither dent counts as measured any more.
+
+    Why the previous round counts: whether a dent is measured rests on the scatter of the
+    cluster's far fields, and a few points' far fields scatter with where they lie. On suite
+    slab 1003 the elastomer ellipse (0.057 mm at 4.5 N, the truth's peak scatter 0.005 mm)
+    and the hard-rubber disc (0.016 mm) were two regions in round 0; in round 1 the ellipse's
+    eight interior points read a far-field scatter of 0.020 mm (the gel's dent beside them
+    reaches into their far fields), neither dent counted as measured, and the two
+    inclusions became one region.
 
     Why: where a wall hides the surface near the contact, the scanner sees a dent from
     ~13 mm out. On generated composite 3007 the gel at the foot of the box wall read
@@ -415,6 +428,9 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     seen_from = (np.zeros(labels.shape[0]) if seen_from_mm is None
                  else np.asarray(seen_from_mm, dtype=float).reshape(-1))
     read_at = _region_medians(seen_from[:, None], labels, k)[:, 0]              # (k,) mm
+    prev = (np.full(labels.shape[0], -1, dtype=np.int64) if previous_labels is None
+            else np.asarray(previous_labels, dtype=np.int64).reshape(-1))
+    came_from = np.array([_one_previous(prev[labels == c]) for c in range(k)], dtype=np.int64)
     while k > 1:
         logs = np.log(med)
         signed = logs[:, None, :] - logs[None, :, :]                       # (k,k,F)
@@ -443,6 +459,8 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
         absd = np.where(measured, np.abs(signed), -np.inf).max(axis=2)
         gap = np.where(seen_at_all, absd, np.where(finite, np.abs(signed), -np.inf).max(axis=2))
         same = ~shows
+        told_apart = (came_from[:, None] >= 0) & (came_from[None, :] >= 0) & (came_from[:, None] != came_from[None, :])
+        same &= ~(told_apart & ~seen_at_all)
         same &= np.triu(np.ones((k, k), dtype=bool), 1) & np.isfinite(gap)
         if not same.any():
             break
@@ -460,12 +478,21 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
         count[i] = np.sum(np.isfinite(cols[members]), axis=0)
         noise = np.delete(noise, j)
         noise[i] = peak_noise_mm(far[members], floor)
+        came_from = np.delete(came_from, j)
+        came_from[i] = _one_previous(prev[members])
         read_at = np.delete(read_at, j)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             read_at[i] = np.nanmedian(seen_from[members])
         merges += 1
     return labels, merges
+
+
+def _one_previous(previous: np.ndarray) -> int:
+    """The previous round's region of these points (new points, -1, aside), or -1 when they
+    come from two regions or are all new."""
+    known = np.unique(previous[previous >= 0])
+    return int(known[0]) if known.size == 1 else -1
 
 
 def peak_noise_mm(far_field_mm: np.ndarray, floor_mm: float) -> float:
@@ -598,12 +625,15 @@ def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbour
     band when each of its pieces (connected on the surface graph) is sandwiched between two
     regions A and B: every point of the piece borders a point of A and a point of B, the
     piece's median peak depth lies strictly between A's and B's at every survey force, and
-    the region has fewer points than either. Each point of the piece joins A or B, whichever
+    the piece has fewer points than either. Each point of the piece joins A or B, whichever
     median it is nearer to in log depth. The pieces may lie on different seams (A, B
     differing per piece): on suite slab 1003 (two inclusions, hard rubber and elastomer,
     in a gel) the probes on both inclusions' seams read alike and formed one fifth region.
     A real material probed only along seams looks the same; once probed off the seam it
-    has interior points and is kept. Returns (labels, relabelled point indices).
+    has interior points and is kept. The piece, not the region, is weighed against A and B:
+    densification keeps adding seam probes, and on slab 1003's round 3 the band's 12 (on two
+    seams) matched the hard-rubber disc's 12 interior probes, so a region-wide count kept a
+    fifth region. Returns (labels, relabelled point indices).
     """
     relabelled: list[int] = []
     if not depth_columns:
@@ -655,15 +685,15 @@ def _pieces(members: np.ndarray, neighbours: list[np.ndarray]) -> list[np.ndarra
 def _sandwich(piece: np.ndarray, band: int, labels: np.ndarray, neighbours: list[np.ndarray],
               log_depth: np.ndarray, region_median: np.ndarray, sizes: np.ndarray) -> tuple[int, int] | None:
     """The pair of regions (a, b) a piece of region ``band`` is the blend of, or None: every
-    point of the piece borders both, both regions are larger than ``band``, and the piece's
-    median log depth lies strictly between theirs at every force."""
+    point of the piece borders both, both regions have more points than the piece, and the
+    piece's median log depth lies strictly between theirs at every force."""
     touching = [set(int(v) for v in labels[neighbours[i]]) - {band} for i in piece]
     common = set.intersection(*touching) if touching else set()
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         mid = np.nanmedian(log_depth[piece], axis=0)
     return next(((a, b) for a in sorted(common) for b in sorted(common)
-                 if a < b and sizes[a] > sizes[band] and sizes[b] > sizes[band]
+                 if a < b and sizes[a] > piece.size and sizes[b] > piece.size
                  and np.all(np.isfinite(region_median[[a, b]])) and np.all(np.isfinite(mid))
                  and np.all((mid - region_median[a]) * (mid - region_median[b]) < 0)), None)
 
@@ -735,12 +765,14 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
         # cluster by the materials that the contrast rule alone finds among single points.
         alone, _ = _merge_by_contrast(x, np.arange(n), depth_cols, min_contrast, floor_mm, far, seen_from)
         labels, k = _compact(labels * (int(alone.max()) + 1) + alone)
+    prev = None
     if previous_labels is not None:
         prev = np.asarray(previous_labels, dtype=np.int64).reshape(-1)
         if prev.shape[0] != n:
             raise ValueError("previous_labels must give one label (or -1) per point")
         # Split every cluster by the previous round's regions: a material separated then
-        # is a candidate again now, and only the contrast rule below may join it back.
+        # is a candidate again now, and only the contrast rule below may join it back (on a
+        # contrast it measures, see _merge_by_contrast).
         labels, k = _compact(labels * (int(prev.max(initial=-1)) + 2) + (prev + 1))
     merges = 0
     if feature_noise is not None and k > 1:
@@ -752,7 +784,7 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
     stats["merged"] = merges
     if k > 1:
         labels, contrast_merges = _merge_by_contrast(x, labels, depth_cols, min_contrast, floor_mm, far,
-                                                     seen_from)
+                                                     seen_from, previous_labels=prev)
         labels, k = _compact(labels)
         stats["merged_by_contrast"] = contrast_merges
 
