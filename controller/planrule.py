@@ -51,7 +51,8 @@ plans beside it, is in docs/generated_objects.md):
   units, not the footprint rule's: with the 15 mm survey the graph is finer, and on suite
   slab 1003 (four materials, two inclusions, 433 survey points) 79 edges disagreed after
   round 0; 16 points a round, the footprint rule's, left 66 of them longer than 6 mm after
-  three rounds. Each point is one survey contact per survey force.
+  three rounds. Each point is one survey contact per survey force; at 64 (a survey of
+  1024 units and up, the composite's) a round is about 16 robot minutes of contacts.
 - **Contact search**: at most half the object's height past its nominal surface (at least
   5 mm; the cell's 30 mm on anything 60 mm or taller). The search must end above the
   table: on a 20 mm slab the cell's 30 mm would take the tip below the workspace's floor,
