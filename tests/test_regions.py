@@ -573,3 +573,21 @@ def test_recorded_seam_band_bigger_than_an_inclusion_but_each_piece_smaller_is_a
     inside = data["r3_seam"] > 3.0
     regions = [int(np.argmax(np.bincount(rm.labels[inside & (truth == m)], minlength=4))) for m in range(4)]
     assert sorted(regions) == [0, 1, 2, 3]
+
+
+def test_recorded_user_object_probe_read_farther_out_is_not_a_stiffer_material():
+    """Recorded survey of the shipped user object (elastomer 0, sponge 1; run seed 1, round 2,
+    36 probes): one elastomer probe 4.7 mm from the seam saw its dent only from 5.3 mm out
+    (the elastomer's others from 2.9 mm) and read 0.0034 mm at 2 N against their 0.018 mm:
+    3.4x shallower at one force, a lone "stiffer material". Then the two seam probes between
+    it and the sponge were no transition band (one bordered that lone region), and the map
+    had four regions of two (6.5 % mislabelled; 2.6 % before the per-cluster noise). A dent
+    falls off about as 1/r outside the contact: read 1.8x farther out, "shallower" must show
+    the contrast times 1.8. Two regions, each probe away from the seam its material's."""
+    data, names, noise = _recorded("user_object_r2.npz")
+    feats, truth = data["feats"].astype(float), data["truth"].astype(np.int64)
+    rm = cluster_regions(feats, data["edges"].astype(np.int64), names, seed=1, noise_mm=noise,
+                         previous_labels=data["previous"].astype(np.int64), far_field_mm=data["far"].astype(float))
+    assert rm.n_regions == 2
+    away = data["seam"] > 3.0
+    assert np.array_equal(rm.labels[away], truth[away])

@@ -377,7 +377,9 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     (:data:`SEEN_FROM_FEATURE`); a cluster whose median lies beyond another's by more than
     the band a peak is read in (:data:`NEAR_CONTACT_BAND_MM`) has only lower bounds of its
     dents beside the other's peaks: that it is deeper is evidence, that it is shallower is
-    none (and refutes nothing). ``previous_labels`` (N,): each point's region in the previous
+    none (and refutes nothing); read farther out within that band, its peaks are lower by
+    about the ratio of the distances (a dent outside the contact falls off about as 1/r), and
+    "deeper than it" must show the contrast times that ratio. ``previous_labels`` (N,): each point's region in the previous
     round (-1: new); two clusters drawn from two different previous regions were told apart
     by this rule then, and are joined now only by a contrast measured and found wanting, not
     because neither dent counts as measured any more.
@@ -447,7 +449,12 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
         with np.errstate(invalid="ignore"):
             farther = read_at[None, :] > read_at[:, None] + NEAR_CONTACT_BAND_MM   # (i, j): j farther
         deeper &= ~farther[:, :, None]
-        shows = np.any(deeper & (signed >= log_c), axis=2)
+        # j's peaks read farther out, but within the band: a dent falls off about as 1/r
+        # outside the contact, so "i deeper than j" must beat the contrast by the ratio of
+        # the distances too.
+        with np.errstate(invalid="ignore", divide="ignore"):
+            falloff = np.log(np.clip(read_at[None, :] / read_at[:, None], 1.0, None))
+        shows = np.any(deeper & (signed >= log_c + np.nan_to_num(falloff)[:, :, None]), axis=2)
         # A cluster of one or two points is one or two measurements: one scattered return can
         # fake a contrast at one force, so it must be clearly deeper (or shallower) at every
         # measured force.
