@@ -379,10 +379,10 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     dents beside the other's peaks: that it is deeper is evidence, that it is shallower is
     none (and refutes nothing); read farther out within that band, its peaks are lower by
     about the ratio of the distances (a dent outside the contact falls off about as 1/r), and
-    "deeper than it" must show the contrast times that ratio. ``previous_labels`` (N,): each point's region in the previous
-    round (-1: new); two clusters drawn from two different previous regions were told apart
-    by this rule then, and are joined now only by a contrast measured and found wanting, not
-    because neither dent counts as measured any more.
+    "deeper than it" must show the contrast times that ratio. ``previous_labels`` (N,): each
+    point's region in the previous round (-1: new); two clusters drawn from two different
+    previous regions were told apart by this rule then, and are joined now only by a contrast
+    measured and found wanting, not because neither dent counts as measured any more.
 
     Why the previous round counts: whether a dent is measured rests on the scatter of the
     cluster's far fields, and a few points' far fields scatter with where they lie. On suite
@@ -466,7 +466,8 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
         absd = np.where(measured, np.abs(signed), -np.inf).max(axis=2)
         gap = np.where(seen_at_all, absd, np.where(finite, np.abs(signed), -np.inf).max(axis=2))
         same = ~shows
-        told_apart = (came_from[:, None] >= 0) & (came_from[None, :] >= 0) & (came_from[:, None] != came_from[None, :])
+        told_apart = ((came_from[:, None] >= 0) & (came_from[None, :] >= 0)
+                      & (came_from[:, None] != came_from[None, :]))
         same &= ~(told_apart & ~seen_at_all)
         same &= np.triu(np.ones((k, k), dtype=bool), 1) & np.isfinite(gap)
         if not same.any():
