@@ -472,11 +472,13 @@ def baseline_rss_mb(plan: Path, env: dict[str, str]) -> float:
 
 
 # ----------------------------------------------------------------------------- accounting
-def read_fault_record(path: Path) -> list[dict[str, Any]]:
+def read_jsonl(path: Path) -> list[dict[str, Any]]:
+    """The records of a JSON-lines file (the simulator's fault record, the session's log);
+    a line cut by a kill mid-write is left out; [] when the file does not exist."""
     if not path.exists():
         return []
     out = []
-    for line in path.read_text().splitlines():
+    for line in path.read_text(errors="replace").splitlines():
         if line.strip():
             try:
                 out.append(json.loads(line))
@@ -488,14 +490,7 @@ def read_fault_record(path: Path) -> list[dict[str, Any]]:
 def step_done_counts(session_dir: Path) -> dict[int, int]:
     """``step_done`` lines per step in DIR/log.jsonl (one per commit, written after it)."""
     counts: dict[int, int] = {}
-    path = session_dir / "log.jsonl"
-    if not path.exists():
-        return counts
-    for line in path.read_text().splitlines():
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:         # the last line of a killed child
-            continue
+    for rec in read_jsonl(session_dir / "log.jsonl"):
         if rec.get("event") == "step_done":
             counts[int(rec["step"])] = counts.get(int(rec["step"]), 0) + 1
     return counts
@@ -927,7 +922,7 @@ def with_lost_children(session_dir: Path, children: list[ChildRun]) -> list[Chil
         j.close()
     known = {c.pid for c in children}
     run_of_pid = {int(r["pid"]): int(r["run_id"]) for r in runs}
-    log = _session_log(session_dir)
+    log = read_jsonl(session_dir / "log.jsonl")
     merged = list(children)
     for r in runs:
         if int(r["pid"]) in known:
@@ -954,19 +949,6 @@ def _utc(stamp: Any) -> datetime.datetime:
         return datetime.datetime.fromisoformat(str(stamp).replace("Z", "+00:00"))
     except ValueError:
         return datetime.datetime.fromtimestamp(0, datetime.timezone.utc)
-
-
-def _session_log(session_dir: Path) -> list[dict[str, Any]]:
-    """The session's event log (log.jsonl); a torn last line is left out."""
-    path = session_dir / "log.jsonl"
-    events = []
-    if path.exists():
-        for line in path.read_text(errors="replace").splitlines():
-            try:
-                events.append(json.loads(line))
-            except json.JSONDecodeError:
-                continue
-    return events
 
 
 def run_soak(cfg: SoakConfig, work_dir: Path, carry_on: bool = False) -> dict[str, Any]:
@@ -1083,7 +1065,7 @@ def summarize(work_dir: Path) -> dict[str, Any]:
     ever_done = set(state["ever_done"])
     status, reason = _session_status(out)
     facts = step_accounting(out, ever_done) if (out / "journal.sqlite").exists() else {}
-    judged = judge_faults(read_fault_record(work_dir / "sim_faults.jsonl"), out, children) if facts else {"fates": []}
+    judged = judge_faults(read_jsonl(work_dir / "sim_faults.jsonl"), out, children) if facts else {"fates": []}
     fates = judged["fates"]
     count = lambda what: sum(f["fate"] == what for f in fates)   # noqa: E731
     growth, growth_h = rss_growth_mb_per_h(children)
