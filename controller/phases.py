@@ -24,6 +24,7 @@ from .core.errors import BudgetSpent, SessionAborted
 from .core.geometry import INTERIOR_ANGLES_DEG, Pose, scan_direction
 from .journal import Journal, StepPlan
 from .learning import cloud as cl
+from .learning import contact as ct
 from .learning import densify as dn
 from .learning import neural_gas as ng
 from .learning import profiles as prof
@@ -426,12 +427,21 @@ def _survey_profiles(ctx: PhaseContext, target_ids: list[int]) -> tuple[list[int
     sv = ctx.inputs.plan.phases.survey
     angle = sv.angles_deg[0]
     forces = sorted(sv.forces_n)
+    window = np.abs(ctx.grid.x_mm) <= FEATURE_HALF_WINDOW_MM
+    tip_radius_mm = ctx.inputs.cell.tool.tip_radius_mm
     by_target: dict[int, dict[float, np.ndarray]] = {}
     for rec in _done_steps(j, SURVEY_PHASES):
         if abs(rec.plan.angle_deg - angle) > 1e-9 or rec.plan.target_index not in target_ids:
             continue
         res = j.step_result(rec.step_id)
-        by_target.setdefault(rec.plan.target_index, {})[rec.plan.force_n] = res.profile_depth_mm
+        depth = np.asarray(res.profile_depth_mm, dtype=float)
+        facts = res.summary or {}
+        tip_x, tip_depth = facts.get("tip_x_mm"), facts.get("tip_depth_mm")
+        if tip_x is not None and tip_depth is not None and not ct.saw_its_dent(
+                ctx.grid.x_mm[window], depth[window], float(tip_x), float(tip_depth), tip_radius_mm):
+            # What it saw is another surface (the table past a low rim): as if unseen.
+            depth = np.full_like(depth, np.nan)
+        by_target.setdefault(rec.plan.target_index, {})[rec.plan.force_n] = depth
     ids = [i for i in target_ids if i in by_target and all(f in by_target[i] for f in forces)]
     depth = np.array([[by_target[i][f] for f in forces] for i in ids]) if ids else np.zeros((0, len(forces), 0))
     return ids, depth, np.array(forces)
