@@ -421,8 +421,11 @@ def _clear_angles(ctx: PhaseContext, target: ProbeTarget, angles: list[float]) -
     return [a for a in angles if collision(*ex.contact_search_path(target, a), contact_allowed=True) is None]
 
 
-def _survey_profiles(ctx: PhaseContext, target_ids: list[int]) -> tuple[list[int], np.ndarray, np.ndarray]:
-    """Survey profiles (N, F, L) at the first survey angle for targets whose survey is complete."""
+def _survey_profiles(ctx: PhaseContext, target_ids: list[int], noise_mm: float
+                     ) -> tuple[list[int], np.ndarray, np.ndarray]:
+    """Survey profiles (N, F, L) at the first survey angle for targets whose survey is complete;
+    all NaN where a profile did not see its dent (``noise_mm``: an averaged profile's standard
+    error, see :func:`contact.saw_its_dent`)."""
     j = ctx.journal
     sv = ctx.inputs.plan.phases.survey
     angle = sv.angles_deg[0]
@@ -438,7 +441,7 @@ def _survey_profiles(ctx: PhaseContext, target_ids: list[int]) -> tuple[list[int
         facts = res.summary or {}
         tip_x, tip_depth = facts.get("tip_x_mm"), facts.get("tip_depth_mm")
         if tip_x is not None and tip_depth is not None and not ct.saw_its_dent(
-                ctx.grid.x_mm[window], depth[window], float(tip_x), float(tip_depth), tip_radius_mm):
+                ctx.grid.x_mm[window], depth[window], float(tip_x), float(tip_depth), tip_radius_mm, noise_mm):
             # What it saw is another surface (the table past a low rim): as if unseen.
             depth = np.full_like(depth, np.nan)
         by_target.setdefault(rec.plan.target_index, {})[rec.plan.force_n] = depth
@@ -453,7 +456,8 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
     j = ctx.journal
     rec = j.phase("regions", round_)
     if rec is None:
-        ids, depth, forces = _survey_profiles(ctx, sorted(ctx.targets))
+        noise_mm = measured_noise_mm(ctx)
+        ids, depth, forces = _survey_profiles(ctx, sorted(ctx.targets), noise_mm)
         if len(ids) == 0:
             raise SessionAborted("no surveyed target has a complete survey: cannot find regions")
         # Features from the dent itself: the grid's ends see the object's edges and
@@ -489,7 +493,7 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
         far = prof.far_field_error_mm(depth[:, 0, :], ctx.grid.x_mm, FEATURE_HALF_WINDOW_MM)
         rmap = rg.cluster_regions(feats, edges, names, seed=ctx.seed,
                                   min_contrast=ctx.inputs.plan.phases.survey.min_contrast,
-                                  noise_mm=measured_noise_mm(ctx), previous_labels=previous,
+                                  noise_mm=noise_mm, previous_labels=previous,
                                   far_field_mm=far)
         labels = {i: int(l) for i, l in zip(ids, rmap.labels)}
         chosen, angles_by_target = _characterize_choice(ctx, labels, rmap.n_regions, pts, ids)
