@@ -24,6 +24,7 @@ from .core.errors import BudgetSpent, SessionAborted
 from .core.geometry import INTERIOR_ANGLES_DEG, Pose, scan_direction
 from .journal import Journal, StepPlan
 from .learning import cloud as cl
+from .learning import contact as ct
 from .learning import densify as dn
 from .learning import neural_gas as ng
 from .learning import profiles as prof
@@ -420,18 +421,30 @@ def _clear_angles(ctx: PhaseContext, target: ProbeTarget, angles: list[float]) -
     return [a for a in angles if collision(*ex.contact_search_path(target, a), contact_allowed=True) is None]
 
 
-def _survey_profiles(ctx: PhaseContext, target_ids: list[int]) -> tuple[list[int], np.ndarray, np.ndarray]:
-    """Survey profiles (N, F, L) at the first survey angle for targets whose survey is complete."""
+def _survey_profiles(ctx: PhaseContext, target_ids: list[int], noise_mm: float
+                     ) -> tuple[list[int], np.ndarray, np.ndarray]:
+    """Survey profiles (N, F, L) at the first survey angle for targets whose survey is complete;
+    all NaN where a profile did not see its dent (``noise_mm``: an averaged profile's standard
+    error, see :func:`contact.saw_its_dent`)."""
     j = ctx.journal
     sv = ctx.inputs.plan.phases.survey
     angle = sv.angles_deg[0]
     forces = sorted(sv.forces_n)
+    window = np.abs(ctx.grid.x_mm) <= FEATURE_HALF_WINDOW_MM
+    tip_radius_mm = ctx.inputs.cell.tool.tip_radius_mm
     by_target: dict[int, dict[float, np.ndarray]] = {}
     for rec in _done_steps(j, SURVEY_PHASES):
         if abs(rec.plan.angle_deg - angle) > 1e-9 or rec.plan.target_index not in target_ids:
             continue
         res = j.step_result(rec.step_id)
-        by_target.setdefault(rec.plan.target_index, {})[rec.plan.force_n] = res.profile_depth_mm
+        depth = np.asarray(res.profile_depth_mm, dtype=float)
+        facts = res.summary or {}
+        tip_x, tip_depth = facts.get("tip_x_mm"), facts.get("tip_depth_mm")
+        if tip_x is not None and tip_depth is not None and not ct.saw_its_dent(
+                ctx.grid.x_mm[window], depth[window], float(tip_x), float(tip_depth), tip_radius_mm, noise_mm):
+            # What it saw is another surface (the table past a low rim): as if unseen.
+            depth = np.full_like(depth, np.nan)
+        by_target.setdefault(rec.plan.target_index, {})[rec.plan.force_n] = depth
     ids = [i for i in target_ids if i in by_target and all(f in by_target[i] for f in forces)]
     depth = np.array([[by_target[i][f] for f in forces] for i in ids]) if ids else np.zeros((0, len(forces), 0))
     return ids, depth, np.array(forces)
@@ -443,7 +456,8 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
     j = ctx.journal
     rec = j.phase("regions", round_)
     if rec is None:
-        ids, depth, forces = _survey_profiles(ctx, sorted(ctx.targets))
+        noise_mm = measured_noise_mm(ctx)
+        ids, depth, forces = _survey_profiles(ctx, sorted(ctx.targets), noise_mm)
         if len(ids) == 0:
             raise SessionAborted("no surveyed target has a complete survey: cannot find regions")
         # Features from the dent itself: the grid's ends see the object's edges and
@@ -479,7 +493,7 @@ def phase_regions(ctx: PhaseContext, round_: int) -> None:
         far = prof.far_field_error_mm(depth[:, 0, :], ctx.grid.x_mm, FEATURE_HALF_WINDOW_MM)
         rmap = rg.cluster_regions(feats, edges, names, seed=ctx.seed,
                                   min_contrast=ctx.inputs.plan.phases.survey.min_contrast,
-                                  noise_mm=measured_noise_mm(ctx), previous_labels=previous,
+                                  noise_mm=noise_mm, previous_labels=previous,
                                   far_field_mm=far)
         labels = {i: int(l) for i, l in zip(ids, rmap.labels)}
         chosen, angles_by_target = _characterize_choice(ctx, labels, rmap.n_regions, pts, ids)
