@@ -423,9 +423,12 @@ class Engine:
         # resumed session does not share with an uninterrupted one. The first level
         # continues under the contact's key (re-keying it would schedule its faults twice).
         def at_standoff() -> None:
+            # From here the machine's transitions (and a fault's) belong to the step in flight.
+            self._current_step = first.step_id
             cell.begin_step((self.seed, first.step_id, retry))
 
         def before_level(level: ForceLevel) -> None:
+            self._current_step = level.step_id
             if level.step_id != first.step_id:
                 cell.begin_step((self.seed, level.step_id, retry))
 
@@ -434,7 +437,6 @@ class Engine:
             if data.step_id in done_before:
                 self._log("step_repressed", step=data.step_id)
                 return
-            self._current_step = data.step_id
             attempt = j.begin_step(data.step_id)
             measured = measure_step_data(self.inputs, cell, target, data)
             result = StepResult.from_step_data(data, measured.depth_mm, plan_grid(self.inputs).x_mm,
@@ -442,7 +444,6 @@ class Engine:
             play_disk_error(cell, j, data.step_id, retry, self._log)
             j.commit_step(data.step_id, attempt, result)
             step_time += data.robot_time_s
-            self._current_step = None
             self.progress.steps_done += 1
             self._log("step_done", step=data.step_id, force_n=result.summary["force_measured_n"],
                       angle_deg=data.angle_deg, target=target.index)
@@ -462,6 +463,7 @@ class Engine:
             # not an internal error that ends the night.
             self.faults.handle_contact_fault(ProbeFault("device", str(exc)), group)
         finally:
+            self._current_step = None
             overhead = cell.clock.now_s() - t_start - step_time
             if overhead > 0:
                 j.add_robot_time("travel_and_contact", overhead)

@@ -156,6 +156,25 @@ def test_a_moved_object_is_registered_again_where_it_really_is(retry_session: di
     assert rec["rms_mm"] < 0.5, rec
 
 
+def test_journaled_transitions_name_the_step_in_flight(retry_session: dict[str, Any]) -> None:
+    """A transition inside a contact (the force levels, a fault and its recovery) names the
+    step the arm was pressing; travel between targets names none. Before, every journaled
+    transition had step_id NULL: the step was only known while its result was written."""
+    j = Journal.open_readonly(retry_session["out"])
+    try:
+        transitions, faults = j.transitions(), j.faults()
+        steps = {r.step_id for r in j.steps()}
+    finally:
+        j.close()
+    inside = [t for t in transitions if t["trigger"] in ("contact", "at_force", "settled", "next_level")]
+    assert inside and all(t["step_id"] in steps for t in inside), [t for t in inside if t["step_id"] not in steps][:3]
+    travel = [t for t in transitions if t["trigger"] == "go_to_target"]
+    assert travel and all(t["step_id"] is None for t in travel)
+    fault_steps = sorted(t["step_id"] for t in transitions if t["trigger"] == "fault" and t["step_id"] is not None)
+    contact_faults = sorted(f.step_id for f in faults if f.step_id is not None)
+    assert contact_faults and set(contact_faults) <= set(fault_steps), (contact_faults, fault_steps)
+
+
 def test_arm_stopped_at_every_fault_and_no_incomplete_step_is_done(retry_session: dict[str, Any]) -> None:
     _assert_stopped_at_faults(retry_session["out"])
     _assert_complete_data(retry_session["out"])
