@@ -3,7 +3,6 @@ validation planned again (validated before the arm moves), the surface left unse
 and reported."""
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np

@@ -23,7 +23,7 @@ from typing import Iterator
 
 import pytest
 
-from test_session_util import CLI, child_env, copy_cell, plan_for, run_cli, start_or_resume
+from test_session_util import CLI, plan_for, run_cli, start_or_resume
 
 from elastoprobe.controller.cli import main
 from elastoprobe.controller.journal import Journal

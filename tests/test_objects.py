@@ -66,7 +66,7 @@ def test_region_of_gives_the_true_material(composite, user_object):
 
 def crossing(obj, path, force_n=20.0):
     """Peak depth along a path crossing a boundary, the claimed bound on its slope, and the slope."""
-    peaks, diffs, comp_peaks, dss = [], [], [], []
+    peaks, diffs, comp_peaks = [], [], []
     for point, normal, t in path:
         model = obj.contact_model(point, normal, t, 90.0, 5.0)
         parts = model.component_profiles_mm(X_MM, force_n)

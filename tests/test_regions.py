@@ -245,7 +245,6 @@ def test_recorded_slab_with_a_strip_and_a_one_probe_inclusion_is_three_regions()
 def test_few_points_far_apart_in_depth_are_two_regions(stiff_points):
     """Six survey points, the dents 15x apart: two regions whatever the split (a handful of
     points must not read as one material, nor lose the lone stiff probe as an island)."""
-    pos = np.column_stack([np.arange(6) * 20.0, np.zeros(6), np.zeros(6)])
     edges = np.array([(i, i + 1) for i in range(5)])
     truth = (np.arange(6) < stiff_points).astype(int)
     feats, names = survey(2, np.where(truth == 1, 8.0, 8.0 / 15 ** 1.5))

@@ -3,7 +3,6 @@ per-sub-chunk guard give the same bytes and stop at the same virtual sample."""
 from __future__ import annotations
 
 
-import numpy as np
 
 from elastoprobe.controller.core.devices import MotionState
 
