@@ -81,7 +81,8 @@ def saw_its_dent(x_mm: np.ndarray, depth_mm: np.ndarray, tip_x_mm: float, tip_de
     on over the table, which does not move: a sponge pressed 2 mm deep then reads 0.000 mm
     at every seen sample, while Hertz's surface is 0.6 mm down at the first of them. The
     noise term keeps a stiff material's dent, which Hertz puts below the noise 4 mm out,
-    from being refuted by the noise itself. See docs/generated_objects.md for the figures.
+    from being refuted by the noise itself (a profile whose every sample the scanner's
+    correlated floor put below zero included). See docs/generated_objects.md for the figures.
     True (nothing to refute) without a seen sample or a dent.
     """
     x = np.asarray(x_mm, dtype=float)
@@ -92,7 +93,10 @@ def saw_its_dent(x_mm: np.ndarray, depth_mm: np.ndarray, tip_x_mm: float, tip_de
     a = float(np.sqrt(radius_mm * tip_depth_mm))
     nearest_mm = float(np.min(np.abs(x[seen] - tip_x_mm)))
     expected_mm = 0.5 * tip_depth_mm * float(hertz_free_surface(max(nearest_mm, a) / a))
-    return bool(np.max(d[seen]) >= min_fraction * expected_mm - 3.0 * noise_mm)
+    threshold_mm = min_fraction * expected_mm - 3.0 * noise_mm
+    # Without power (the share of Hertz's figure within the noise) nothing is refuted: a
+    # stiff dent's profile offset below zero by the scanner's correlated floor is noise.
+    return bool(threshold_mm <= 0.0 or np.max(d[seen]) >= threshold_mm)
 
 
 def join_fill(gap: Gap, r: np.ndarray) -> np.ndarray:
