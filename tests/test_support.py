@@ -72,6 +72,48 @@ def test_probed_face_stops_at_the_rim() -> None:
     assert not face[X > 25.5].any()
 
 
+def test_probed_face_drops_the_sample_beside_a_break_but_not_the_contact() -> None:
+    """A box's top ends 4.6 mm from the contact and drops 48 mm: the last top sample's bin
+    straddles the edge (recorded 1010 survey steps read 0.7-1.8 mm there under a dent of
+    0.1 mm), so it is not on the face; a contact sample beside a break stays."""
+    x = np.linspace(-15.0, 15.0, 97)
+    h = np.where(x < 4.6, 0.0, -48.0)
+    face = prof.probed_face(h, x)
+    top = np.flatnonzero(x < 4.6)
+    assert face[top[:-1]].all() and not face[top[-1]]
+    assert not face[x > 4.6].any()
+    h_edge = np.where(x < 0.1, 0.0, -48.0)
+    face = prof.probed_face(h_edge, x)
+    assert face[np.argmin(np.abs(x))]
+
+
+def test_a_sample_one_scan_caught_at_the_shadow_edge_is_not_a_measurement() -> None:
+    """Nine loaded scans lose |x| < 4 mm to the tool's shadow, one sees from 3 mm on and
+    reads 0.3 mm too deep there. Averaged, the 3-4 mm samples would be that one scan;
+    measure_step blanks them and counts them, and keeps the rest of the dent."""
+    grid = prof.ProfileGrid(80.0, 256)
+    xs = np.linspace(-40.0, 40.0, 801)
+    true_mm = dent(xs, 0.5)
+    rng = np.random.default_rng(3)
+    refs = [np.column_stack([xs, np.zeros_like(xs), rng.normal(0.0, 0.01, xs.size)]) for _ in range(5)]
+    scans = []
+    for k in range(10):
+        edge = 3.0 if k == 0 else 4.0
+        keep = np.abs(xs) >= edge
+        h = -true_mm - np.where(np.abs(xs) < 4.0, 0.3, 0.0) + rng.normal(0.0, 0.01, xs.size)
+        scans.append(np.column_stack([xs[keep], np.zeros(keep.sum()), h[keep]]))
+    tips = np.tile([0.0, 0.0, R - 0.5], (10, 1))
+    m = prof.measure_step(scans, refs, tips, np.zeros(3), np.array([0.0, 0.0, 1.0]),
+                          np.array([1.0, 0.0, 0.0]), grid, R)
+    x = grid.x_mm
+    lone = (np.abs(x) > 3.1) & (np.abs(x) < 3.8)     # the samples only scan 0 reaches
+    assert lone.any() and np.isnan(m.depth_mm[lone]).all()
+    assert m.sparse_samples == lone.sum() and m.facts()["sparse_samples"] == m.sparse_samples
+    seen = np.abs(x) > 4.05
+    assert np.isfinite(m.depth_mm[seen]).mean() > 0.98
+    assert np.nanmax(np.abs(m.depth_mm[seen] - dent(x[seen], 0.5))) < 0.03
+
+
 # --------------------------------------------------------------------------- completion
 
 def region(asymmetry: float = 0.0, seed: int = 1, normal_repeat_n: float | None = None

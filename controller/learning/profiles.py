@@ -26,6 +26,9 @@ GAP_SPACINGS: float = 3.0
 # Steeper than 60 degrees from the tangent plane at the contact, the line has left the
 # probed face (a rim, a wall): rise over run.
 MAX_FACE_SLOPE: float = float(np.tan(np.radians(60.0)))
+# The fewest loaded scans an averaged sample needs: with three, one scan pulled off is
+# outvoted (robust_mean's median) and the scatter gives a standard error.
+MIN_SCANS_PER_SAMPLE: int = 3
 
 
 @dataclass(frozen=True)
@@ -353,7 +356,10 @@ def probed_face(reference_h_mm: np.ndarray, x_mm: np.ndarray, max_slope: float =
     neighbouring part): heights there belong to another surface, and a depth against
     them says nothing about this dent. The walk starts at the finite sample nearest
     x = 0 and stops, each way, at the first step steeper than ``max_slope`` (gaps are
-    judged by the slope across them). NaN samples inside the face stay False.
+    judged by the slope across them). The sample before such a step is not on the face
+    either (the contact's own sample excepted): its bin straddles the edge, and a line
+    shifted a fraction of a sample between the reference and the loaded scans reads the
+    wall's drop there as a dent of millimetres. NaN samples inside the face stay False.
     """
     h = np.asarray(reference_h_mm, dtype=float)
     x = np.asarray(x_mm, dtype=float)
@@ -366,6 +372,7 @@ def probed_face(reference_h_mm: np.ndarray, x_mm: np.ndarray, max_slope: float =
     for order in (idx[start:], idx[:start + 1][::-1]):
         for a, b in zip(order, order[1:]):
             if abs(h[b] - h[a]) > max_slope * abs(x[b] - x[a]):
+                out[a] = a == idx[start]
                 break
             out[b] = True
     return out
@@ -392,6 +399,7 @@ class StepMeasurement:
     rejected_line_samples: int
     implausible_samples: int
     off_face_samples: int
+    sparse_samples: int = 0
 
     def facts(self) -> dict[str, float | int | None]:
         """JSON-able summary for the journal (the step result's ``summary``)."""
@@ -400,7 +408,8 @@ class StepMeasurement:
         return {"tip_x_mm": num(self.tip_x_mm), "tip_depth_mm": num(self.tip_depth_mm),
                 "rejected_scan_samples": self.rejected_scan_samples,
                 "rejected_line_samples": self.rejected_line_samples,
-                "implausible_samples": self.implausible_samples, "off_face_samples": self.off_face_samples}
+                "implausible_samples": self.implausible_samples, "off_face_samples": self.off_face_samples,
+                "sparse_samples": self.sparse_samples}
 
 
 def measure_step(scan_points: Sequence[np.ndarray], reference_points: Sequence[np.ndarray],
@@ -414,7 +423,10 @@ def measure_step(scan_points: Sequence[np.ndarray], reference_points: Sequence[n
     averaged by :func:`robust_mean`; samples off the probed face (:func:`probed_face`)
     are dropped, and so are depths the probe cannot have made: deeper than the tip's
     own indentation plus ``margin_mm`` or above the surface by more than ``margin_mm``
-    (occlusion artefacts where the reference and the loaded scans saw different things).
+    (occlusion artefacts where the reference and the loaded scans saw different things),
+    and samples fewer than ``MIN_SCANS_PER_SAMPLE`` loaded scans saw (all of them, when the
+    step has fewer): at the edge of the tool's shadow a sample one scan caught is neither
+    checked against the other scans nor given a standard error, and reads as a dent.
     """
     if len(reference_points) == 0:
         raise ValueError("a profile needs at least one zero-force reference scan")
@@ -434,9 +446,10 @@ def measure_step(scan_points: Sequence[np.ndarray], reference_points: Sequence[n
     with np.errstate(invalid="ignore"):
         implausible = np.isfinite(depth) & ((depth > bound) | (depth < -margin_mm))
     off_face = np.isfinite(depth) & ~face & ~implausible
-    depth[implausible | off_face] = np.nan
+    sparse = np.isfinite(depth) & face & ~implausible & (rm.count < min(MIN_SCANS_PER_SAMPLE, len(scan_points)))
+    depth[implausible | off_face | sparse] = np.nan
     return StepMeasurement(depth, rm.stderr_mm, h_ref, tip_x, float(tip_depth), rm.rejected_scan_samples,
-                           rm.rejected_line_samples, int(implausible.sum()), int(off_face.sum()))
+                           rm.rejected_line_samples, int(implausible.sum()), int(off_face.sum()), int(sparse.sum()))
 
 
 def surface_height_at(h_mm: np.ndarray, face: np.ndarray, x_mm: np.ndarray, at_mm: float, reach_mm: float) -> float:
