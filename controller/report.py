@@ -45,8 +45,7 @@ MAX_REGIONS_DRAWN = 8            # regions with their own profile figures
 STEP_CHUNK = 64                  # done steps loaded from the journal at a time (bounds memory)
 DPI = 80
 # Why the averaging dropped samples (the step summary's counts, profiles.StepMeasurement).
-REJECTION_KEYS = ("rejected_scan_samples", "rejected_line_samples", "implausible_samples", "off_face_samples",
-                  "sparse_samples")
+REJECTION_KEYS = ("rejected_scan_samples", "rejected_line_samples", "implausible_samples", "off_face_samples")
 # Support of a model's samples (learning.support codes): colour of its band in the model plots.
 SUPPORT_COLOURS = ("none", "#9ecae1", "#fdae6b", "#a1d99b", "#d9d9d9")
 SECTION_IDS = ("numbers", "region-map", "profiles", "measured-vs-model", "predictions", "disagreement",
@@ -853,9 +852,8 @@ def _section_profiles(figs: _Figures, data: ReportData) -> str:
                 f"the other scans, {sum(p.rejected.get('rejected_line_samples', 0) for p in counted)} averaged "
                 f"samples standing out of their neighbours along the line, "
                 f"{sum(p.rejected.get('implausible_samples', 0) for p in counted)} deeper than the tip went or "
-                f"above the surface, {sum(p.rejected.get('off_face_samples', 0) for p in counted)} off the "
-                f"probed face (past a rim or onto another part), and "
-                f"{sum(p.rejected.get('sparse_samples', 0) for p in counted)} seen by too few scans to check.")
+                f"above the surface, and {sum(p.rejected.get('off_face_samples', 0) for p in counted)} off the "
+                f"probed face (past a rim or onto another part).")
         out.append(f"<h3>Region {r}</h3><p>{_esc(note)}</p>"
                    + figs.img(f"profiles region {r}", lambda r=r: fig_region_profiles(data, r),
                               f"no labelled region has measured profiles (region {r})"))

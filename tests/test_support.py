@@ -87,31 +87,42 @@ def test_probed_face_drops_the_sample_beside_a_break_but_not_the_contact() -> No
     assert face[np.argmin(np.abs(x))]
 
 
-def test_a_sample_one_scan_caught_at_the_shadow_edge_is_not_a_measurement() -> None:
-    """Nine loaded scans lose |x| < 4 mm to the tool's shadow, one sees from 3 mm on and
-    reads 0.3 mm too deep there. Averaged, the 3-4 mm samples would be that one scan;
-    measure_step blanks them and counts them, and keeps the rest of the dent."""
+def test_a_lone_sample_at_the_shadow_edge_is_judged_by_the_face_not_the_foam_beyond() -> None:
+    """A stiff top (dent 0.015 mm) ends 10 mm from the contact and the line runs on over a
+    soft part 40 mm below, whose averaged heights scatter by tenths of a millimetre. One
+    scan of thirty catches a sample at the tool shadow's edge, 0.06 mm too deep. Judged by
+    the whole line's scatter it passed as the dent's peak (composite box 1010); judged by
+    the face's it is a spike. A lone scan's samples that continue a deep dent's wall stay."""
     grid = prof.ProfileGrid(80.0, 256)
-    xs = np.linspace(-40.0, 40.0, 801)
-    true_mm = dent(xs, 0.5)
-    rng = np.random.default_rng(3)
-    refs = [np.column_stack([xs, np.zeros_like(xs), rng.normal(0.0, 0.01, xs.size)]) for _ in range(5)]
-    scans = []
-    for k in range(10):
-        edge = 3.0 if k == 0 else 4.0
-        keep = np.abs(xs) >= edge
-        h = -true_mm - np.where(np.abs(xs) < 4.0, 0.3, 0.0) + rng.normal(0.0, 0.01, xs.size)
-        scans.append(np.column_stack([xs[keep], np.zeros(keep.sum()), h[keep]]))
-    tips = np.tile([0.0, 0.0, R - 0.5], (10, 1))
-    m = prof.measure_step(scans, refs, tips, np.zeros(3), np.array([0.0, 0.0, 1.0]),
-                          np.array([1.0, 0.0, 0.0]), grid, R)
     x = grid.x_mm
-    lone = (np.abs(x) > 3.1) & (np.abs(x) < 3.8)     # the samples only scan 0 reaches
-    assert lone.any() and np.isnan(m.depth_mm[lone]).all()
-    assert m.sparse_samples == lone.sum() and m.facts()["sparse_samples"] == m.sparse_samples
-    seen = np.abs(x) > 4.05
-    assert np.isfinite(m.depth_mm[seen]).mean() > 0.98
-    assert np.nanmax(np.abs(m.depth_mm[seen] - dent(x[seen], 0.5))) < 0.03
+    xs = np.linspace(-40.0, 40.0, 1601)
+    rng = np.random.default_rng(4)
+    top = xs < 10.0
+    h0 = np.where(top, 0.0, -40.0 + 0.3 * np.sin(xs * 2.1))
+    refs = [np.column_stack([xs, np.zeros_like(xs), h0 + rng.normal(0.0, 0.01, xs.size)]) for _ in range(10)]
+
+    def measure(dent_mm: np.ndarray, lone_from_mm: float, lone_extra_mm: float) -> prof.StepMeasurement:
+        tips = np.tile([0.0, 0.0, R - float(dent_mm.max())], (30, 1))
+        scans = []
+        for k in range(30):
+            keep = xs >= (lone_from_mm if k == 0 else 3.0)
+            lone = xs < 3.0
+            h = h0 - np.where(top, dent_mm, 0.0) - np.where(lone, lone_extra_mm, 0.0)
+            h = h + rng.normal(0.0, 0.01, xs.size) + np.where(top, 0.0, rng.normal(0.0, 0.3, xs.size))
+            scans.append(np.column_stack([xs[keep], np.zeros(keep.sum()), h[keep]]))
+        return prof.measure_step(scans, refs, tips, np.zeros(3), np.array([0.0, 0.0, 1.0]),
+                                 np.array([1.0, 0.0, 0.0]), grid, R)
+
+    stiff = measure(dent(xs, 0.015), 2.6, 0.06)
+    edge = (x > 2.6) & (x < 2.95)
+    assert edge.any() and np.isnan(stiff.depth_mm[edge]).all()
+    assert stiff.rejected_line_samples >= 1
+    assert np.nanmax(stiff.depth_mm[np.abs(x) < 15.0]) < 0.03
+    # A deep dent's wall, seen by one scan nearer the tip: a measurement, kept.
+    deep = measure(dent(xs, 3.0), 1.0, 0.0)
+    wall = (x > 1.2) & (x < 2.8)
+    assert np.isfinite(deep.depth_mm[wall]).all()
+    assert np.allclose(deep.depth_mm[wall], dent(x[wall], 3.0), atol=0.05)
 
 
 # --------------------------------------------------------------------------- completion
