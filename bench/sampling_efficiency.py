@@ -18,9 +18,11 @@ steep-incidence and per-material dropouts, per-sample noise and the burst-correl
 images the object in the true state of each exposure (10 zero-force reference scans at the
 standoff, then per survey force the tip pushed in to the contact model's push at that
 force after the plan's settle time, the plan's scans per step) and the scans go through
-the session's profile path (profiles.step_scan_points, profile_from_scans,
-phases.plausible_depths) and its feature extraction (survey features on the dent window
-|x| <= 15 mm, clustering on the surface graph). The arm and F/T dynamics are not run (the
+the session's step measurement (profiles.step_scan_points, profiles.measure_step: robust
+average, probed face, plausible depths, the tip's facts from the poses), the regions
+phase's reading of it (phases.survey_profile: a profile that did not see its dent is
+unseen) and its feature extraction (survey features on the dent window |x| <= 15 mm,
+clustering on the surface graph). The arm and F/T dynamics are not run (the
 force is exact).
 
 Score, the same target for every strategy: the map over the bench's surface (a dense
@@ -76,7 +78,6 @@ import zlib
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any, Callable
 
 import numpy as np
@@ -98,12 +99,15 @@ DEFAULT_BUDGETS = (4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128)
 
 @dataclass
 class Measured:
-    """One surveyed contact: averaged profile per survey force (F,L) mm, per-sample scan std and
-    counts (F,L) for the noise estimate."""
+    """One surveyed contact: the step measurement's profile per survey force (F,L) mm,
+    per-sample scan std and counts (F,L) for the noise estimate, and the tip's facts per
+    force (F,): where its centre was along t and how deep it went (mm, from the poses)."""
 
     depth_mm: np.ndarray
     std_mm: np.ndarray
     count: np.ndarray
+    tip_x_mm: np.ndarray
+    tip_depth_mm: np.ndarray
 
 
 class ScannerProber:
@@ -149,7 +153,6 @@ class ScannerProber:
     def _measure(self, p: np.ndarray, n: np.ndarray, t: np.ndarray, key: tuple) -> Measured:
         from elastoprobe.controller.core.geometry import push_direction
         from elastoprobe.controller.learning import profiles as prof
-        from elastoprobe.controller.phases import plausible_depths
         from elastoprobe.controller.probe import standoff_pose
         from elastoprobe.sim.world import Contact, WorldSnapshot
 
@@ -165,7 +168,8 @@ class ScannerProber:
         refs = prof.step_scan_points(ref_xz, ref_poses, self.cell.tcp_to_scanner, b2o)
         model = self.obj.contact_model(p, n, t, angle, self.tip_radius_mm)
         d_base = b2o.apply_vector(push_direction(t, n, angle))
-        depths, stds, counts = [], [], []
+        depths, stds, counts, tip_x, tip_depth = [], [], [], [], []
+        object_from_base = b2o.inverse()
         for f in self.forces_n:
             holds = self.pr.settle_s + np.arange(self.pr.scans_per_step) / self.rate_hz
             poses = [b2o.compose(standoff_pose(p, n, t, angle, self.tip_radius_mm,
@@ -175,14 +179,16 @@ class ScannerProber:
             xz = self._burst(snaps, shape_rng)
             pose_rows = np.array([pose.to_list() for pose in poses])
             scans = prof.step_scan_points(xz, pose_rows, self.cell.tcp_to_scanner, b2o)
-            per_scan = prof.scan_depths(scans, p, n, t, self.grid, refs)
-            mean, count, std = prof.average_profiles(per_scan)
-            step = SimpleNamespace(reference_pose=ref_poses, scan_pose=pose_rows, angle_deg=angle)
-            depths.append(plausible_depths(mean, step, SimpleNamespace(normal=n), self.cell, self.pr.standoff_mm))
+            _, count, std = prof.average_profiles(prof.scan_depths(scans, p, n, t, self.grid, refs))
+            m = prof.measure_step(scans, refs, object_from_base.apply(pose_rows[:, :3]), p, n, t, self.grid,
+                                  self.tip_radius_mm)
+            depths.append(m.depth_mm)
             stds.append(std)
             counts.append(count)
+            tip_x.append(m.tip_x_mm)
+            tip_depth.append(m.tip_depth_mm)
         self.contacts_measured += 1
-        return Measured(np.array(depths), np.array(stds), np.array(counts))
+        return Measured(np.array(depths), np.array(stds), np.array(counts), np.array(tip_x), np.array(tip_depth))
 
 
 # --------------------------------------------------------------------------- one seed
@@ -255,6 +261,16 @@ class SeedRun:
                                               np.array([m.count for m in first]))
         return self.noise_mm
 
+    def profiles(self, measured: list) -> np.ndarray:
+        """Survey profiles (N,F,L) as the regions phase reads them (phases.survey_profile: all
+        NaN where a profile did not see its dent)."""
+        from elastoprobe.controller.phases import survey_profile
+
+        noise = self.noise(measured)
+        x, radius = self.prober.grid.x_mm, self.prober.tip_radius_mm
+        return np.array([[survey_profile(m.depth_mm[f], x, float(m.tip_x_mm[f]), float(m.tip_depth_mm[f]), radius, noise)
+                          for f in range(len(m.depth_mm))] for m in measured])
+
     def regions(self, points: np.ndarray, normals: np.ndarray, measured: list
                 ) -> tuple[np.ndarray, np.ndarray, Any, np.ndarray]:
         """The session's regions of the surveyed points (with the measured noise): (seen mask,
@@ -262,7 +278,7 @@ class SeedRun:
         from bench import strategies as st
         from elastoprobe.controller.phases import FEATURE_HALF_WINDOW_MM
 
-        depth = np.array([m.depth_mm for m in measured])
+        depth = self.profiles(measured)
         return st.region_labels(points, normals, depth, self.prober.grid.x_mm, self.prober.forces_n, seed=self.seed,
                                 half_window_mm=FEATURE_HALF_WINDOW_MM, graph=self.graph,
                                 noise_mm=self.noise(measured))
@@ -288,7 +304,7 @@ class SeedRun:
         from elastoprobe.controller.phases import FEATURE_HALF_WINDOW_MM
 
         seen, labels, rmap, edges = self.regions(points, normals, measured)
-        depth = np.array([m.depth_mm for m in measured])[seen]
+        depth = self.profiles(measured)[seen]
         feats, names = st.dent_features(depth, self.prober.grid.x_mm, self.prober.forces_n, FEATURE_HALF_WINDOW_MM)
         levels = rg.log_peaks(feats, names, self.noise(measured))[0].mean(axis=1)
         scores = self.score_surface_labels(sm.labels_from_seeds(self.graph, points[seen], labels, seed_levels=levels))
@@ -401,7 +417,7 @@ def run_densify(run: SeedRun, start_units: int, per_round: int, max_budget: int,
         room = (max_budget - len(pts) * len(run.prober.angles_deg)) // len(run.prober.angles_deg)
         if stop(out) or room <= 0:
             break
-        depth = np.array([m.depth_mm for m in measured])[seen]
+        depth = run.profiles(measured)[seen]
         new, new_nrm, rnd = st.densify_step(round_index, pts[seen], nrm[seen], labels, edges, depth,
                                             run.prober.grid.x_mm,
                                             run.prober.forces_n, run.prober.angles_deg, run.noise(measured),
@@ -443,7 +459,7 @@ def run_gp(run: SeedRun, start: int, budgets: list[int], stop: Callable[[list], 
         p, n = np.array(pts), np.array(nrm)
         measured = run.survey(p, n, np.array(t))
         seen, labels, rmap, _ = run.regions(p, n, measured)
-        level = gps.dent_level(np.array([m.depth_mm for m in measured]), x_mm, FEATURE_HALF_WINDOW_MM)[seen]
+        level = gps.dent_level(run.profiles(measured), x_mm, FEATURE_HALF_WINDOW_MM)[seen]
         ok = np.isfinite(level)        # a dent seen at every force has a level; the clustering's seen agree
         gp = gps.fit_surface_gp(p[seen][ok], level[ok], seed=run.seed)
         levels, bands = gps.region_levels(level[ok], labels[ok])

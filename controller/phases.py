@@ -146,30 +146,6 @@ def robust_average(depths_mm: np.ndarray, k_mad: float = 4.0) -> np.ndarray:
     return prof.robust_mean(depths_mm, k_mad).mean_mm
 
 
-def plausible_depths(depth_mm: np.ndarray, data: StepData, target: ProbeTarget, cell: Any,
-                     standoff_mm: float, margin_mm: float = 2.0) -> np.ndarray:
-    """Blank out depths the probe cannot have made.
-
-    The surface cannot sink deeper than the tip went in (plus a margin for the
-    dent's shift and noise), nor rise by more than that margin; larger values are
-    occlusion artefacts where the reference and the loaded scans saw different
-    things (a box wall, a pillow's rim falling away to the table). The tip's
-    indentation is measured from the poses: how far the TCP moved along the normal
-    between the reference scans (standoff) and the loaded scans.
-    """
-    n_base = cell.base_to_object.apply_vector(target.normal)
-    ref_z = np.asarray(data.reference_pose)[:, :3] @ n_base
-    load_z = np.asarray(data.scan_pose)[:, :3] @ n_base
-    moved_mm = float(np.median(ref_z)) - float(np.median(load_z))
-    # The approach gap (standoff along d) has a normal component standoff * sin(angle);
-    # the rest of the travel along the normal is the indentation.
-    indentation_mm = moved_mm - standoff_mm * np.sin(np.radians(data.angle_deg))
-    bound = max(indentation_mm, 0.0) + margin_mm
-    out = np.asarray(depth_mm, dtype=float).copy()
-    out[(out > bound) | (out < -margin_mm)] = np.nan
-    return out
-
-
 def _targets_from_arrays(arrays: dict[str, np.ndarray], first_index: int = 0) -> dict[int, ProbeTarget]:
     pts, nrm, tt = arrays["target_points_mm"], arrays["target_normals"], arrays["target_t"]
     idx = arrays.get("target_index", np.arange(first_index, first_index + len(pts)))
@@ -421,6 +397,22 @@ def _clear_angles(ctx: PhaseContext, target: ProbeTarget, angles: list[float]) -
     return [a for a in angles if collision(*ex.contact_search_path(target, a), contact_allowed=True) is None]
 
 
+def survey_profile(depth_mm: np.ndarray, x_mm: np.ndarray, tip_x_mm: float | None, tip_depth_mm: float | None,
+                   tip_radius_mm: float, noise_mm: float) -> np.ndarray:
+    """A survey step's profile (L,) as the regions phase reads it: all NaN when, by the
+    tip's facts, it did not see its dent (:func:`contact.saw_its_dent` over the feature
+    window; what it saw is another surface, the table past a low rim); as measured when
+    it did or when the facts are unknown (an older journal)."""
+    depth = np.asarray(depth_mm, dtype=float)
+    if tip_x_mm is None or tip_depth_mm is None:
+        return depth
+    window = np.abs(np.asarray(x_mm, dtype=float)) <= FEATURE_HALF_WINDOW_MM
+    if ct.saw_its_dent(np.asarray(x_mm, dtype=float)[window], depth[window], tip_x_mm, tip_depth_mm,
+                       tip_radius_mm, noise_mm):
+        return depth
+    return np.full_like(depth, np.nan)
+
+
 def _survey_profiles(ctx: PhaseContext, target_ids: list[int], noise_mm: float
                      ) -> tuple[list[int], np.ndarray, np.ndarray]:
     """Survey profiles (N, F, L) at the first survey angle for targets whose survey is complete;
@@ -430,20 +422,17 @@ def _survey_profiles(ctx: PhaseContext, target_ids: list[int], noise_mm: float
     sv = ctx.inputs.plan.phases.survey
     angle = sv.angles_deg[0]
     forces = sorted(sv.forces_n)
-    window = np.abs(ctx.grid.x_mm) <= FEATURE_HALF_WINDOW_MM
     tip_radius_mm = ctx.inputs.cell.tool.tip_radius_mm
     by_target: dict[int, dict[float, np.ndarray]] = {}
     for rec in _done_steps(j, SURVEY_PHASES):
         if abs(rec.plan.angle_deg - angle) > 1e-9 or rec.plan.target_index not in target_ids:
             continue
         res = j.step_result(rec.step_id)
-        depth = np.asarray(res.profile_depth_mm, dtype=float)
         facts = res.summary or {}
         tip_x, tip_depth = facts.get("tip_x_mm"), facts.get("tip_depth_mm")
-        if tip_x is not None and tip_depth is not None and not ct.saw_its_dent(
-                ctx.grid.x_mm[window], depth[window], float(tip_x), float(tip_depth), tip_radius_mm, noise_mm):
-            # What it saw is another surface (the table past a low rim): as if unseen.
-            depth = np.full_like(depth, np.nan)
+        depth = survey_profile(np.asarray(res.profile_depth_mm, dtype=float), ctx.grid.x_mm,
+                               None if tip_x is None else float(tip_x),
+                               None if tip_depth is None else float(tip_depth), tip_radius_mm, noise_mm)
         by_target.setdefault(rec.plan.target_index, {})[rec.plan.force_n] = depth
     ids = [i for i in target_ids if i in by_target and all(f in by_target[i] for f in forces)]
     depth = np.array([[by_target[i][f] for f in forces] for i in ids]) if ids else np.zeros((0, len(forces), 0))

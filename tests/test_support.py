@@ -72,6 +72,59 @@ def test_probed_face_stops_at_the_rim() -> None:
     assert not face[X > 25.5].any()
 
 
+def test_probed_face_drops_the_sample_beside_a_break_but_not_the_contact() -> None:
+    """A box's top ends 4.6 mm from the contact and drops 48 mm: the last top sample's bin
+    straddles the edge (recorded 1010 survey steps read 0.7-1.8 mm there under a dent of
+    0.1 mm), so it is not on the face; a contact sample beside a break stays."""
+    x = np.linspace(-15.0, 15.0, 97)
+    h = np.where(x < 4.6, 0.0, -48.0)
+    face = prof.probed_face(h, x)
+    top = np.flatnonzero(x < 4.6)
+    assert face[top[:-1]].all() and not face[top[-1]]
+    assert not face[x > 4.6].any()
+    h_edge = np.where(x < 0.1, 0.0, -48.0)
+    face = prof.probed_face(h_edge, x)
+    assert face[np.argmin(np.abs(x))]
+
+
+def test_a_lone_sample_at_the_shadow_edge_is_judged_by_the_face_not_the_foam_beyond() -> None:
+    """A stiff top (dent 0.015 mm) ends 10 mm from the contact and the line runs on over a
+    soft part 40 mm below, whose averaged heights scatter by tenths of a millimetre. One
+    scan of thirty catches a sample at the tool shadow's edge, 0.06 mm too deep. Judged by
+    the whole line's scatter it passed as the dent's peak (composite box 1010); judged by
+    the face's it is a spike. A lone scan's samples that continue a deep dent's wall stay."""
+    grid = prof.ProfileGrid(80.0, 256)
+    x = grid.x_mm
+    xs = np.linspace(-40.0, 40.0, 1601)
+    rng = np.random.default_rng(4)
+    top = xs < 10.0
+    h0 = np.where(top, 0.0, -40.0 + 0.3 * np.sin(xs * 2.1))
+    refs = [np.column_stack([xs, np.zeros_like(xs), h0 + rng.normal(0.0, 0.01, xs.size)]) for _ in range(10)]
+
+    def measure(dent_mm: np.ndarray, lone_from_mm: float, lone_extra_mm: float) -> prof.StepMeasurement:
+        tips = np.tile([0.0, 0.0, R - float(dent_mm.max())], (30, 1))
+        scans = []
+        for k in range(30):
+            keep = xs >= (lone_from_mm if k == 0 else 3.0)
+            lone = xs < 3.0
+            h = h0 - np.where(top, dent_mm, 0.0) - np.where(lone, lone_extra_mm, 0.0)
+            h = h + rng.normal(0.0, 0.01, xs.size) + np.where(top, 0.0, rng.normal(0.0, 0.3, xs.size))
+            scans.append(np.column_stack([xs[keep], np.zeros(keep.sum()), h[keep]]))
+        return prof.measure_step(scans, refs, tips, np.zeros(3), np.array([0.0, 0.0, 1.0]),
+                                 np.array([1.0, 0.0, 0.0]), grid, R)
+
+    stiff = measure(dent(xs, 0.015), 2.6, 0.06)
+    edge = (x > 2.6) & (x < 2.95)
+    assert edge.any() and np.isnan(stiff.depth_mm[edge]).all()
+    assert stiff.rejected_line_samples >= 1
+    assert np.nanmax(stiff.depth_mm[np.abs(x) < 15.0]) < 0.03
+    # A deep dent's wall, seen by one scan nearer the tip: a measurement, kept.
+    deep = measure(dent(xs, 3.0), 1.0, 0.0)
+    wall = (x > 1.2) & (x < 2.8)
+    assert np.isfinite(deep.depth_mm[wall]).all()
+    assert np.allclose(deep.depth_mm[wall], dent(x[wall], 3.0), atol=0.05)
+
+
 # --------------------------------------------------------------------------- completion
 
 def region(asymmetry: float = 0.0, seed: int = 1, normal_repeat_n: float | None = None
