@@ -89,7 +89,7 @@ def test_probed_face_drops_the_sample_beside_a_break_but_not_the_contact() -> No
 
 def test_a_lone_sample_at_the_shadow_edge_is_judged_by_the_face_not_the_foam_beyond() -> None:
     """A stiff top (dent 0.015 mm) ends 10 mm from the contact and the line runs on over a
-    soft part 40 mm below, whose averaged heights scatter by tenths of a millimetre. One
+    soft part 40 mm below, whose single scans scatter by 0.3 mm. One
     scan of thirty catches a sample at the tool shadow's edge, 0.06 mm too deep. Judged by
     the whole line's scatter it passed as the dent's peak (composite box 1010); judged by
     the face's it is a spike. A lone scan's samples that continue a deep dent's wall stay."""
