@@ -78,6 +78,10 @@ TORQUE_UNIT_TO_NM: dict[int, tuple[str, float]] = {
 
 
 @dataclass(frozen=True)
+# A tare needs a live stream: the newest record arrived at most this long ago (s). The tare
+# is taken at rest in free air, so samples this old still describe the unloaded sensor.
+TARE_STALE_S = 0.5
+
 class RdtRecord:
     """One RDT record as it came off the wire (counts, not physical units)."""
 
@@ -421,14 +425,23 @@ class NetFTClient:
             self._bias[:] = 0.0
 
     def tare(self) -> None:
-        """Software bias: the mean of the last ``tare_window_s`` of samples becomes zero.
+        """Software bias: the mean of the newest ``tare_window_s`` of samples becomes zero.
 
         Kept on the client (not sent as 0x42) so the raw counts stay meaningful and the
-        bias is journaled with the data; raises ``DeviceTimeout`` without recent data.
+        bias is journaled with the data; raises ``DeviceTimeout`` when no record arrived
+        in the last ``TARE_STALE_S`` (the stream has stopped). The window is the samples' own timebase, ending at
+        the newest sample: the timebase stamps samples from their sequence counter, and a
+        stream that arrives on time can still be stamped tens of ms behind the arrival
+        clock, which left an arrival-clock window empty now and then (a loopback test,
+        2 runs in 6).
         """
         now_s = self.clock.now_s()
         with self._lock:
-            rows = [c for (t, c) in self._recent if t >= now_s - self.tare_window_s]
+            fresh = self._last_arrival_s is not None and now_s - self._last_arrival_s <= max(TARE_STALE_S,
+                                                                                         self.tare_window_s)
+            newest_s = self._recent[-1][0] if self._recent else None
+            rows = [] if not fresh or newest_s is None else \
+                [c for (t, c) in self._recent if t >= newest_s - self.tare_window_s]
             if not rows:
                 raise DeviceTimeout(f"Net F/T {self.host}: no samples in the last "
                                     f"{self.tare_window_s} s to tare on")
