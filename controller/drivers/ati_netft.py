@@ -77,11 +77,12 @@ TORQUE_UNIT_TO_NM: dict[int, tuple[str, float]] = {
 }
 
 
-@dataclass(frozen=True)
 # A tare needs a live stream: the newest record arrived at most this long ago (s). The tare
 # is taken at rest in free air, so samples this old still describe the unloaded sensor.
 TARE_STALE_S = 0.5
 
+
+@dataclass(frozen=True)
 class RdtRecord:
     """One RDT record as it came off the wire (counts, not physical units)."""
 
@@ -429,7 +430,8 @@ class NetFTClient:
 
         Kept on the client (not sent as 0x42) so the raw counts stay meaningful and the
         bias is journaled with the data; raises ``DeviceTimeout`` when no record arrived
-        in the last ``TARE_STALE_S`` (the stream has stopped). The window is the samples' own timebase, ending at
+        in the last ``TARE_STALE_S`` (the stream has stopped). The window is on the
+        samples' own timebase, ending at
         the newest sample: the timebase stamps samples from their sequence counter, and a
         stream that arrives on time can still be stamped tens of ms behind the arrival
         clock, which left an arrival-clock window empty now and then (a loopback test,
