@@ -431,11 +431,10 @@ class NetFTClient:
         Kept on the client (not sent as 0x42) so the raw counts stay meaningful and the
         bias is journaled with the data; raises ``DeviceTimeout`` when no record arrived
         in the last ``TARE_STALE_S`` (the stream has stopped). The window is on the
-        samples' own timebase, ending at
-        the newest sample: the timebase stamps samples from their sequence counter, and a
-        stream that arrives on time can still be stamped tens of ms behind the arrival
-        clock, which left an arrival-clock window empty now and then (a loopback test,
-        2 runs in 6).
+        samples' own timebase, ending at the newest sample: the timebase stamps samples
+        from their sequence counter at the nominal rate, not from the arrival clock, and a
+        window on the arrival clock was found empty now and then while the stream ran (a
+        loopback test, 2 runs in 6).
         """
         now_s = self.clock.now_s()
         with self._lock:
@@ -445,8 +444,8 @@ class NetFTClient:
             rows = [] if not fresh or newest_s is None else \
                 [c for (t, c) in self._recent if t >= newest_s - self.tare_window_s]
             if not rows:
-                raise DeviceTimeout(f"Net F/T {self.host}: no samples in the last "
-                                    f"{self.tare_window_s} s to tare on")
+                raise DeviceTimeout(f"Net F/T {self.host}: no sample arrived in the last "
+                                    f"{max(TARE_STALE_S, self.tare_window_s)} s to tare on")
             self._bias = np.mean(np.asarray(rows, dtype=np.float64), axis=0) * self._scale
 
     def bias(self) -> np.ndarray:
