@@ -431,10 +431,9 @@ class NetFTClient:
         Kept on the client (not sent as 0x42) so the raw counts stay meaningful and the
         bias is journaled with the data; raises ``DeviceTimeout`` when no record arrived
         in the last ``TARE_STALE_S`` (the stream has stopped). The window is on the
-        samples' own timebase, ending at the newest sample: the timebase stamps samples
-        from their sequence counter at the nominal rate, not from the arrival clock, and a
-        window on the arrival clock was found empty now and then while the stream ran (a
-        loopback test, 2 runs in 6).
+        samples' own timebase, ending at the newest sample (the timebase stamps samples
+        from their sequence counter at the nominal rate, not from the arrival clock), so
+        a delivery pause shorter than ``TARE_STALE_S`` does not fail the tare.
         """
         now_s = self.clock.now_s()
         with self._lock:
