@@ -13,7 +13,8 @@ thread runs halts the program; the input registers outlive a program).
   dashboard reply a UR would not give is a device error;
 - the hardware process runs the same supervisor (code and gains) as the in-process cell.
 
-Each test runs on its own 127.0.0.x; everything is closed in ``finally``.
+Each test runs on its own 127.0.0.x; everything is closed in ``finally``. A pressing test whose
+served F/T stream itself stalled past the stale limit runs once more (``run_on_a_live_stream``).
 """
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ from elastoprobe.controller.drivers.ur_link import URLink, URLinkConfig
 from elastoprobe.sim.cell import SimCell, params_from_cell
 from elastoprobe.sim.servers.ur_backend import KinematicBackend
 from elastoprobe.sim.servers.ur_emulator import Cmd, UREmulator
-from test_loopback_rig import CELL, dashboard, make_rig, wait_for, wait_motion
+from test_loopback_rig import CELL, dashboard, make_rig, run_on_a_live_stream, wait_for, wait_motion
 
 FAST_RECOVERY = URLinkConfig(frequency_hz=125.0, call_timeout_s=3.0, start_timeout_s=30.0, unlock_wait_s=1.0)
 
@@ -65,8 +66,7 @@ def _still(rig, seconds: float) -> float:
 @pytest.mark.loopback
 @pytest.mark.timeout(120)
 def test_unload_after_regulation_ends_the_speed_command_first() -> None:
-    rig = make_rig(200)
-    try:
+    def scenario(rig) -> None:
         arm = rig.hw.arm
         _pressing(rig)
         time.sleep(0.3)
@@ -78,8 +78,8 @@ def test_unload_after_regulation_ends_the_speed_command_first() -> None:
         assert rig.emulator.program_running and not rig.emulator.events_of("runtime_error")
         assert rig.emulator.commands_seen[seen_before:][:2] == [Cmd.SPEED_STOP, Cmd.MOVEL]
         assert np.linalg.norm(arm.status().tcp_pose.position_mm - away.position_mm) < 0.5
-    finally:
-        rig.close()
+
+    run_on_a_live_stream(lambda: make_rig(200), scenario)
 
 
 @pytest.mark.loopback
@@ -87,8 +87,7 @@ def test_unload_after_regulation_ends_the_speed_command_first() -> None:
 def test_recovery_from_a_protective_stop_during_regulation_leaves_the_arm_still() -> None:
     """Stopped mid-ramp (the last speedL pushes into the ball at a few mm/s): after the unlock
     and the new script the arm stays put until it is commanded, then it unloads."""
-    rig = make_rig(210, unlock_delay_s=1.0, link=FAST_RECOVERY)
-    try:
+    def scenario(rig) -> None:
         arm = rig.hw.arm
         _, motion = _pressing(rig, force_n=15.0, rate_n_s=10.0, wait_done=False)
         time.sleep(0.5)
@@ -105,8 +104,8 @@ def test_recovery_from_a_protective_stop_during_regulation_leaves_the_arm_still(
         here = arm.status().tcp_pose
         away = Pose(here.position_mm + np.array([0.0, 0.0, 20.0]), here.rotation)
         assert wait_motion(arm.move_linear(away, 10.0, 500.0), 15.0) == MotionState.DONE
-    finally:
-        rig.close()
+
+    run_on_a_live_stream(lambda: make_rig(210, unlock_delay_s=1.0, link=FAST_RECOVERY), scenario)
 
 
 @pytest.mark.loopback
@@ -115,8 +114,7 @@ def test_a_force_trip_lets_its_retract_through_and_stops_a_push() -> None:
     def lower_limit(spec):
         return spec.model_copy(update={"limits": spec.limits.model_copy(update={"max_force_n": 10.0})})
 
-    rig = make_rig(220, spec_update=lower_limit)
-    try:
+    def scenario(rig) -> None:
         arm = rig.hw.arm
         d, motion = _pressing(rig, force_n=15.0, rate_n_s=20.0, wait_done=False)
         assert wait_motion(motion, 10.0) == MotionState.TRIPPED
@@ -142,8 +140,8 @@ def test_a_force_trip_lets_its_retract_through_and_stops_a_push() -> None:
         assert sup["counts"]["let_through"] > 0 and sup["counts"]["trips"] == 1
         assert arm.rearm()
         assert rig.emulator.program_running and not rig.emulator.events_of("runtime_error")
-    finally:
-        rig.close()
+
+    run_on_a_live_stream(lambda: make_rig(220, spec_update=lower_limit), scenario)
 
 
 @pytest.mark.loopback
@@ -151,8 +149,7 @@ def test_a_force_trip_lets_its_retract_through_and_stops_a_push() -> None:
 @pytest.mark.parametrize("command, reply, state", [("stop", "Stopped", "STOPPED"),
                                                    ("pause", "Pausing program", "PAUSED")])
 def test_a_dashboard_stop_leaves_the_arm_to_the_operator_until_recovery(command: str, reply: str, state: str) -> None:
-    rig = make_rig(230, unlock_delay_s=1.0, link=FAST_RECOVERY)
-    try:
+    def scenario(rig) -> None:
         arm = rig.hw.arm
         _, motion = _pressing(rig)
         programs = len(rig.emulator.programs_received)
@@ -177,8 +174,8 @@ def test_a_dashboard_stop_leaves_the_arm_to_the_operator_until_recovery(command:
         assert len(rig.emulator.programs_received) == programs + 1
         assert not arm.status().operator_stop
         assert _still(rig, 0.5) < 0.01
-    finally:
-        rig.close()
+
+    run_on_a_live_stream(lambda: make_rig(230, unlock_delay_s=1.0, link=FAST_RECOVERY), scenario)
 
 
 class _MisreadTcp(UREmulator):
@@ -246,14 +243,14 @@ def test_the_hardware_process_runs_the_in_process_cell_s_supervisor() -> None:
     supervisor that found the contact and held the force."""
     spec, _ = load_cell(CELL)
     in_process = SimCell(params_from_cell(spec, CELL.parent / spec.object.file, seed=1))
-    rig = make_rig(226)
-    try:
+
+    def scenario(rig) -> None:
         loop = rig.hw.arm.identity().extra["force_loop"]
         assert loop == in_process.arm.identity().extra["force_loop"]
         assert loop["module"] == "elastoprobe.controller.core.forceloop" and loop["class"] == "ForceSupervisor"
         _pressing(rig)
         counts = rig.hw.stats()["supervisor"]["counts"]
         assert counts["contacts"] == 1 and counts["settled"] == 1 and counts["updates"] >= 20
-    finally:
-        rig.close()
+
+    run_on_a_live_stream(lambda: make_rig(226), scenario)
 

@@ -207,6 +207,29 @@ def test_stalled_stream_is_stale_then_resumes_without_loss(make_server, make_cli
     t = np.concatenate([before.t_s, stalled.t_s, after.t_s])
     assert np.max(np.diff(t)) > 0.25      # the timebase shows the pause instead of hiding it
     assert client.counters().lost == 0 and client.counters().reanchors >= 1
+    assert client.counters().longest_gap_s > 0.25     # the client saw the silence ...
+    assert srv.log.longest_late_s < 0.1                # ... that the server was told to make
+
+
+def test_a_starved_server_logs_how_late_it_sent_and_catches_up(make_server, make_client):
+    """The server's thread held up (here: its sample source blocks 0.2 s once) is not an
+    injected fault: the log says how late the records went out, and the client's longest
+    gap shows the same silence; the burst that follows loses nothing."""
+    ramp = ramp_source(CPF)
+    calls = {"n": 0}
+
+    def slow_once(n: int):
+        calls["n"] += 1
+        if calls["n"] == 300:
+            time.sleep(0.2)
+        return ramp(n)
+
+    srv = make_server(source=slow_once, rate_hz=1000.0)
+    client = make_client(srv)
+    assert wait_until(lambda: calls["n"] > 320 and client.counters().received > 600)
+    assert srv.log.longest_late_s > 0.15
+    assert client.counters().longest_gap_s > 0.15
+    assert client.counters().lost == 0
 
 
 def test_frozen_values_and_status_bits_pass_through(make_server, make_client):

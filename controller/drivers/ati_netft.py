@@ -195,6 +195,7 @@ class NetFTCounters:
     overflowed: int = 0        # delivered records dropped because nobody read them
     resyncs: int = 0           # the device restarted its sequence under us
     reanchors: int = 0         # timebase re-anchored (stall, or rate_hz not the device's)
+    longest_gap_s: float = 0.0  # longest silence between two datagrams of one stream (s)
 
 
 class SequenceTracker:
@@ -369,6 +370,7 @@ class NetFTClient:
         self._recent: collections.deque[tuple[float, tuple[int, ...]]] = collections.deque(
             maxlen=max(16, int(2.0 * rate_hz)))
         self._last_arrival_s: float | None = None
+        self._stream_arrival_s: float | None = None   # newest arrival of the current stream
         self._streaming = False
         self._stop_event = threading.Event()
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -408,6 +410,7 @@ class NetFTClient:
         with self._lock:
             self._tracker.new_stream()
             self._timebase = _Timebase(self._rate_hz)
+            self._stream_arrival_s = None
             self._streaming = True
         self._send(build_rdt_request(CMD_START_BUFFERED if self.buffered else CMD_START_REALTIME,
                                      sample_count))
@@ -552,6 +555,9 @@ class NetFTClient:
         with self._lock:
             if not self._streaming:
                 return            # stray records after stop(): not part of any stream
+            if self._stream_arrival_s is not None:
+                self._counters.longest_gap_s = max(self._counters.longest_gap_s, arrival_s - self._stream_arrival_s)
+            self._stream_arrival_s = arrival_s
             for rec in records:
                 seq = self._tracker.accept(rec.rdt_sequence)
                 if seq is None:

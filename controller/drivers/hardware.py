@@ -613,6 +613,7 @@ class _HardwareServer:
         return {"latency": self.latency.summary(), "safety_iterations": self.safety.iterations,
                 "safety_blocks": self.safety.blocks, "link_restarts": self.link.restarts,
                 "link_child_pid": self.link.child_pid, "ft_received": c.received, "ft_lost": c.lost,
+                "ft_longest_gap_ms": c.longest_gap_s * 1e3,
                 "link_faults": [f"{f.kind}: {f.message}" for f in self.link.faults],
                 "supervisor": self.sup.describe(), "regulation_trace": list(self.trace)}
 

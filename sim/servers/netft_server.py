@@ -59,6 +59,9 @@ class NetFTServerLog:
     bias_commands: int = 0
     calinfo_requests: int = 0
     bad_requests: int = 0
+    # How far behind its sampling instant a record was sent, at worst (s): the server's own
+    # thread starved of CPU (the device itself never is), not a fault it was told to inject.
+    longest_late_s: float = 0.0
 
 
 def ramp_source(counts_per_force: int) -> WrenchSource:
@@ -278,6 +281,9 @@ class NetFTServer:
             due = min(due, self._remaining)
         if due <= 0:
             return
+        # The oldest due record was sampled at t0 + emitted/rate; it goes out now.
+        late_s = now - (self._t0 + (self._emitted + 1) / self.rate_hz)
+        self.log.longest_late_s = max(self.log.longest_late_s, late_s)
         counts, status = self._sample_raw(due)
         self._last_raw = counts[-1].copy()
         counts = counts - self._device_bias
