@@ -128,6 +128,9 @@ class ProbeExecutor:
         self.on_placement: Callable[[str, dict], None] = lambda what, est: None
         # How each force level was reached (regulation_record): for the session's log.
         self.on_regulated: Callable[[dict], None] = lambda record: None
+        # The surface normal (base frame) of the probe in flight, from its approach until its
+        # unload ends: a fault's retract backs out along it (see safe_retract).
+        self.contact_normal_base: np.ndarray | None = None
 
     # The session swaps these while it runs (a new scene after registration, a pause flag,
     # a trip it acknowledged while it retracts); they live on the toolhead that uses them.
@@ -176,6 +179,7 @@ class ProbeExecutor:
 
         self.machine.fire("go_to_target")
         head.travel_to(standoff)
+        self.contact_normal_base = n
         at_standoff()
         self.machine.fire("at_standoff")
         head.tare()
@@ -212,6 +216,7 @@ class ProbeExecutor:
         self.machine.fire("unload")
         # Unload along the normal first (backing out along -d at 10 deg would drag the tip).
         head.retract(n, s.standoff_mm + 5.0, s.contact_speed_mm_s * 2.0)
+        self.contact_normal_base = None
         self.machine.fire("retract")
         head.lift_to_travel()
 
@@ -230,8 +235,11 @@ class ProbeExecutor:
         return self.toolhead.scan_while_moving(start, end, speed_mm_s)
 
     def safe_retract(self) -> None:
-        """After a fault: the toolhead's :meth:`~.toolhead.Toolhead.safe_retract`."""
-        self.toolhead.safe_retract()
+        """After a fault: the toolhead's :meth:`~.toolhead.Toolhead.safe_retract`, unloading along
+        the surface normal of the probe in flight (if any; the push at 170 degrees on a tilted
+        face that tripped there has no upward component to back out along)."""
+        normal, self.contact_normal_base = self.contact_normal_base, None
+        self.toolhead.safe_retract(normal)
 
     # ------------------------------------------------------------------ checks
     def _check_placement(self, scans: list[Scan], poses: np.ndarray, what: str,

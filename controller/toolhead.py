@@ -167,10 +167,18 @@ class Toolhead:
             self.validator.validate_path(here, up)
             self._send_move(up, self.s.free_speed_mm_s)
 
-    def safe_retract(self) -> None:
-        """After a fault: unload straight up (slowly), then up to travel height, unvalidated
-        (the scene around a faulted arm is not known); nothing if an operator, an emergency
-        stop or a lost link has the arm."""
+    def safe_retract(self, unload_direction: np.ndarray | None = None) -> None:
+        """After a fault: unload slowly along ``unload_direction`` (unit, base frame: the
+        surface normal of the probe in flight, when there was one) or else straight up
+        along +z of the base, then up to travel height, unvalidated (the scene around a
+        faulted arm is not known); nothing if an operator, an emergency stop or a lost link
+        has the arm.
+
+        Why the normal: the guard lets a motion through a latched trip only if it moves
+        away from the contact (forceloop). A push at 170 degrees on a face tilted a few
+        degrees points slightly up; straight up then runs 0.08 into the contact, the retract
+        tripped again and an overnight run paused (generated composite plate 1011). Along
+        the normal every push angle of the plan (10-170 degrees) is left behind."""
         arm = self.cell.arm
         status = arm.status()
         # An operator who stopped the robot's program has the arm: it is not moved until resumed.
@@ -179,12 +187,17 @@ class Toolhead:
         arm.stop()
         pose = status.tcp_pose
         up = np.array([0.0, 0.0, 1.0])
-        # Unload: straight up along +z of the base (the surface normal is not known here)
-        # slowly, until the force is gone, then to travel height.
+        e = up
+        if unload_direction is not None:
+            d = np.asarray(unload_direction, dtype=float)
+            norm = float(np.linalg.norm(d))
+            if norm > 0.0 and float(d @ up) > 0.0:
+                e = d / norm
         lift_mm = max(0.0, self.travel_z_mm - pose.position_mm[2])
-        slow = Pose(pose.position_mm + up * min(20.0, lift_mm), pose.rotation)
+        slow = Pose(pose.position_mm + e * min(20.0, lift_mm), pose.rotation)
         self._send_move(slow, self.s.contact_speed_mm_s * 2)
-        self._send_move(Pose(pose.position_mm + up * lift_mm, pose.rotation), self.s.free_speed_mm_s)
+        rest_mm = max(0.0, self.travel_z_mm - slow.position_mm[2])
+        self._send_move(Pose(slow.position_mm + up * rest_mm, pose.rotation), self.s.free_speed_mm_s)
 
     # ------------------------------------------------------------------ force
     def seek_contact(self, direction: np.ndarray, max_distance_mm: float, speed_mm_s: float | None = None) -> bool:

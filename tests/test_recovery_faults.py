@@ -119,9 +119,9 @@ def test_the_retract_waits_for_a_fresh_stream(tmp_path: Path, monkeypatch: pytes
     retract_at_s: list[float] = []
     original = Toolhead.safe_retract
 
-    def timed_retract(self: Toolhead) -> None:
+    def timed_retract(self: Toolhead, *args: object) -> None:
         retract_at_s.append(self.cell.clock.now_s())
-        original(self)
+        original(self, *args)
 
     monkeypatch.setattr(Toolhead, "safe_retract", timed_retract)
     freeze_s = 0.4

@@ -102,3 +102,42 @@ def test_a_trip_while_waiting_is_a_fault_with_the_trip() -> None:
     with pytest.raises(ProbeFault) as caught:
         head.regulate_force(DOWN, 60.0, 100.0)                    # past the cell's 45 N
     assert caught.value.trip is not None and caught.value.kind == caught.value.trip.kind
+
+
+def _pushed_sideways_through_the_limit() -> tuple[Toolhead, np.ndarray]:
+    """A push at 170 degrees on a face tilted 15 degrees: the push ``d`` runs almost along the
+    face and points 0.08 up in the base frame; the face resists along ``d`` (a wall for the
+    sideways push, 20 N/mm). Regulated towards 60 N, the force trips at the 45 N limit."""
+    d = np.array([0.0, -0.9968, 0.08])
+    d /= np.linalg.norm(d)
+    wall_mm = np.array([0.0, -5.0, 5.0 + 5.0 * 0.08 / 0.9968])
+
+    def force_of(p: np.ndarray) -> np.ndarray:
+        return -d * 20.0 * max(float((p - wall_mm) @ d), 0.0)
+
+    clock = VirtualClock()
+    arm = ScriptedArm(clock, force_of, limits=LIMITS, start_mm=np.array([0.0, 0.0, 5.0]))
+    head = Toolhead(_Cell(clock, arm), SETTINGS, _Fence(100.0), travel_z_mm=40.0)
+    assert head.seek_contact(d, 20.0)
+    with pytest.raises(ProbeFault):
+        head.regulate_force(d, 60.0, 50.0)
+    assert arm.trip() is not None and arm.trip().kind == "force"
+    head.acknowledged_trip = arm.trip()
+    return head, d
+
+
+def test_a_fault_s_retract_unloads_along_the_normal_it_is_given() -> None:
+    """Straight up runs 0.08 into a contact pushed at 170 degrees: the latched guard stops it.
+    Along the face's normal (tilted 15 degrees) it leaves the contact and goes through."""
+    head, d = _pushed_sideways_through_the_limit()
+    with pytest.raises(ProbeFault):
+        head.safe_retract()
+    head, d = _pushed_sideways_through_the_limit()
+    normal = np.array([0.0, np.sin(np.radians(15.0)), np.cos(np.radians(15.0))])
+    assert float(normal @ -d) > 0.0
+    start = head.pose().position_mm
+    head.safe_retract(normal)
+    end = head.pose().position_mm
+    assert end[2] == pytest.approx(40.0, abs=1e-6)
+    assert end[1] - start[1] == pytest.approx(20.0 * normal[1], abs=1e-6)   # 20 mm along the normal first
+    assert head.cell.arm.rearm()
