@@ -128,9 +128,10 @@ class ProbeExecutor:
         self.on_placement: Callable[[str, dict], None] = lambda what, est: None
         # How each force level was reached (regulation_record): for the session's log.
         self.on_regulated: Callable[[dict], None] = lambda record: None
-        # The surface normal (base frame) of the probe in flight, from its approach until its
-        # unload ends: a fault's retract backs out along it (see safe_retract).
+        # The surface normal and point (base frame) of the probe in flight, from its approach
+        # until its unload ends: a fault's retract backs out along it (see safe_retract).
         self.contact_normal_base: np.ndarray | None = None
+        self.contact_point_base_mm: np.ndarray | None = None
 
     # The session swaps these while it runs (a new scene after registration, a pause flag,
     # a trip it acknowledged while it retracts); they live on the toolhead that uses them.
@@ -179,7 +180,7 @@ class ProbeExecutor:
 
         self.machine.fire("go_to_target")
         head.travel_to(standoff)
-        self.contact_normal_base = n
+        self.contact_normal_base, self.contact_point_base_mm = n, self.cell.base_to_object.apply(target.point_mm)
         at_standoff()
         self.machine.fire("at_standoff")
         head.tare()
@@ -216,7 +217,7 @@ class ProbeExecutor:
         self.machine.fire("unload")
         # Unload along the normal first (backing out along -d at 10 deg would drag the tip).
         head.retract(n, s.standoff_mm + 5.0, s.contact_speed_mm_s * 2.0)
-        self.contact_normal_base = None
+        self.contact_normal_base = self.contact_point_base_mm = None
         self.machine.fire("retract")
         head.lift_to_travel()
 
@@ -236,9 +237,15 @@ class ProbeExecutor:
 
     def safe_retract(self) -> None:
         """After a fault: the toolhead's :meth:`~.toolhead.Toolhead.safe_retract`, unloading along
-        the surface normal of the probe in flight (if any; the push at 170 degrees on a tilted
-        face that tripped there has no upward component to back out along)."""
-        normal, self.contact_normal_base = self.contact_normal_base, None
+        the surface normal of the probe in flight (the push at 170 degrees on a tilted face
+        that tripped there has no upward component to back out along) while the arm is still
+        where that probe can have taken it; else straight up (moved since, by an operator)."""
+        normal, point = self.contact_normal_base, self.contact_point_base_mm
+        self.contact_normal_base = self.contact_point_base_mm = None
+        if normal is not None and point is not None:
+            reach_mm = self.s.standoff_mm + self.s.search_mm + self.s.tip_radius_mm
+            if float(np.linalg.norm(self.toolhead.pose().position_mm - point)) > reach_mm:
+                normal = None
         self.toolhead.safe_retract(normal)
 
     # ------------------------------------------------------------------ checks
