@@ -37,6 +37,30 @@ def test_probe_executor_runs_force_levels_on_the_sim():
         # The measured force direction: the probe pushes down into the ball top.
         assert step.measured_direction()[2] < -0.99
     assert cell.arm.trip() is None and cell.world.contact is None
+    assert ex.contact_normal_base is None            # unloaded: no probe in flight
+
+
+def test_a_fault_s_retract_uses_the_probe_s_normal_only_within_its_reach():
+    """The normal of the probe in flight is handed to the toolhead's retract while the arm is
+    within standoff + search + tip radius of its point; farther (moved by hand since) it is
+    straight up. Either way the retract forgets it."""
+    cell = make_cell()
+    ex = _executor(cell)
+    given = []
+    ex.toolhead.safe_retract = lambda direction=None: given.append(direction)
+    here = ex.toolhead.pose().position_mm
+    normal = np.array([0.0, np.sin(0.2), np.cos(0.2)])
+    reach_mm = ex.s.standoff_mm + ex.s.search_mm + ex.s.tip_radius_mm
+    for offset_mm, expected in ((reach_mm - 1.0, normal), (reach_mm + 1.0, None)):
+        ex.contact_normal_base = normal
+        ex.contact_point_base_mm = here + np.array([offset_mm, 0.0, 0.0])
+        ex.safe_retract()
+        assert (given[-1] is None) == (expected is None)
+        if expected is not None:
+            np.testing.assert_array_equal(given[-1], expected)
+        assert ex.contact_normal_base is None and ex.contact_point_base_mm is None
+    ex.safe_retract()                                # nothing in flight: straight up
+    assert given[-1] is None
 
 
 def test_scan_while_moving_gives_profiles_along_the_sweep():
