@@ -237,9 +237,9 @@ class ProbeExecutor:
 
     def safe_retract(self) -> None:
         """After a fault: the toolhead's :meth:`~.toolhead.Toolhead.safe_retract`, unloading along
-        the surface normal of the probe in flight (the push at 170 degrees on a tilted face
-        that tripped there has no upward component to back out along) while the arm is still
-        where that probe can have taken it; else straight up (moved since, by an operator)."""
+        the surface normal of the probe in flight (straight up can run into a push at 170
+        degrees on a tilted face, which points slightly up) while the arm is still where that
+        probe can have taken it; else straight up (moved since, by an operator)."""
         normal, point = self.contact_normal_base, self.contact_point_base_mm
         self.contact_normal_base = self.contact_point_base_mm = None
         if normal is not None and point is not None:
