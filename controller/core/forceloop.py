@@ -9,7 +9,13 @@ F/T samples. What the probe does with them is decided here, by :class:`ForceSupe
 - **force regulation**: a PI loop on |F| with feed-forward of the reference ramp, commanding
   the speed along d once per ``ForceLoopGains.period_s``; its gain follows an online
   estimate of the contact stiffness (N/mm from successive (dF, du) pairs), because rubber is
-  ~50x stiffer than foam. DONE once |error| <= max(tolerance_n, tolerance_rel x target) for
+  ~50x stiffer than foam. The estimate starts from ``initial_stiffness_n_mm``, a guess: the
+  first pair whose force changed by more than the loop's tolerance replaces it, and a
+  regulation that follows another on the same contact (same push, nothing commanded between:
+  the next force level) starts from where that one's estimate ended. A guess 50x too soft
+  commands 50x the speed, and with the arm's acceleration limit the probe bounced off hard
+  rubber and came back at the loop's top speed: 3-4x the target force at every level, and
+  force-rate trips. DONE once |error| <= max(tolerance_n, tolerance_rel x target) for
   ``settle_updates`` periods at the target; then it keeps holding (foam creeps: the
   integrator keeps pushing) until the next command.
 - **the trip policy**: the first crossing of a safety limit (:class:`~.safety.SafetyGuard`,
@@ -55,6 +61,9 @@ _STIFFNESS_MIN_STEP_MM = 2e-3
 _STIFFNESS_MIN_FORCE_N = 0.3
 _STIFFNESS_RANGE_N_MM = (0.05, 1000.0)
 _STIFFNESS_BLEND = 0.2
+# A regulation carries the previous one's estimate only along the same push (within ~2.6 deg):
+# the stiffness along another direction of the same contact is another number.
+_SAME_PUSH_COS = 0.999
 
 # While a trip is latched, a motion that unloads may see the force stay above the limit
 # for a while (the arm decelerates, the material relaxes): a reading more than this
@@ -141,6 +150,7 @@ class Regulation:
     rate_n_s: float
     start_n: float
     stiffness_n_mm: float
+    stiffness_measured: bool = False     # the estimate rests on a measured pair, not the guess
     integral: float = 0.0
     last_force_n: float | None = None
     last_u_mm: float = 0.0
@@ -164,8 +174,14 @@ class Regulation:
             df = force_n - self.last_force_n
             if abs(du) > _STIFFNESS_MIN_STEP_MM and force_n > _STIFFNESS_MIN_FORCE_N and df * du > 0:
                 k_obs = min(max(df / du, _STIFFNESS_RANGE_N_MM[0]), _STIFFNESS_RANGE_N_MM[1])
-                self.stiffness_n_mm = math.exp((1.0 - _STIFFNESS_BLEND) * math.log(self.stiffness_n_mm)
-                                               + _STIFFNESS_BLEND * math.log(k_obs))
+                if not self.stiffness_measured and abs(df) > g.tolerance_n:
+                    # The first pair the force noise cannot make: evidence, where the
+                    # estimate so far was a guess (blending it in would take ~10 periods).
+                    self.stiffness_n_mm = k_obs
+                    self.stiffness_measured = True
+                else:
+                    self.stiffness_n_mm = math.exp((1.0 - _STIFFNESS_BLEND) * math.log(self.stiffness_n_mm)
+                                                   + _STIFFNESS_BLEND * math.log(k_obs))
         self.last_force_n, self.last_u_mm = force_n, u_mm
         ref = self.reference_n(elapsed_s)
         ref_next = self.reference_n(elapsed_s + period_s)
@@ -423,13 +439,21 @@ class ForceSupervisor:
     def begin_regulation(self, direction: np.ndarray, target_n: float, rate_n_s: float, t_s: float,
                          force_n: float) -> SupervisedMotion:
         """A force regulation whose reference ramps from ``force_n`` (the force the loop reads
-        now); its first update is due at ``t_s``."""
+        now); its first update is due at ``t_s``.
+
+        Directly after a regulation along the same push (nothing commanded between: the probe
+        still presses the same contact), it starts from that one's stiffness estimate, not
+        from the guess."""
         if not (target_n >= 0 and rate_n_s > 0):
             raise MotionRefused("regulate_force needs a target >= 0 N and a positive rate")
         d = _unit(direction)
+        before = self.regulation
         motion = self._begin("regulate_force", d)
+        stiffness, measured = self.gains.initial_stiffness_n_mm, False
+        if before is not None and before.stiffness_measured and float(before.direction @ d) >= _SAME_PUSH_COS:
+            stiffness, measured = before.stiffness_n_mm, True
         self.regulation = Regulation(self.gains, d, float(target_n), float(rate_n_s), float(force_n),
-                                     self.gains.initial_stiffness_n_mm)
+                                     stiffness, stiffness_measured=measured)
         self._reg_t0_s = self._next_update_s = float(t_s)
         self.counts.regulations += 1
         return motion
