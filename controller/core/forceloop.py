@@ -543,9 +543,13 @@ class ForceSupervisor:
         if self._rise_below is None or self._rise_hit is None:
             return None
         (t0, f0), (t1, f1) = self._rise_below, self._rise_hit
-        if t1 <= t0 or f1 <= f0:
+        # On the microsecond grid: the difference of two float clock readings carries the
+        # rounding of their absolute size, and a step must give the same numbers whenever
+        # it runs (a resumed session replays it at another time).
+        dt_s = round((t1 - t0) * 1e6) / 1e6
+        if dt_s <= 0 or f1 <= f0:
             return None
-        k = (f1 - f0) / (search.speed_mm_s * (t1 - t0))
+        k = (f1 - f0) / (search.speed_mm_s * dt_s)
         return min(max(k, _STIFFNESS_RANGE_N_MM[0]), _STIFFNESS_RANGE_N_MM[1])
 
     def contact(self, note: str = "") -> None:
