@@ -25,6 +25,12 @@ from .core.devices import ArmStatus, Cell, Motion, MotionState, Scan, Trip, Wren
 from .core.errors import DeviceError, MotionRefused
 from .core.geometry import Pose, matrix_to_rotvec, rotvec_to_matrix
 
+# Where a wound wrist that cannot unwind in place unwinds instead: this far (mm) out from
+# the robot's base axis, nearest first. The scanner turning about the tool sweeps a circle
+# of about its offset from the tool axis (~150 mm on the shipped mount); a few of those
+# clear a keep-out the tool stood next to.
+UNWIND_AWAY_MM = (75.0, 150.0, 300.0)
+
 
 class ProbeFault(Exception):
     """A motion or measurement could not be completed; ``kind`` matches the plan's fault policy keys."""
@@ -127,10 +133,13 @@ class Toolhead:
         the tool about its axis at travel height first (120 or 240 deg, either way) and go
         from there: a change of approach that turns the tool half over about its axis
         (45 -> 135 deg) can need the last wrist joint past its limit on the geodesic, while
-        the same end pose is reached within it the other way round.
+        the same end pose is reached within it the other way round. Last, with the last
+        wrist joint still wound beyond half a turn (its unwinding where the arm is was
+        refused: near the robot, the turning scanner meets the column's keep-out), move
+        out from the robot and unwind there (:meth:`_unwound_away_route`).
         """
         self.sync_validator()
-        self._unwind_wrist()
+        wound = not self._unwind_wrist()
         here = self.pose()
         routes = [lambda: self._route(here, target)]
         if self.park_pose is not None:
@@ -138,6 +147,10 @@ class Toolhead:
             routes.append(lambda: self._route(here, park) + self._route(park, target))
         for turns in (1, -1, 2, -2):
             routes.append(lambda turns=turns: self._turned_route(here, target, turns))
+        if wound:
+            for out_mm in UNWIND_AWAY_MM:
+                for sign in (-1, 1):
+                    routes.append(lambda sign=sign, out_mm=out_mm: self._unwound_away_route(here, target, sign, out_mm))
         refused: MotionRefused | None = None
         for route in routes:
             try:
@@ -373,7 +386,24 @@ class Toolhead:
             start = turned
         return legs, start
 
-    def _unwind_wrist(self, max_wrist_rad: float = np.pi, leg_rad: float = np.radians(120.0)) -> None:
+    def _unwound_away_route(self, here: Pose, target: Pose, sign: int, out_mm: float) -> list[tuple[Pose, Pose]]:
+        """Up to travel height and ``out_mm`` straight away from the robot's base axis with
+        the tool as it is, a full turn about the tool axis there (three 120 deg legs, the
+        sign their direction), then the usual route to ``target``.
+
+        Away from the base axis the base joint keeps its angle, so the wound joint does not
+        wind further on the way (any new orientation, or a move around the base, needs it
+        past its limit too), and the turning scanner clears the robot's column."""
+        radial = np.array([here.position_mm[0], here.position_mm[1], 0.0])
+        norm = float(np.linalg.norm(radial))
+        if norm < 1e-6:
+            raise MotionRefused("no direction away from the base axis")
+        spot = Pose(np.array([*(here.position_mm[:2] + radial[:2] / norm * out_mm),
+                              max(self.travel_z_mm, here.position_mm[2])]), here.rotation)
+        turn, turned = self._wrist_turn_legs(spot, 3 * sign, np.radians(120.0))
+        return self._route(here, spot) + turn + self._route(turned, target)
+
+    def _unwind_wrist(self, max_wrist_rad: float = np.pi, leg_rad: float = np.radians(120.0)) -> bool:
         """Turn the last wrist joint back by a full turn at travel height when it has wound
         beyond half a turn.
 
@@ -383,12 +413,13 @@ class Toolhead:
         session starts from another history than an uninterrupted one, so the wrist is
         brought back into (-180, 180] deg before every travel: routes then depend on
         where the arm is, not on how it got there. Three 120 deg turns about the tool
-        axis (each a valid straight move); skipped if refused.
+        axis (each a valid straight move); skipped if refused. Returns False when the wrist
+        stays wound.
         """
         arm = self.cell.arm
         q = np.asarray(arm.status().joints_rad, dtype=float)
         if abs(q[5]) <= max_wrist_rad or not hasattr(self.validator, "seed_joints"):
-            return
+            return True
         here = arm.status().tcp_pose
         saved = np.array(self.validator.seed_joints, dtype=float)   # type: ignore[attr-defined]
         for sign in (-1, 1):
@@ -403,7 +434,8 @@ class Toolhead:
             self.validator.seed_joints = saved   # type: ignore[attr-defined]
             if abs(end_q6) < abs(q[5]) - np.pi:
                 self._travel_legs(legs)
-                return
+                return True
+        return False
 
     def _route(self, here: Pose, target: Pose) -> list[tuple[Pose, Pose]]:
         travel_z = self.travel_z_mm

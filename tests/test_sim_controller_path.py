@@ -6,9 +6,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from elastoprobe.controller.core.geometry import Pose, probe_tcp_pose
+from elastoprobe.controller.core.collision import Box, SceneChecker, ToolShape
+from elastoprobe.controller.core.config import load_cell
+from elastoprobe.controller.core.errors import MotionRefused
+from elastoprobe.controller.core.geometry import Pose, probe_tcp_pose, rotvec_to_matrix
+from elastoprobe.controller.core.validation import PathValidator, arm_model_for
 from elastoprobe.controller.machine import SessionMachine
 from elastoprobe.controller.probe import ForceLevel, ProbeExecutor, ProbeSettings, ProbeTarget
+from elastoprobe.controller.toolhead import MotionSettings, Toolhead
 
 from test_sim_helpers import ROOT, make_cell
 
@@ -101,3 +106,37 @@ def test_scan_while_moving_gives_profiles_along_the_sweep():
     ys = poses[:, 1]
     assert np.all(np.diff(ys) >= -1e-9) and ys[-1] - ys[0] > 100.0
     assert sum(np.isfinite(s.z_mm).sum() for s in scans) > 1000
+
+
+def test_a_wound_wrist_that_cannot_unwind_by_the_column_unwinds_farther_out():
+    """Recorded on generated slab 1002 (seed 1): after the 105 degree probe of a target 120 mm
+    in front of the robot the last wrist joint stood at 339 deg. The 135 degree approach
+    needs it past its 360 deg limit; unwinding in place turned the scanner into the robot's
+    column on the second 120 deg leg; so every route was refused, and the target lost its
+    135, 155 and 170 degree steps (28 such refusals on 7 of 12 suite objects). The arm now
+    moves out from the robot with the tool as it is, unwinds there, and goes on."""
+    spec, _ = load_cell(ROOT / "config" / "cells" / "sim.yaml")
+    wound_rad = np.array([2.790507, -2.001782, 2.57705, -2.233654, -1.801466, 5.922116])
+    cell = make_cell(base_x_mm=700.0, home_joints_deg=tuple(np.degrees(wound_rad)))
+    lim = spec.limits
+    checker = SceneChecker([ToolShape(name=s.name, kind=s.kind, pose_in_tcp=s.pose.pose(), radius_mm=s.radius_mm,
+                                      length_mm=s.length_mm, size_mm=s.size_mm) for s in spec.tool.shapes],
+                           None, [Box(b.name, np.array(b.min_mm), np.array(b.max_mm)) for b in lim.keep_out],
+                           Box("workspace", np.array(lim.workspace.min_mm), np.array(lim.workspace.max_mm)))
+    validator = PathValidator(arm_model_for(spec), checker, cell.arm.status().joints_rad, 40.0)
+    settings = MotionSettings(contact_force_n=0.4, contact_speed_mm_s=5.0, free_speed_mm_s=150.0,
+                              free_accel_mm_s2=600.0)
+    head = Toolhead(cell, settings, validator, travel_z_mm=92.22)
+    here = head.pose()
+    np.testing.assert_allclose(here.position_mm, [281.731, -24.435, 92.222], atol=0.01)
+    standoff_135 = Pose(np.array([281.743, -13.608, 47.994]), rotvec_to_matrix(np.array([1.769966, -1.770955, 0.718709])))
+    with pytest.raises(MotionRefused, match="keep-out box 'robot_column'"):
+        for a, b in head._wrist_turn_legs(here, -3, np.radians(120.0))[0]:
+            validator.validate_path(a, b)
+    validator.seed_joints = cell.arm.status().joints_rad
+    head.travel_to(standoff_135)
+    arrived = head.pose()
+    d_mm, d_deg = arrived.distance_to(standoff_135)
+    assert d_mm < 0.01 and d_deg < 0.01
+    assert abs(cell.arm.status().joints_rad[5]) <= np.pi
+
