@@ -17,9 +17,10 @@ F/T samples. What the probe does with them is decided here, by :class:`ForceSupe
   guess: the force's rise from half the threshold to the threshold over the search's speed
   (:meth:`ForceSupervisor.seek_samples`). A guess 50x too soft commands 50x the speed, and
   with the arm's acceleration limit the probe bounced off hard rubber and came back at the
-  loop's top speed: 3-4x the target force at every level, and force-rate trips. DONE once |error| <= max(tolerance_n, tolerance_rel x target) for
-  ``settle_updates`` periods at the target; then it keeps holding (foam creeps: the
-  integrator keeps pushing) until the next command.
+  loop's top speed: 3-4x the target force at every level, and force-rate trips. DONE once
+  |error| <= max(tolerance_n, tolerance_rel x target) for ``settle_updates`` periods at the
+  target; then it keeps holding (foam creeps: the integrator keeps pushing) until the next
+  command.
 - **the trip policy**: the first crossing of a safety limit (:class:`~.safety.SafetyGuard`,
   checked where the data arrives) stops the arm and latches. While it is latched, a motion
   commanded after the trip that *unloads* — it moves away from the contact and the force
@@ -452,7 +453,8 @@ class ForceSupervisor:
         now); its first update is due at ``t_s``.
 
         Directly after a regulation along the same push (nothing commanded between: the probe
-        still presses the same contact), it starts from that one's stiffness estimate, not
+        still presses the same contact), it starts from that one's stiffness estimate; directly
+        after a contact search along it, from the touch's when stiffer than the guess; else
         from the guess."""
         if not (target_n >= 0 and rate_n_s > 0):
             raise MotionRefused("regulate_force needs a target >= 0 N and a positive rate")
