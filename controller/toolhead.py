@@ -135,8 +135,9 @@ class Toolhead:
         (45 -> 135 deg) can need the last wrist joint past its limit on the geodesic, while
         the same end pose is reached within it the other way round. Last, with the last
         wrist joint still wound beyond half a turn (its unwinding where the arm is was
-        refused: near the robot, the turning scanner meets the column's keep-out), move
-        out from the robot and unwind there (:meth:`_unwound_away_route`).
+        refused: near the robot, the turning scanner meets the column's keep-out), turn back
+        what the column allows, move out from the robot and finish unwinding there
+        (:meth:`_unwound_away_route`).
         """
         self.sync_validator()
         wound = not self._unwind_wrist()
@@ -148,9 +149,11 @@ class Toolhead:
         for turns in (1, -1, 2, -2):
             routes.append(lambda turns=turns: self._turned_route(here, target, turns))
         if wound:
-            for out_mm in UNWIND_AWAY_MM:
-                for sign in (-1, 1):
-                    routes.append(lambda sign=sign, out_mm=out_mm: self._unwound_away_route(here, target, sign, out_mm))
+            for turns_here in (0, 1, 2):
+                for out_mm in UNWIND_AWAY_MM:
+                    for sign in (-1, 1):
+                        routes.append(lambda sign=sign, out_mm=out_mm, turns_here=turns_here:
+                                      self._unwound_away_route(here, target, sign, out_mm, turns_here))
         refused: MotionRefused | None = None
         for route in routes:
             try:
@@ -386,22 +389,26 @@ class Toolhead:
             start = turned
         return legs, start
 
-    def _unwound_away_route(self, here: Pose, target: Pose, sign: int, out_mm: float) -> list[tuple[Pose, Pose]]:
-        """Up to travel height and ``out_mm`` straight away from the robot's base axis with
-        the tool as it is, a full turn about the tool axis there (three 120 deg legs, the
-        sign their direction), then the usual route to ``target``.
+    def _unwound_away_route(self, here: Pose, target: Pose, sign: int, out_mm: float,
+                            turns_here: int) -> list[tuple[Pose, Pose]]:
+        """Up to travel height, ``turns_here`` of the unwinding's three 120 deg legs about the
+        tool axis where the arm is (``sign``: their direction), ``out_mm`` straight away from
+        the robot's base axis with the tool as it then is, the rest of the full turn there,
+        then the usual route to ``target``.
 
-        Away from the base axis the base joint keeps its angle, so the wound joint does not
-        wind further on the way (any new orientation, or a move around the base, needs it
-        past its limit too), and the turning scanner clears the robot's column."""
-        radial = np.array([here.position_mm[0], here.position_mm[1], 0.0])
+        Out from the base axis the base joint keeps its angle and the wound joint turns
+        little, and the turning scanner clears the robot's column; a joint wound within a
+        few degrees of its limit turns back a leg or two where it is first (as far as the
+        column allows) to have room for the move out."""
+        radial = np.array([here.position_mm[0], here.position_mm[1]])
         norm = float(np.linalg.norm(radial))
         if norm < 1e-6:
             raise MotionRefused("no direction away from the base axis")
-        spot = Pose(np.array([*(here.position_mm[:2] + radial[:2] / norm * out_mm),
-                              max(self.travel_z_mm, here.position_mm[2])]), here.rotation)
-        turn, turned = self._wrist_turn_legs(spot, 3 * sign, np.radians(120.0))
-        return self._route(here, spot) + turn + self._route(turned, target)
+        legs, turned = self._wrist_turn_legs(here, turns_here * sign, np.radians(120.0))
+        spot = Pose(np.array([*(turned.position_mm[:2] + radial / norm * out_mm), turned.position_mm[2]]),
+                    turned.rotation)
+        rest, unwound = self._wrist_turn_legs(spot, (3 - turns_here) * sign, np.radians(120.0))
+        return legs + [(turned, spot)] + rest + self._route(unwound, target)
 
     def _unwind_wrist(self, max_wrist_rad: float = np.pi, leg_rad: float = np.radians(120.0)) -> bool:
         """Turn the last wrist joint back by a full turn at travel height when it has wound

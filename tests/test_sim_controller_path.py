@@ -108,16 +108,29 @@ def test_scan_while_moving_gives_profiles_along_the_sweep():
     assert sum(np.isfinite(s.z_mm).sum() for s in scans) > 1000
 
 
-def test_a_wound_wrist_that_cannot_unwind_by_the_column_unwinds_farther_out():
-    """Recorded on generated slab 1002 (seed 1): after the 105 degree probe of a target 120 mm
-    in front of the robot the last wrist joint stood at 339 deg. The 135 degree approach
-    needs it past its 360 deg limit; unwinding in place turned the scanner into the robot's
-    column on the second 120 deg leg; so every route was refused, and the target lost its
-    135, 155 and 170 degree steps (28 such refusals on 7 of 12 suite objects). The arm now
-    moves out from the robot with the tool as it is, unwinds there, and goes on."""
+# Recorded after a target's 105 degree probe on generated slab 1002 and sheet 1009 (seed 1):
+# the arm's joints (rad), the travel height, and the 135 degree standoff (mm, rotation vector).
+WOUND_BY_THE_COLUMN = {
+    "slab 1002, 339 deg": ([2.790507, -2.001782, 2.57705, -2.233654, -1.801466, 5.922116], 92.22,
+                           [281.743, -13.608, 47.994], [1.769966, -1.770955, 0.718709]),
+    "sheet 1009, 357 deg": ([3.092978, -2.082879, 2.646783, -2.263116, -1.856804, 6.23284], 89.12,
+                            [257.469, 58.647, 35.753], [1.727317, -1.814671, 0.866098]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(WOUND_BY_THE_COLUMN))
+def test_a_wound_wrist_that_cannot_unwind_by_the_column_unwinds_farther_out(case: str):
+    """After the 105 degree probe of a target ~120 mm in front of the robot, the last wrist
+    joint stood at 339 (1002) or 357 deg (1009). The 135 degree approach needs it past its
+    360 deg limit; unwinding in place turned the scanner into the robot's column on the
+    second 120 deg leg; so every route was refused, and the target lost its 135, 155 and 170
+    degree steps (28 such refusals on 7 of 12 suite objects). The arm now turns back what
+    the column allows where it is, moves out from the robot with the tool as it then is,
+    finishes the full turn there and goes on (at 357 deg even the move out needs the first
+    leg: the joint turns a few degrees as the arm reaches out)."""
+    joints_rad, travel_z_mm, standoff_mm, standoff_rotvec = WOUND_BY_THE_COLUMN[case]
     spec, _ = load_cell(ROOT / "config" / "cells" / "sim.yaml")
-    wound_rad = np.array([2.790507, -2.001782, 2.57705, -2.233654, -1.801466, 5.922116])
-    cell = make_cell(base_x_mm=700.0, home_joints_deg=tuple(np.degrees(wound_rad)))
+    cell = make_cell(base_x_mm=700.0, home_joints_deg=tuple(np.degrees(joints_rad)))
     lim = spec.limits
     checker = SceneChecker([ToolShape(name=s.name, kind=s.kind, pose_in_tcp=s.pose.pose(), radius_mm=s.radius_mm,
                                       length_mm=s.length_mm, size_mm=s.size_mm) for s in spec.tool.shapes],
@@ -126,17 +139,14 @@ def test_a_wound_wrist_that_cannot_unwind_by_the_column_unwinds_farther_out():
     validator = PathValidator(arm_model_for(spec), checker, cell.arm.status().joints_rad, 40.0)
     settings = MotionSettings(contact_force_n=0.4, contact_speed_mm_s=5.0, free_speed_mm_s=150.0,
                               free_accel_mm_s2=600.0)
-    head = Toolhead(cell, settings, validator, travel_z_mm=92.22)
+    head = Toolhead(cell, settings, validator, travel_z_mm=travel_z_mm)
     here = head.pose()
-    np.testing.assert_allclose(here.position_mm, [281.731, -24.435, 92.222], atol=0.01)
-    standoff_135 = Pose(np.array([281.743, -13.608, 47.994]), rotvec_to_matrix(np.array([1.769966, -1.770955, 0.718709])))
+    standoff_135 = Pose(np.array(standoff_mm), rotvec_to_matrix(np.array(standoff_rotvec)))
     with pytest.raises(MotionRefused, match="keep-out box 'robot_column'"):
         for a, b in head._wrist_turn_legs(here, -3, np.radians(120.0))[0]:
             validator.validate_path(a, b)
     validator.seed_joints = cell.arm.status().joints_rad
     head.travel_to(standoff_135)
-    arrived = head.pose()
-    d_mm, d_deg = arrived.distance_to(standoff_135)
+    d_mm, d_deg = head.pose().distance_to(standoff_135)
     assert d_mm < 0.01 and d_deg < 0.01
     assert abs(cell.arm.status().joints_rad[5]) <= np.pi
-
