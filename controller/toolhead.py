@@ -25,6 +25,12 @@ from .core.devices import ArmStatus, Cell, Motion, MotionState, Scan, Trip, Wren
 from .core.errors import DeviceError, MotionRefused
 from .core.geometry import Pose, matrix_to_rotvec, rotvec_to_matrix
 
+# Where a wound wrist that cannot unwind in place unwinds instead: this far (mm) out from
+# the robot's base axis, nearest first. The scanner turning about the tool sweeps a circle
+# of about its offset from the tool axis (~150 mm on the shipped mount); a few of those
+# clear a keep-out the tool stood next to.
+UNWIND_AWAY_MM = (75.0, 150.0, 300.0)
+
 
 class ProbeFault(Exception):
     """A motion or measurement could not be completed; ``kind`` matches the plan's fault policy keys."""
@@ -127,10 +133,14 @@ class Toolhead:
         the tool about its axis at travel height first (120 or 240 deg, either way) and go
         from there: a change of approach that turns the tool half over about its axis
         (45 -> 135 deg) can need the last wrist joint past its limit on the geodesic, while
-        the same end pose is reached within it the other way round.
+        the same end pose is reached within it the other way round. Last, with the last
+        wrist joint still wound beyond half a turn (its unwinding where the arm is was
+        refused: near the robot, the turning scanner meets the column's keep-out), turn back
+        what the column allows, move out from the robot and finish unwinding there
+        (:meth:`_unwound_away_route`).
         """
         self.sync_validator()
-        self._unwind_wrist()
+        wound = not self._unwind_wrist()
         here = self.pose()
         routes = [lambda: self._route(here, target)]
         if self.park_pose is not None:
@@ -138,6 +148,12 @@ class Toolhead:
             routes.append(lambda: self._route(here, park) + self._route(park, target))
         for turns in (1, -1, 2, -2):
             routes.append(lambda turns=turns: self._turned_route(here, target, turns))
+        if wound:
+            for turns_here in (0, 1, 2):
+                for out_mm in UNWIND_AWAY_MM:
+                    for sign in (-1, 1):
+                        routes.append(lambda sign=sign, out_mm=out_mm, turns_here=turns_here:
+                                      self._unwound_away_route(here, target, sign, out_mm, turns_here))
         refused: MotionRefused | None = None
         for route in routes:
             try:
@@ -373,7 +389,28 @@ class Toolhead:
             start = turned
         return legs, start
 
-    def _unwind_wrist(self, max_wrist_rad: float = np.pi, leg_rad: float = np.radians(120.0)) -> None:
+    def _unwound_away_route(self, here: Pose, target: Pose, sign: int, out_mm: float,
+                            turns_here: int) -> list[tuple[Pose, Pose]]:
+        """Up to travel height, ``turns_here`` of the unwinding's three 120 deg legs about the
+        tool axis where the arm is (``sign``: their direction), ``out_mm`` straight away from
+        the robot's base axis with the tool as it then is, the rest of the full turn there,
+        then the usual route to ``target``.
+
+        Out from the base axis the base joint keeps its angle and the wound joint turns
+        little, and the turning scanner clears the robot's column; a joint wound within a
+        few degrees of its limit turns back a leg or two where it is first (as far as the
+        column allows) to have room for the move out."""
+        radial = np.array([here.position_mm[0], here.position_mm[1]])
+        norm = float(np.linalg.norm(radial))
+        if norm < 1e-6:
+            raise MotionRefused("no direction away from the base axis")
+        legs, turned = self._wrist_turn_legs(here, turns_here * sign, np.radians(120.0))
+        spot = Pose(np.array([*(turned.position_mm[:2] + radial / norm * out_mm), turned.position_mm[2]]),
+                    turned.rotation)
+        rest, unwound = self._wrist_turn_legs(spot, (3 - turns_here) * sign, np.radians(120.0))
+        return legs + [(turned, spot)] + rest + self._route(unwound, target)
+
+    def _unwind_wrist(self, max_wrist_rad: float = np.pi, leg_rad: float = np.radians(120.0)) -> bool:
         """Turn the last wrist joint back by a full turn at travel height when it has wound
         beyond half a turn.
 
@@ -383,12 +420,13 @@ class Toolhead:
         session starts from another history than an uninterrupted one, so the wrist is
         brought back into (-180, 180] deg before every travel: routes then depend on
         where the arm is, not on how it got there. Three 120 deg turns about the tool
-        axis (each a valid straight move); skipped if refused.
+        axis (each a valid straight move); skipped if refused. Returns False when the wrist
+        stays wound.
         """
         arm = self.cell.arm
         q = np.asarray(arm.status().joints_rad, dtype=float)
         if abs(q[5]) <= max_wrist_rad or not hasattr(self.validator, "seed_joints"):
-            return
+            return True
         here = arm.status().tcp_pose
         saved = np.array(self.validator.seed_joints, dtype=float)   # type: ignore[attr-defined]
         for sign in (-1, 1):
@@ -403,7 +441,8 @@ class Toolhead:
             self.validator.seed_joints = saved   # type: ignore[attr-defined]
             if abs(end_q6) < abs(q[5]) - np.pi:
                 self._travel_legs(legs)
-                return
+                return True
+        return False
 
     def _route(self, here: Pose, target: Pose) -> list[tuple[Pose, Pose]]:
         travel_z = self.travel_z_mm

@@ -593,6 +593,20 @@ class SimArm:
             return ends
         return hit
 
+    def _sim_seek_samples(self, samples, cut: int) -> None:
+        """The committed samples of a sub-chunk, while a contact search runs: to the
+        supervisor, as the real sensor's blocks reach it (the touch's force rise)."""
+        if self.supervisor.search is None:
+            return
+        mags = samples.fmag[:cut] if samples.fmag is not None else None
+        if mags is None:
+            return
+        ts_s = samples.ts_us[:cut] / US_PER_S
+        if not samples.all_delivered:
+            keep = samples.delivered[:cut]
+            ts_s, mags = ts_s[keep], mags[keep]
+        self.supervisor.seek_samples(ts_s, mags)
+
     def _sim_on_event(self, t_us: int) -> None:
         """The contact search met its threshold at the last committed sample: stop, CONTACT."""
         if self.supervisor.search is not None:

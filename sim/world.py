@@ -531,6 +531,7 @@ class SimWorld:
         if event == "slip" and trip is None:
             trip = self.guard.check_slip(float(dry.slip_mm[slip_trip_at]), float(dry.ts_us[slip_trip_at]) / US_PER_S)
         self.ft._sim_commit(samples, cut)
+        self.arm._sim_seek_samples(samples, cut)
         self._commit(dry, cut, fmax_cut[1] if fmax_cut is not None and fmax_cut[0] == cut else None)
         if trip is not None and self.trip is None:
             self.trip = _trip_truncated(trip, self.guard)

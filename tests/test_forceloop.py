@@ -142,6 +142,89 @@ def test_regulation_holds_still_while_the_ft_stream_stalls() -> None:
     assert wait(clock, motion) == MotionState.DONE
 
 
+@pytest.mark.parametrize("stiffness_n_mm", [60.0, 200.0])
+def test_the_next_force_level_starts_from_the_contact_s_stiffness(stiffness_n_mm: float) -> None:
+    """A probe's force levels (1, 2.5, 4.5, 7, 10 N) on one contact, hard-rubber stiff, with a
+    robot's command delay. Each level used to start from the 2 N/mm guess: 30-100x too soft,
+    its feed-forward alone drove 5 mm/s into the surface, the probe bounced off it and came
+    back at top speed (5-15 N over every target, a force-rate trip at 200 N/mm). From the
+    second level on the loop starts from the estimate the first one measured. (The first
+    level starts over its target here: the contact search's stop, 6 ms late at 5 mm/s.)"""
+    gains = ForceLoopGains()
+    arm, clock = arm_on(spring(stiffness_n_mm), command_delay_s=0.006, noise_n=0.04, seed=3)
+    assert wait(clock, arm.seek_contact(DOWN, 5.0, 0.4, 20.0)) == MotionState.CONTACT
+    levels_n = (1.0, 2.5, 4.5, 7.0, 10.0)
+    for k, force_n in enumerate(levels_n):
+        arm.ft.read_block()
+        motion = arm.regulate_force(DOWN, force_n, 10.0)
+        assert wait(clock, motion, timeout_s=10.0) == MotionState.DONE
+        reg = arm.supervisor.regulation
+        assert reg is not None and reg.stiffness_measured
+        assert stiffness_n_mm / 3 <= reg.stiffness_n_mm <= stiffness_n_mm * 3, reg.stiffness_n_mm
+        f_ramp = np.convolve(arm.ft.read_block().force_magnitude_n(), np.ones(10) / 10, mode="valid")
+        if k > 0:
+            assert f_ramp.max() - force_n <= 2 * gains.tolerance_n_at(force_n), (force_n, f_ramp.max())
+            assert f_ramp.min() >= 0.8 * levels_n[k - 1], "the probe left the surface"
+        clock.sleep_s(0.5)
+    assert arm.trip() is None
+
+
+@pytest.mark.parametrize("stiffness_n_mm", [0.5, 20.0, 60.0, 200.0])
+def test_the_first_level_starts_from_the_touch_when_it_is_stiffer_than_the_guess(stiffness_n_mm: float) -> None:
+    """The contact search's force rise, from half its threshold to the threshold at its speed,
+    measures the touch (sampled at 1 kHz: a 200 N/mm surface rises 1 N per sample and reads
+    about half that). The first regulation starts from it when it is stiffer than the guess;
+    a softer touch leaves the guess, which errs on the careful side there."""
+    gains = ForceLoopGains()
+    arm, clock = arm_on(spring(stiffness_n_mm), command_delay_s=0.006, noise_n=0.04, seed=3)
+    assert wait(clock, arm.seek_contact(DOWN, 5.0, 0.4, 20.0)) == MotionState.CONTACT
+    arm.regulate_force(DOWN, 2.0, 10.0)
+    reg = arm.supervisor.regulation
+    assert reg is not None
+    if stiffness_n_mm > gains.initial_stiffness_n_mm:
+        assert reg.stiffness_measured and stiffness_n_mm / 3 <= reg.stiffness_n_mm <= 2 * stiffness_n_mm
+    else:
+        assert not reg.stiffness_measured and reg.stiffness_n_mm == gains.initial_stiffness_n_mm
+
+
+def test_a_regulation_carries_the_estimate_only_on_the_same_push() -> None:
+    """The estimate goes on to a regulation that directly follows along the same push; after a
+    move, a contact search, or along another direction it starts from the guess again. The
+    first pair whose force change the noise cannot make replaces the guess; smaller ones
+    blend into it."""
+    gains = ForceLoopGains()
+    sup = ForceSupervisor(gains, LIMITS)
+    reg = sup.begin_regulation(DOWN, 5.0, 10.0, 0.0, 0.5) and sup.regulation
+    assert reg is not None and not reg.stiffness_measured
+    reg.update(0.00, 0.50, 0.0)
+    reg.update(0.01, 0.55, 0.005)                # 0.05 N: noise could make it, blended
+    assert not reg.stiffness_measured and gains.initial_stiffness_n_mm < reg.stiffness_n_mm < 3.0
+    reg.update(0.02, 1.55, 0.015)                # 1 N over 0.01 mm: 100 N/mm, taken whole
+    assert reg.stiffness_measured and reg.stiffness_n_mm == pytest.approx(100.0)
+    sup.begin_regulation(DOWN, 7.0, 10.0, 0.1, 5.0)
+    assert sup.regulation.stiffness_measured and sup.regulation.stiffness_n_mm == pytest.approx(100.0)
+    sup.begin_regulation(np.array([0.0, 0.6, -0.8]), 7.0, 10.0, 0.2, 5.0)
+    assert sup.regulation.stiffness_n_mm == gains.initial_stiffness_n_mm
+    sup.regulation.stiffness_n_mm, sup.regulation.stiffness_measured = 100.0, True
+    sup.begin_move(np.zeros(3), np.array([0.0, 0.0, 10.0]))
+    sup.begin_regulation(np.array([0.0, 0.6, -0.8]), 7.0, 10.0, 0.3, 5.0)
+    assert sup.regulation.stiffness_n_mm == gains.initial_stiffness_n_mm and not sup.regulation.stiffness_measured
+    sup.regulation.stiffness_n_mm, sup.regulation.stiffness_measured = 100.0, True
+    sup.begin_seek(DOWN, 5.0, 0.4, 10.0, np.zeros(3))
+    sup.begin_regulation(DOWN, 7.0, 10.0, 0.4, 5.0)
+    assert sup.regulation.stiffness_n_mm == gains.initial_stiffness_n_mm
+    # A touch measured by a search goes to the regulation after it along its push only.
+    sup.begin_seek(DOWN, 5.0, 0.4, 10.0, np.zeros(3))
+    sup.seek_samples(np.array([0.100, 0.101, 0.102]), np.array([0.05, 0.15, 0.45]))
+    sup.contact()
+    sup.begin_regulation(np.array([0.0, 0.6, -0.8]), 7.0, 10.0, 0.5, 0.45)
+    assert sup.regulation.stiffness_n_mm == gains.initial_stiffness_n_mm
+    sup.begin_seek(DOWN, 5.0, 0.4, 10.0, np.zeros(3))
+    sup.seek_samples(np.array([0.100, 0.101, 0.102]), np.array([0.05, 0.15, 0.45]))
+    sup.contact()
+    sup.begin_regulation(DOWN, 7.0, 10.0, 0.6, 0.45)
+    assert sup.regulation.stiffness_measured and sup.regulation.stiffness_n_mm == pytest.approx(60.0)
+
 # ----------------------------------------------------------------------------- trips and unloading
 def _tripped_at_limit(max_force_n: float = 15.0) -> tuple[ScriptedArm, VirtualClock]:
     """A ramp to 25 N through a 15 N limit on a 20 N/mm spring, with a robot's 6 ms command

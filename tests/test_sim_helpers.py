@@ -19,9 +19,12 @@ HOME_DEG = (180.0, -90.0, 90.0, -90.0, -90.0, 0.0)   # the base turned toward +x
 
 
 def make_cell(obj: str = "rubber_ball", seed: int = 1, base_x_mm: float = 450.0, start_s: float = 0.0,
-              scanner: dict | None = None, ft: dict | None = None, faults=None, **overrides) -> SimCell:
+              scanner: dict | None = None, ft: dict | None = None, faults=None, object_path: Path | None = None,
+              **overrides) -> SimCell:
+    """A simulated cell (config/cells/sim.yaml) with a shipped object by name, or the object
+    file at ``object_path``."""
     spec, _ = load_cell(ROOT / "config" / "cells" / "sim.yaml")
-    params = params_from_cell(spec, ROOT / "config" / "objects" / f"{obj}.yaml", seed=seed)
+    params = params_from_cell(spec, object_path or ROOT / "config" / "objects" / f"{obj}.yaml", seed=seed)
     params.home_joints_deg = HOME_DEG
     params.base_to_object = Pose(np.array([base_x_mm, 0.0, 0.0]), np.eye(3))
     params.start_time_s = start_s

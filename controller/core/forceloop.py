@@ -9,9 +9,18 @@ F/T samples. What the probe does with them is decided here, by :class:`ForceSupe
 - **force regulation**: a PI loop on |F| with feed-forward of the reference ramp, commanding
   the speed along d once per ``ForceLoopGains.period_s``; its gain follows an online
   estimate of the contact stiffness (N/mm from successive (dF, du) pairs), because rubber is
-  ~50x stiffer than foam. DONE once |error| <= max(tolerance_n, tolerance_rel x target) for
-  ``settle_updates`` periods at the target; then it keeps holding (foam creeps: the
-  integrator keeps pushing) until the next command.
+  ~50x stiffer than foam. The estimate starts from ``initial_stiffness_n_mm``, a guess: the
+  first pair whose force changed by more than the loop's tolerance replaces it, and a
+  regulation that follows another on the same contact (same push, nothing commanded between:
+  the next force level) starts from where that one's estimate ended. The first regulation
+  after a contact search starts from the touch's own stiffness when that is stiffer than the
+  guess: the force's rise from half the threshold to the threshold over the search's speed
+  (:meth:`ForceSupervisor.seek_samples`). A guess 50x too soft commands 50x the speed, and
+  with the arm's acceleration limit the probe bounced off hard rubber and came back at the
+  loop's top speed: 3-4x the target force at every level, and force-rate trips. DONE once
+  |error| <= max(tolerance_n, tolerance_rel x target) for ``settle_updates`` periods at the
+  target; then it keeps holding (foam creeps: the integrator keeps pushing) until the next
+  command.
 - **the trip policy**: the first crossing of a safety limit (:class:`~.safety.SafetyGuard`,
   checked where the data arrives) stops the arm and latches. While it is latched, a motion
   commanded after the trip that *unloads* — it moves away from the contact and the force
@@ -55,6 +64,9 @@ _STIFFNESS_MIN_STEP_MM = 2e-3
 _STIFFNESS_MIN_FORCE_N = 0.3
 _STIFFNESS_RANGE_N_MM = (0.05, 1000.0)
 _STIFFNESS_BLEND = 0.2
+# A regulation carries the previous one's estimate only along the same push (within ~2.6 deg):
+# the stiffness along another direction of the same contact is another number.
+_SAME_PUSH_COS = 0.999
 
 # While a trip is latched, a motion that unloads may see the force stay above the limit
 # for a while (the arm decelerates, the material relaxes): a reading more than this
@@ -141,6 +153,7 @@ class Regulation:
     rate_n_s: float
     start_n: float
     stiffness_n_mm: float
+    stiffness_measured: bool = False     # the estimate rests on a measured pair, not the guess
     integral: float = 0.0
     last_force_n: float | None = None
     last_u_mm: float = 0.0
@@ -164,8 +177,14 @@ class Regulation:
             df = force_n - self.last_force_n
             if abs(du) > _STIFFNESS_MIN_STEP_MM and force_n > _STIFFNESS_MIN_FORCE_N and df * du > 0:
                 k_obs = min(max(df / du, _STIFFNESS_RANGE_N_MM[0]), _STIFFNESS_RANGE_N_MM[1])
-                self.stiffness_n_mm = math.exp((1.0 - _STIFFNESS_BLEND) * math.log(self.stiffness_n_mm)
-                                               + _STIFFNESS_BLEND * math.log(k_obs))
+                if not self.stiffness_measured and abs(df) > g.tolerance_n:
+                    # The first pair the force noise cannot make: evidence, where the
+                    # estimate so far was a guess (blending it in would take ~10 periods).
+                    self.stiffness_n_mm = k_obs
+                    self.stiffness_measured = True
+                else:
+                    self.stiffness_n_mm = math.exp((1.0 - _STIFFNESS_BLEND) * math.log(self.stiffness_n_mm)
+                                                   + _STIFFNESS_BLEND * math.log(k_obs))
         self.last_force_n, self.last_u_mm = force_n, u_mm
         ref = self.reference_n(elapsed_s)
         ref_next = self.reference_n(elapsed_s + period_s)
@@ -373,6 +392,11 @@ class ForceSupervisor:
         self._reg_t0_s = 0.0
         self._next_update_s = 0.0
         self._contact_threshold_n: float | None = None      # the last contact search's
+        # The running search's force rise: the last sample below half its threshold and the
+        # first at it, (t s, |F| N); at the contact, the touch's stiffness along the push.
+        self._rise_below: tuple[float, float] | None = None
+        self._rise_hit: tuple[float, float] | None = None
+        self._touch: tuple[np.ndarray, float] | None = None  # (push direction, N/mm)
         self._newest_t_s: float | None = None               # the newest remembered sample's time
 
     # ------------------------------------------------------------------ what runs here
@@ -388,6 +412,9 @@ class ForceSupervisor:
 
     # ------------------------------------------------------------------ commands
     def _begin(self, kind: str, direction_base: np.ndarray | None) -> SupervisedMotion:
+        if kind != "regulate_force":
+            self._touch = None                  # the probe leaves (or searches for) its contact
+        self._rise_below = self._rise_hit = None
         old = self.motion
         if old is not None and old.active:
             old.finish(MotionState.STOPPED, "superseded")
@@ -423,13 +450,26 @@ class ForceSupervisor:
     def begin_regulation(self, direction: np.ndarray, target_n: float, rate_n_s: float, t_s: float,
                          force_n: float) -> SupervisedMotion:
         """A force regulation whose reference ramps from ``force_n`` (the force the loop reads
-        now); its first update is due at ``t_s``."""
+        now); its first update is due at ``t_s``.
+
+        Directly after a regulation along the same push (nothing commanded between: the probe
+        still presses the same contact), it starts from that one's stiffness estimate; directly
+        after a contact search along it, from the touch's when stiffer than the guess; else
+        from the guess."""
         if not (target_n >= 0 and rate_n_s > 0):
             raise MotionRefused("regulate_force needs a target >= 0 N and a positive rate")
         d = _unit(direction)
+        before, touch = self.regulation, self._touch
         motion = self._begin("regulate_force", d)
+        stiffness, measured = self.gains.initial_stiffness_n_mm, False
+        if before is not None and before.stiffness_measured and float(before.direction @ d) >= _SAME_PUSH_COS:
+            stiffness, measured = before.stiffness_n_mm, True
+        elif touch is not None and float(touch[0] @ d) >= _SAME_PUSH_COS and touch[1] > stiffness:
+            # The touch only ever makes the loop more careful: a softer contact's rise is
+            # slow and its first ramp pair measures it well enough.
+            stiffness, measured = touch[1], True
         self.regulation = Regulation(self.gains, d, float(target_n), float(rate_n_s), float(force_n),
-                                     self.gains.initial_stiffness_n_mm)
+                                     stiffness, stiffness_measured=measured)
         self._reg_t0_s = self._next_update_s = float(t_s)
         self.counts.regulations += 1
         return motion
@@ -482,11 +522,45 @@ class ForceSupervisor:
             return None
         return s.first_contact(force_magnitude_n)
 
+    def seek_samples(self, t_s: np.ndarray, force_magnitude_n: np.ndarray) -> None:
+        """Samples the sensor delivered while a contact search runs (times s, |F| N, in order,
+        up to the one that met the threshold): they give the touch's stiffness at the contact.
+        The real-time backends' blocks come through :meth:`on_block`; the simulator calls this
+        with each committed sub-chunk."""
+        s = self.search
+        if s is None or self._rise_hit is not None or not len(t_s):
+            return
+        f = np.asarray(force_magnitude_n, float)
+        hit = np.flatnonzero(f >= s.threshold_n)
+        end = int(hit[0]) if hit.size else f.size
+        below = np.flatnonzero(f[:end] < 0.5 * s.threshold_n)
+        if below.size:
+            self._rise_below = (float(t_s[below[-1]]), float(f[below[-1]]))
+        if hit.size:
+            self._rise_hit = (float(t_s[end]), float(f[end]))
+
+    def _touch_stiffness_n_mm(self, search: ContactSearch) -> float | None:
+        """The stiffness (N/mm) the search's force rise shows: from the last sample below half
+        the threshold to the first at it, at the search's speed; None without both."""
+        if self._rise_below is None or self._rise_hit is None:
+            return None
+        (t0, f0), (t1, f1) = self._rise_below, self._rise_hit
+        # On the microsecond grid: the difference of two float clock readings carries the
+        # rounding of their absolute size, and a step must give the same numbers whenever
+        # it runs (a resumed session replays it at another time).
+        dt_s = round((t1 - t0) * 1e6) / 1e6
+        if dt_s <= 0 or f1 <= f0:
+            return None
+        k = (f1 - f0) / (search.speed_mm_s * dt_s)
+        return min(max(k, _STIFFNESS_RANGE_N_MM[0]), _STIFFNESS_RANGE_N_MM[1])
+
     def contact(self, note: str = "") -> None:
         """The search met its threshold (the caller stops the arm): CONTACT."""
         if self.motion is not None and self.search is not None:
             self.motion.finish(MotionState.CONTACT, note)
             self.counts.contacts += 1
+            k = self._touch_stiffness_n_mm(self.search)
+            self._touch = None if k is None else (self.search.direction, k)
         self.search = None
 
     def verdict(self, trip: Trip, peak_force_n: float) -> Verdict:
@@ -569,6 +643,8 @@ class ForceSupervisor:
         if len(block):
             fmag = force_magnitudes_n(block)
             contact_at = self.first_contact(fmag)
+            if self.search is not None:
+                self.seek_samples(block.t_s, fmag)
             self.remember(block)
             peak = float(fmag.max())
             if contact_at is not None:
