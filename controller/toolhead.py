@@ -30,6 +30,9 @@ from .core.geometry import Pose, matrix_to_rotvec, rotvec_to_matrix
 # of about its offset from the tool axis (~150 mm on the shipped mount); a few of those
 # clear a keep-out the tool stood next to.
 UNWIND_AWAY_MM = (75.0, 150.0, 300.0)
+# One straight leg of a turn about the tool axis: a full turn is three (a straight move
+# turns the shorter way, so a half turn in one leg has no defined direction).
+WRIST_TURN_LEG_RAD = float(np.radians(120.0))
 
 
 class ProbeFault(Exception):
@@ -373,7 +376,7 @@ class Toolhead:
     def _turned_route(self, here: Pose, target: Pose, turns: int) -> list[tuple[Pose, Pose]]:
         """Up to travel height, ``turns`` x 120 deg about the tool axis (sign = direction),
         then the usual route to ``target``."""
-        legs, turned = self._wrist_turn_legs(here, turns, np.radians(120.0))
+        legs, turned = self._wrist_turn_legs(here, turns, WRIST_TURN_LEG_RAD)
         return legs + self._route(turned, target)
 
     def _wrist_turn_legs(self, here: Pose, turns: int, turn_rad: float) -> tuple[list[tuple[Pose, Pose]], Pose]:
@@ -404,13 +407,13 @@ class Toolhead:
         norm = float(np.linalg.norm(radial))
         if norm < 1e-6:
             raise MotionRefused("no direction away from the base axis")
-        legs, turned = self._wrist_turn_legs(here, turns_here * sign, np.radians(120.0))
+        legs, turned = self._wrist_turn_legs(here, turns_here * sign, WRIST_TURN_LEG_RAD)
         spot = Pose(np.array([*(turned.position_mm[:2] + radial / norm * out_mm), turned.position_mm[2]]),
                     turned.rotation)
-        rest, unwound = self._wrist_turn_legs(spot, (3 - turns_here) * sign, np.radians(120.0))
+        rest, unwound = self._wrist_turn_legs(spot, (3 - turns_here) * sign, WRIST_TURN_LEG_RAD)
         return legs + [(turned, spot)] + rest + self._route(unwound, target)
 
-    def _unwind_wrist(self, max_wrist_rad: float = np.pi, leg_rad: float = np.radians(120.0)) -> bool:
+    def _unwind_wrist(self, max_wrist_rad: float = np.pi, leg_rad: float = WRIST_TURN_LEG_RAD) -> bool:
         """Turn the last wrist joint back by a full turn at travel height when it has wound
         beyond half a turn.
 

@@ -6,14 +6,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from elastoprobe.controller.core.collision import Box, SceneChecker, ToolShape
-from elastoprobe.controller.core.config import load_cell
+from elastoprobe.controller.core.config import load_session_inputs
 from elastoprobe.controller.core.errors import MotionRefused
 from elastoprobe.controller.core.geometry import Pose, probe_tcp_pose, rotvec_to_matrix
-from elastoprobe.controller.core.validation import PathValidator, arm_model_for
+from elastoprobe.controller.core.validation import build_validator
 from elastoprobe.controller.machine import SessionMachine
 from elastoprobe.controller.probe import ForceLevel, ProbeExecutor, ProbeSettings, ProbeTarget
-from elastoprobe.controller.toolhead import MotionSettings, Toolhead
+from elastoprobe.controller.toolhead import WRIST_TURN_LEG_RAD, MotionSettings, Toolhead
 
 from test_sim_helpers import ROOT, make_cell
 
@@ -129,21 +128,17 @@ def test_a_wound_wrist_that_cannot_unwind_by_the_column_unwinds_farther_out(case
     finishes the full turn there and goes on (at 357 deg even the move out needs the first
     leg: the joint turns a few degrees as the arm reaches out)."""
     joints_rad, travel_z_mm, standoff_mm, standoff_rotvec = WOUND_BY_THE_COLUMN[case]
-    spec, _ = load_cell(ROOT / "config" / "cells" / "sim.yaml")
     cell = make_cell(base_x_mm=700.0, home_joints_deg=tuple(np.degrees(joints_rad)))
-    lim = spec.limits
-    checker = SceneChecker([ToolShape(name=s.name, kind=s.kind, pose_in_tcp=s.pose.pose(), radius_mm=s.radius_mm,
-                                      length_mm=s.length_mm, size_mm=s.size_mm) for s in spec.tool.shapes],
-                           None, [Box(b.name, np.array(b.min_mm), np.array(b.max_mm)) for b in lim.keep_out],
-                           Box("workspace", np.array(lim.workspace.min_mm), np.array(lim.workspace.max_mm)))
-    validator = PathValidator(arm_model_for(spec), checker, cell.arm.status().joints_rad, 40.0)
+    # The session's validator on the shipped simulated cell (its tool, keep-outs, workspace);
+    # no object: the recorded routes run above it.
+    validator = build_validator(load_session_inputs(ROOT / "config" / "plans" / "user_object.yaml"), cell, None)
     settings = MotionSettings(contact_force_n=0.4, contact_speed_mm_s=5.0, free_speed_mm_s=150.0,
                               free_accel_mm_s2=600.0)
     head = Toolhead(cell, settings, validator, travel_z_mm=travel_z_mm)
     here = head.pose()
     standoff_135 = Pose(np.array(standoff_mm), rotvec_to_matrix(np.array(standoff_rotvec)))
     with pytest.raises(MotionRefused, match="keep-out box 'robot_column'"):
-        for a, b in head._wrist_turn_legs(here, -3, np.radians(120.0))[0]:
+        for a, b in head._wrist_turn_legs(here, -3, WRIST_TURN_LEG_RAD)[0]:
             validator.validate_path(a, b)
     validator.seed_joints = cell.arm.status().joints_rad
     head.travel_to(standoff_135)

@@ -643,8 +643,7 @@ class ForceSupervisor:
         if len(block):
             fmag = force_magnitudes_n(block)
             contact_at = self.first_contact(fmag)
-            if self.search is not None:
-                self.seek_samples(block.t_s, fmag)
+            self.seek_samples(block.t_s, fmag)
             self.remember(block)
             peak = float(fmag.max())
             if contact_at is not None:
