@@ -590,3 +590,23 @@ def test_recorded_user_object_probe_read_farther_out_is_not_a_stiffer_material()
     assert rm.n_regions == 2
     away = data["seam"] > 3.0
     assert np.array_equal(rm.labels[away], truth[away])
+
+
+def test_recorded_inclusion_measured_on_its_interior_stays_apart_when_seam_probes_arrive():
+    """Recorded survey of suite slab 1012 (elastomer 0, hard-rubber ellipse 1, sponge disc 2;
+    run seed 1 with 3 mm densification), round 4: 732 probes, 39 on the hard rubber, 33 of
+    them within 3 mm of its seam, where the tip presses both materials. Their median at
+    4.5 N read 0.025 mm (those more than 2 mm inside: 0.019 mm; the elastomer 0.066 mm),
+    the pair fell under the 2.5x contrast, and the ellipse, its own region in
+    rounds 0-3, joined the elastomer. Measured on their interior points, three regions, and
+    every hard-rubber probe more than 2 mm inside its seam is in the ellipse's region."""
+    data, names, noise = _recorded("slab_two_inclusions_1012_r4.npz")
+    truth, seam = data["true"].astype(np.int64), data["seam"].astype(float)
+    rm = cluster_regions(data["feats"].astype(float), data["edges"].astype(np.int64), names, seed=1,
+                         noise_mm=noise, previous_labels=data["previous"].astype(np.int64),
+                         far_field_mm=data["far"].astype(float))
+    assert rm.n_regions == 3
+    inside = (truth == 1) & (seam > 2.0)
+    ellipse = np.bincount(rm.labels[inside]).argmax()
+    assert np.all(rm.labels[inside] == ellipse)
+    assert not np.any(rm.labels[(truth == 0) & (seam > 3.0)] == ellipse)

@@ -110,6 +110,39 @@ def test_a_seed_whose_dent_lies_between_two_regions_draws_the_seam_through_itsel
     assert np.all(refined[pts[:, 0] < 31.5] == 0) and np.all(refined[pts[:, 0] > 36.0] == 1)
 
 
+def test_a_small_region_mostly_seam_seeds_is_read_on_its_interior():
+    """A soft strip x < 31.5 mm (level log 2) beside a stiff material (log 0.2). The soft
+    region has nine interior seeds (x = 0, 10, 20) and thirteen that densification put along
+    the seam at x = 30, 1.5 mm inside it, each pressing some of the stiff material (their
+    levels 20-80 % of the way to the stiff one); the stiff side's first column is at x = 36.
+    Read on all 22 seeds, the soft region's median and MAD span the stiff level, no seed can
+    be placed between the two, and the map cuts midway between the columns (x = 33). Read
+    on its interior, the soft level is the strip's own, and the boundary passes next to the
+    seam seeds, on their side toward the stiff material."""
+    pts, nrm = plane(101, 25, 1.0)
+    g = sm.build_graph(pts, nrm)
+    inner = [[x, y, 0.0] for x in (0.0, 10.0, 20.0) for y in (0.0, 12.0, 24.0)]
+    seam = [[30.0, y, 0.0] for y in np.linspace(0.0, 24.0, 13)]
+    stiff = [[x, y, 0.0] for x in (36.0, 46.0, 56.0, 66.0, 76.0, 86.0, 96.0) for y in (0.0, 6.0, 12.0, 18.0, 24.0)]
+    seeds = np.array(inner + seam + stiff)
+    labels = np.array([0] * (len(inner) + len(seam)) + [1] * len(stiff))
+    soft_level, stiff_level = np.log(2.0), np.log(0.2)
+    part = np.concatenate([np.zeros(len(inner)), np.linspace(0.2, 0.8, len(seam)), np.ones(len(stiff))])
+    levels = soft_level + part * (stiff_level - soft_level)
+    truth = (pts[:, 0] > 31.5).astype(int)
+    interior = sm.interior_seeds(labels, sm.seed_neighbours(g, sm.cells(g, seeds)))
+    assert not interior[seeds[:, 0] == 30.0].any() and not interior[seeds[:, 0] == 36.0].any()
+    assert interior[seeds[:, 0] == 10.0].all() and interior[seeds[:, 0] == 66.0].all()
+    a, b = np.flatnonzero(seeds[:, 0] == 30.0)[6:7], np.flatnonzero(seeds[:, 0] == 36.0)[2:3]
+    assert not sm.seam_fractions(levels, labels, a, b)[2].any()          # on all seeds the ranges overlap
+    s_a, s_b, usable = sm.seam_fractions(levels, labels, a, b, interior)
+    assert usable.all() and s_a[0] == pytest.approx(0.45) and s_b[0] == 1.0
+    plain = sm.labels_from_seeds(g, seeds, labels)
+    refined = sm.labels_from_seeds(g, seeds, labels, seed_levels=levels)
+    assert np.mean(refined != truth) < 0.5 * np.mean(plain != truth)
+    assert np.all(refined[pts[:, 0] < 29.5] == 0) and np.all(refined[pts[:, 0] > 33.5] == 1)
+
+
 def test_shared_border_counts_the_edges_between_two_cells():
     """Three seeds in a row on a flat strip: neighbours share a border as wide as the strip,
     the outer two none."""

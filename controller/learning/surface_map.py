@@ -51,6 +51,7 @@ _BRIDGE_ANGLE_DEG = 30.0
 _MAX_BRIDGE_PASSES = 20
 _MIN_BRIDGE_POINTS = 10
 SEAM_SIDE = 0.45          # the most of the way to the other region a seed's level may count
+MIN_INTERIOR_SEEDS = 3    # a region's level is read on its interior seeds from this many on
 
 
 @dataclass(frozen=True)
@@ -274,7 +275,8 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
     reached = c.source >= 0
     out[reached] = lab[c.source[reached]]
     if seed_levels is not None and np.unique(lab).size > 1:
-        out = _split_between(graph, seeds_mm, lab, np.asarray(seed_levels, dtype=float).reshape(-1), out, reached)
+        out = _split_between(graph, seeds_mm, lab, np.asarray(seed_levels, dtype=float).reshape(-1), out, reached,
+                             interior_seeds(lab, seed_neighbours(graph, c)))
     # Fold points: the label of the face whose plane they lie on.
     fold = np.flatnonzero(graph.concave & ~reached)
     if fold.size and reached.any():
@@ -299,8 +301,21 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
     return out
 
 
-def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def interior_seeds(seed_labels: np.ndarray, neighbour_pairs: list[tuple[int, int]]) -> np.ndarray:
+    """(S,) True for a seed with at least one surface neighbour (``neighbour_pairs``, from
+    :func:`seed_neighbours`), all of them of its own region."""
+    lab = np.asarray(seed_labels, dtype=np.int64).reshape(-1)
+    pairs = np.asarray(neighbour_pairs, dtype=np.int64).reshape(-1, 2)
+    has = np.zeros(lab.size, dtype=bool)
+    has[pairs.ravel()] = True
+    border = np.zeros(lab.size, dtype=bool)
+    crossing = pairs[lab[pairs[:, 0]] != lab[pairs[:, 1]]]
+    border[crossing.ravel()] = True
+    return has & ~border
+
+
+def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.ndarray,
+                   interior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where seeds a (M,) and b (M,) (indices into ``levels``/``labels`` (N,)) stand on the way
     from a's region A to b's region B: (s_a (M,), s_b (M,), usable (M,) bool).
 
@@ -309,6 +324,11 @@ def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.
     region's usual range counts as pure (0 or 1), so the drift of the dent within one
     material moves nothing (the median and MAD, not percentiles: the seeds densification
     put on the seam belong to a region too, and are exactly the ones that must count).
+    ``interior`` (N,) bool (:func:`interior_seeds`): a region's median and MAD come from its
+    interior seeds when it has ``MIN_INTERIOR_SEEDS`` of them. A seed beside another region
+    presses both materials; on a small inclusion densification makes such seeds most of
+    its region (suite slab 1012's sponge disc: 16 of 30, whose levels reach the matrix's),
+    and a range read on them overlaps the neighbour's, so no seam could be drawn through them.
     Not usable where the two ranges overlap (or a and b share a region). A seed stays on
     its own region's side: s_a < 1/2 < s_b (its level is one measurement; its label was
     decided with its neighbours).
@@ -318,7 +338,9 @@ def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.
     a, b = np.asarray(a, dtype=np.int64).reshape(-1), np.asarray(b, dtype=np.int64).reshape(-1)
     regions = np.unique(lab)
     k_of = {int(r): k for k, r in enumerate(regions)}
-    per = [lev[lab == r] for r in regions]
+    inner = np.zeros(lab.size, dtype=bool) if interior is None else np.asarray(interior, dtype=bool).reshape(-1)
+    per = [lev[(lab == r) & inner] if np.count_nonzero((lab == r) & inner) >= MIN_INTERIOR_SEEDS else lev[lab == r]
+           for r in regions]
     median = np.array([np.median(v) for v in per])
     sigma = np.array([1.4826 * np.median(np.abs(v - np.median(v))) for v in per])
     low, high = median - 3.0 * sigma, median + 3.0 * sigma
@@ -336,7 +358,7 @@ def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.
 
 
 def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.ndarray, seed_levels: np.ndarray,
-                   labels: np.ndarray, reached: np.ndarray) -> np.ndarray:
+                   labels: np.ndarray, reached: np.ndarray, interior: np.ndarray | None = None) -> np.ndarray:
     """Move the boundary between two regions toward the seeds whose level lies between them.
 
     A probe that straddles a seam presses both materials: its dent lies between theirs,
@@ -371,7 +393,7 @@ def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.nd
     near = np.isfinite(others[kb, np.arange(pts.size)])
     pts, ka, kb = pts[near], ka[near], kb[near]
     a, b = src[ka, pts], src[kb, pts]
-    s_a, s_b, usable = seam_fractions(seed_levels, seed_labels, a, b)
+    s_a, s_b, usable = seam_fractions(seed_levels, seed_labels, a, b, interior)
     # p's place along the way from a to b (law of cosines on its distances to both): beyond
     # a on the far side from b (t < 0) the level is a's own, not one interpolated toward b.
     da, db = dist[ka, pts], dist[kb, pts]
