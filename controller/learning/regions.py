@@ -42,6 +42,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..core.config import MIN_CONTRAST
+from . import surface_map as sm
 
 _MAX_ICM_PASSES = 20
 # The floor under log peak depths when the plan's noise is not known (mm): a dent this
@@ -363,7 +364,7 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
                        far_field_mm: np.ndarray | None = None,
                        seen_from_mm: np.ndarray | None = None,
                        previous_labels: np.ndarray | None = None,
-                       neighbours: list[np.ndarray] | None = None) -> tuple[np.ndarray, int]:
+                       edges: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Merge clusters that are not two materials, closest pair first. Two clusters are two
     materials when, at some survey force at which either dent is measured (deeper than
     ``MEASURED_DENT_NOISES`` x the scatter of one of its points' peak depth, measured from
@@ -384,8 +385,8 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     point's region in the previous round (-1: new); two clusters drawn from two different
     previous regions were told apart by this rule then, and are joined now only by a contrast
     measured and found wanting, not because neither dent counts as measured any more.
-    ``neighbours``: the surface graph's adjacency; with it, each cluster is measured (medians,
-    counts, far-field scatter, where its peaks were read) on its interior points
+    ``edges`` (E,2): the surface graph's neighbour pairs; with them, each cluster is measured
+    (medians, counts, far-field scatter, where its peaks were read) on its interior points
     (:func:`_measured_points`).
 
     Why the interior: a probe whose surface neighbour lies in another cluster stands within
@@ -439,9 +440,11 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     seen_from = (np.zeros(labels.shape[0]) if seen_from_mm is None
                  else np.asarray(seen_from_mm, dtype=float).reshape(-1))
 
+    interior = None if edges is None else sm.interior_seeds(labels, edges)
+
     def measure(c: int) -> tuple[np.ndarray, float, np.ndarray, float]:
         # (median depths + floor (C,), peak scatter, finite counts (C,), median seen-from) of cluster c
-        basis = _measured_points(labels, c, neighbours)
+        basis = _measured_points(labels, c, interior)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             depth = np.maximum(np.nanmedian(cols[basis], axis=0), 0.0) + floor
@@ -502,6 +505,7 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
         members = labels == i
         med, count, noise, read_at = (np.delete(a, j, axis=0) for a in (med, count, noise, read_at))
         # Only the joined cluster changes: its points that bordered each other are interior now.
+        interior = None if edges is None else sm.interior_seeds(labels, edges)
         med[i], noise[i], count[i], read_at[i] = measure(int(i))
         came_from = np.delete(came_from, j)
         came_from[i] = _one_previous(prev[members])
@@ -509,17 +513,16 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     return labels, merges
 
 
-def _measured_points(labels: np.ndarray, cluster: int, neighbours: list[np.ndarray] | None) -> np.ndarray:
-    """The points cluster ``cluster`` is measured on: its interior (points with at least one
-    surface neighbour, all of them in the same cluster) when that holds
-    ``MIN_POINTS_FOR_ONE_FORCE`` points or more, else all its points (a cluster that is all
-    seam, or no graph given). See :func:`_merge_by_contrast`."""
+def _measured_points(labels: np.ndarray, cluster: int, interior: np.ndarray | None) -> np.ndarray:
+    """The points cluster ``cluster`` is measured on: its interior (``interior`` (N,), from
+    :func:`surface_map.interior_seeds`: points with a surface neighbour, all of them in their
+    own cluster) when that holds ``surface_map.MIN_INTERIOR_SEEDS`` points or more, else all
+    its points (a cluster that is all seam, or no graph given). See :func:`_merge_by_contrast`."""
     members = np.flatnonzero(labels == cluster)
-    if neighbours is None:
+    if interior is None:
         return members
-    inner = np.array([i for i in members if neighbours[i].size and np.all(labels[neighbours[i]] == cluster)],
-                     dtype=np.int64)
-    return inner if inner.size >= MIN_POINTS_FOR_ONE_FORCE else members
+    inner = members[interior[members]]
+    return inner if inner.size >= sm.MIN_INTERIOR_SEEDS else members
 
 
 def _one_previous(previous: np.ndarray) -> int:
@@ -813,7 +816,7 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
     stats["merged"] = merges
     if k > 1:
         labels, contrast_merges = _merge_by_contrast(x, labels, depth_cols, min_contrast, floor_mm, far,
-                                                     seen_from, previous_labels=prev, neighbours=neighbours)
+                                                     seen_from, previous_labels=prev, edges=e)
         labels, k = _compact(labels)
         stats["merged_by_contrast"] = contrast_merges
 

@@ -303,9 +303,10 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
 
 def interior_seeds(seed_labels: np.ndarray, neighbour_pairs: list[tuple[int, int]]) -> np.ndarray:
     """(S,) True for a seed with at least one surface neighbour (``neighbour_pairs``, from
-    :func:`seed_neighbours`), all of them of its own region."""
+    :func:`seed_neighbours`, or any (E,2) neighbour pairs), all of them of its own region."""
     lab = np.asarray(seed_labels, dtype=np.int64).reshape(-1)
     pairs = np.asarray(neighbour_pairs, dtype=np.int64).reshape(-1, 2)
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]          # a seed is no neighbour of itself
     has = np.zeros(lab.size, dtype=bool)
     has[pairs.ravel()] = True
     border = np.zeros(lab.size, dtype=bool)
@@ -339,8 +340,12 @@ def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.
     regions = np.unique(lab)
     k_of = {int(r): k for k, r in enumerate(regions)}
     inner = np.zeros(lab.size, dtype=bool) if interior is None else np.asarray(interior, dtype=bool).reshape(-1)
-    per = [lev[(lab == r) & inner] if np.count_nonzero((lab == r) & inner) >= MIN_INTERIOR_SEEDS else lev[lab == r]
-           for r in regions]
+
+    def read_on(region: int) -> np.ndarray:
+        members = lab == region
+        return members & inner if np.count_nonzero(members & inner) >= MIN_INTERIOR_SEEDS else members
+
+    per = [lev[read_on(r)] for r in regions]
     median = np.array([np.median(v) for v in per])
     sigma = np.array([1.4826 * np.median(np.abs(v - np.median(v))) for v in per])
     low, high = median - 3.0 * sigma, median + 3.0 * sigma
