@@ -14,7 +14,7 @@ from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.controller.drivers.hardware import DeviceTimebase
 from elastoprobe.controller.drivers.ur_link import URLinkConfig
 from elastoprobe.sim.servers.world_backend import resample_profile
-from test_loopback_rig import make_rig, wait_for, wait_motion
+from test_loopback_rig import make_rig, run_on_a_live_stream, wait_for, wait_motion
 
 
 def test_device_timebase_undoes_compressed_bursts() -> None:
@@ -79,8 +79,7 @@ def test_resample_keeps_holes_and_interpolates_lines() -> None:
 @pytest.mark.loopback
 @pytest.mark.timeout(120)
 def test_contact_force_loop_and_spike_trip_on_loopback() -> None:
-    rig = make_rig(130)
-    try:
+    def scenario(rig) -> None:  # noqa: ANN001 — test_loopback_rig.Rig
         arm, ft = rig.hw.arm, rig.hw.ft
         above = rig.go_above_ball()
         time.sleep(0.3)
@@ -122,16 +121,14 @@ def test_contact_force_loop_and_spike_trip_on_loopback() -> None:
         assert arm.trip() is None
         stats = rig.hw.stats()
         assert stats["latency"]["trips"] >= 1
-    finally:
-        rig.close()
+
+    run_on_a_live_stream(lambda: make_rig(130), scenario)
 
 
 @pytest.mark.loopback
 @pytest.mark.timeout(120)
 def test_protective_stop_mid_probe_then_bounded_recovery() -> None:
-    rig = make_rig(140, unlock_delay_s=1.0,
-                   link=URLinkConfig(frequency_hz=125.0, call_timeout_s=3.0, unlock_wait_s=1.2))
-    try:
+    def scenario(rig) -> None:  # noqa: ANN001 — test_loopback_rig.Rig
         arm = rig.hw.arm
         above = rig.go_above_ball(160.0)
         time.sleep(0.3)
@@ -153,8 +150,9 @@ def test_protective_stop_mid_probe_then_bounded_recovery() -> None:
         assert wait_motion(arm.move_linear(above, 50.0, 500.0), 10.0) == MotionState.DONE
         assert np.linalg.norm(arm.status().tcp_pose.position_mm - above.position_mm) < 1.0
         assert np.linalg.norm(_true_tip_mm(rig) - above.position_mm) < 1.0
-    finally:
-        rig.close()
+
+    link = URLinkConfig(frequency_hz=125.0, call_timeout_s=3.0, unlock_wait_s=1.2)
+    run_on_a_live_stream(lambda: make_rig(140, unlock_delay_s=1.0, link=link), scenario)
 
 
 def _true_tip_mm(rig) -> np.ndarray:  # noqa: ANN001 — test_loopback_rig.Rig
@@ -181,8 +179,7 @@ def test_the_believed_tool_s_tip_lands_where_commanded_over_the_real_protocols()
     one (here calibrated: the true tip 4 mm off the file's) puts the true tip at the
     commanded point. Without setTcp the flange would go there (the tip 160 mm off); with a
     robot that kept the file's TCP, the tip would be 4 mm off."""
-    rig = make_rig(185, start_hardware=False, spec_update=_tip_off_by_4_mm)
-    try:
+    def scenario(rig) -> None:  # noqa: ANN001 — test_loopback_rig.Rig
         truth = rig.backend.cell.truth
         assert np.linalg.norm(truth.tip_offset_mm) == pytest.approx(4.0)
         # A perfect tip calibration: the believed TCP is the true tip centre.
@@ -198,5 +195,5 @@ def test_the_believed_tool_s_tip_lands_where_commanded_over_the_real_protocols()
             time.sleep(0.1)
             assert np.linalg.norm(arm.status().tcp_pose.position_mm - target.position_mm) < 0.05
             assert np.linalg.norm(_true_tip_mm(rig) - target.position_mm) < 0.05
-    finally:
-        rig.close()
+
+    run_on_a_live_stream(lambda: make_rig(185, start_hardware=False, spec_update=_tip_off_by_4_mm), scenario)

@@ -19,7 +19,7 @@ from elastoprobe.controller.core.devices import MotionState
 from elastoprobe.controller.core.errors import DeviceError, DeviceTimeout
 from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.controller.drivers.line_scanner import SerialLineScanner
-from test_loopback_rig import make_rig, wait_for, wait_motion
+from test_loopback_rig import make_rig, run_on_a_live_stream, wait_for, wait_motion
 
 TESTS = Path(__file__).resolve().parent
 
@@ -124,8 +124,7 @@ def _device_error_seen(arm, timeout_s: float) -> str | None:
 @pytest.mark.loopback
 @pytest.mark.timeout(120)
 def test_rtde_connection_dropped_mid_move_stops_the_arm_and_the_link_comes_back() -> None:
-    rig = make_rig(160)
-    try:
+    def scenario(rig) -> None:  # noqa: ANN001 — test_loopback_rig.Rig
         arm = rig.hw.arm
         move, far = _start_slow_move(rig)
         rig.emulator.drop_connections()
@@ -142,8 +141,8 @@ def test_rtde_connection_dropped_mid_move_stops_the_arm_and_the_link_comes_back(
         assert not arm.status().protective_stop
         assert wait_motion(arm.move_linear(far, 100.0, 500.0), 10.0) == MotionState.DONE
         assert rig.hw.stats()["link_restarts"] >= 1
-    finally:
-        rig.close()
+
+    run_on_a_live_stream(lambda: make_rig(160), scenario)
 
 
 def _status_ok(arm) -> bool:
@@ -157,29 +156,30 @@ def _status_ok(arm) -> bool:
 @pytest.mark.loopback
 @pytest.mark.timeout(120)
 def test_hung_driver_call_the_arm_stops_the_controller_sees_a_device_error() -> None:
-    rig = make_rig(170)
-    try:
+    def scenario(rig) -> None:  # noqa: ANN001 — test_loopback_rig.Rig
         arm = rig.hw.arm
         link_pid = rig.hw.stats()["link_child_pid"]
         move, far = _start_slow_move(rig)
         os.kill(link_pid, signal.SIGSTOP)                  # ur_rtde hangs: no answers, no kicks
-        t_hang = time.monotonic()
-        assert wait_for(lambda: not rig.emulator.program_running, 2.0)
-        assert rig.emulator.events_of("program_stopped")[-1].detail == "watchdog"
-        assert rig.emulator.events_of("program_stopped")[-1].t_s - t_hang < 1.0
-        assert wait_for(lambda: not rig.emulator.is_moving(), 1.0)
-        message = _device_error_seen(arm, 15.0)
-        assert message is not None and ("hung" in message or "answer" in message or "time" in message), message
-        assert wait_motion(move, 5.0) == MotionState.FAULT
-        assert _gone(link_pid) or wait_for(lambda: _gone(link_pid), 3.0)   # killed by the link's supervisor
-        assert wait_for(lambda: _status_ok(arm), 20.0)
-        assert wait_motion(arm.move_linear(far, 100.0, 500.0), 10.0) == MotionState.DONE
-    finally:
         try:
-            os.kill(link_pid, signal.SIGCONT)
-        except (ProcessLookupError, UnboundLocalError):
-            pass
-        rig.close()
+            t_hang = time.monotonic()
+            assert wait_for(lambda: not rig.emulator.program_running, 2.0)
+            assert rig.emulator.events_of("program_stopped")[-1].detail == "watchdog"
+            assert rig.emulator.events_of("program_stopped")[-1].t_s - t_hang < 1.0
+            assert wait_for(lambda: not rig.emulator.is_moving(), 1.0)
+            message = _device_error_seen(arm, 15.0)
+            assert message is not None and ("hung" in message or "answer" in message or "time" in message), message
+            assert wait_motion(move, 5.0) == MotionState.FAULT
+            assert _gone(link_pid) or wait_for(lambda: _gone(link_pid), 3.0)   # killed by the link's supervisor
+            assert wait_for(lambda: _status_ok(arm), 20.0)
+            assert wait_motion(arm.move_linear(far, 100.0, 500.0), 10.0) == MotionState.DONE
+        finally:
+            try:
+                os.kill(link_pid, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
+
+    run_on_a_live_stream(lambda: make_rig(170), scenario)
 
 
 @pytest.mark.loopback

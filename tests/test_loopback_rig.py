@@ -112,7 +112,8 @@ class Rig:
         arm = self.hw.arm
         rot = arm.status().tcp_pose.rotation
         target = Pose(np.array([400.0, 0.0, z_mm]), rot)
-        assert wait_motion(arm.move_linear(target, 150.0, 600.0), 15.0) == MotionState.DONE
+        move = arm.move_linear(target, 150.0, 600.0)
+        assert wait_motion(move, 15.0) == MotionState.DONE, (move.note, arm.trip())
         return target
 
     def close(self) -> None:
