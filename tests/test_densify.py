@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from elastoprobe.controller.learning.densify import (
-    averaged_noise_mm, boundaries_resolved, candidate_points, edge_scores, pair_scores, plan_round,
+    _crossing_fraction, averaged_noise_mm, boundaries_resolved, candidate_points, edge_scores, pair_scores, plan_round,
     point_scores, propose_points,
 )
 from elastoprobe.controller.learning.models import TrainConfig, fit_region_model
@@ -277,3 +277,29 @@ def test_a_ring_follows_the_surface_and_skips_a_point_already_surrounded():
     assert np.allclose(np.linalg.norm(ring - pos[0], axis=1), 5.0, atol=0.3)
     close = pos * 0.25
     assert ring_candidates(close, edges, np.array([0]), 3.0, 6.0, surface)[0].shape == (0, 3)
+
+
+def test_a_small_region_mostly_seam_points_is_split_next_to_them():
+    """A soft strip (level log 2) of nine interior points (x = 0, 10, 20) and thirteen that an
+    earlier round put along its seam (x = 30, 20-80 % of the way to the stiff level, log 0.2);
+    the stiff side starts at x = 36. Read on all 22 points the soft level range spans the
+    stiff one and every crossing edge would be split midway (x = 33); read on the interior,
+    as the final map reads it, the seam points are placed between the levels and the new
+    points go next to them (at most 40 % of the way; a fifth, the clip, from the seam points
+    nearly halfway to the stiff level), where the seam is."""
+    inner = [[x, y, 0.0] for x in (0.0, 10.0, 20.0) for y in (0.0, 12.0, 24.0)]
+    seam = [[30.0, y, 0.0] for y in np.linspace(0.0, 24.0, 13)]
+    stiff = [[x, y, 0.0] for x in (36.0, 46.0, 56.0) for y in (0.0, 6.0, 12.0, 18.0, 24.0)]
+    pos = np.array(inner + seam + stiff)
+    labels = np.array([0] * (len(inner) + len(seam)) + [1] * len(stiff))
+    part = np.concatenate([np.zeros(len(inner)), np.linspace(0.2, 0.8, len(seam)), np.ones(len(stiff))])
+    levels = np.log(2.0) + part * (np.log(0.2) - np.log(2.0))
+    near = (np.abs(pos[:, None, 0] - pos[None, :, 0]) <= 10.0) & (np.abs(pos[:, None, 1] - pos[None, :, 1]) <= 12.0)
+    i, j = np.nonzero(np.triu(near, k=1))
+    edges = np.stack([i, j], axis=1)
+    crossing = labels[edges[:, 0]] != labels[edges[:, 1]]
+    assert crossing.any() and np.all(pos[edges[crossing, 0], 0] == 30.0)
+    where = _crossing_fraction(edges, labels, levels)
+    assert np.all((where[crossing] >= 0.2) & (where[crossing] < 0.4))
+    assert np.allclose(where[crossing & (part[edges[:, 0]] > 0.5)], 0.2)
+    assert np.allclose(where[~crossing], 0.5)

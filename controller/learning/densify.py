@@ -416,13 +416,17 @@ class DensifyRound:
 def _crossing_fraction(edges: np.ndarray, labels: np.ndarray, levels: np.ndarray,
                        clip: tuple[float, float] = (0.2, 0.8)) -> np.ndarray:
     """(E,) where along each crossing edge the interpolated level crosses midway between its
-    two regions (0.5 on edges within a region or when the regions' levels overlap)."""
+    two regions (0.5 on edges within a region or when the regions' levels overlap). Each
+    region's level range is read on its interior points (those whose neighbours along
+    ``edges`` are all of its region), as the final map reads it: on a small inclusion the
+    points already on its seam are most of the region, and a range read on them overlaps
+    the neighbour's (surface_map.seam_fractions)."""
     e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
     out = np.full(e.shape[0], 0.5)
     cross = np.flatnonzero(np.asarray(labels)[e[:, 0]] != np.asarray(labels)[e[:, 1]])
     if cross.size == 0:
         return out
-    s_a, s_b, usable = sm.seam_fractions(levels, labels, e[cross, 0], e[cross, 1])
+    s_a, s_b, usable = sm.seam_fractions(levels, labels, e[cross, 0], e[cross, 1], sm.interior_seeds(labels, e))
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(np.abs(s_b - s_a) > 1e-9, (0.5 - s_a) / (s_b - s_a), 0.5)
     out[cross] = np.where(usable, np.clip(t, *clip), 0.5)
