@@ -52,6 +52,9 @@ _MAX_BRIDGE_PASSES = 20
 _MIN_BRIDGE_POINTS = 10
 SEAM_SIDE = 0.45          # the most of the way to the other region a seed's level may count
 MIN_INTERIOR_SEEDS = 3    # a region's level is read on its interior seeds from this many on
+SEAM_KERNEL = 0.75        # the seam's smoothing width (Gaussian sigma), in local seed spacings
+SPACING_K = 6             # seeds whose nearest-seed distances give the local spacing
+LOCAL_FIT_RIDGE = 0.1     # the seam fit's slope ridge, in (weights' sum x kernel width^2)
 
 
 @dataclass(frozen=True)
@@ -364,16 +367,23 @@ def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.
 
 def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.ndarray, seed_levels: np.ndarray,
                    labels: np.ndarray, reached: np.ndarray, interior: np.ndarray | None = None) -> np.ndarray:
-    """Move the boundary between two regions toward the seeds whose level lies between them.
+    """Draw the boundary between two regions where the seeds' levels, fitted locally over the
+    surface, cross midway.
 
     A probe that straddles a seam presses both materials: its dent lies between theirs,
-    and the seam passes within a contact's width of it. Each reached point p has a
-    nearest seed a of its own region A and b of the nearest other region B (distances
-    along the surface), placed on the way from A to B by :func:`seam_fractions` (s_a, s_b).
-    With t the place of p along the way from a to b, (d_a^2 - d_b^2 + |ab|^2) / (2 |ab|^2)
-    clipped to [0, 1], p takes B when s_a + (s_b - s_a) t > 1/2: between two pure seeds that
-    is the midway split of the plain map; next to a seed part way between the levels the
-    boundary passes near that seed, on its side toward b.
+    and the seam passes within a contact's width of it. Each reached point p has its
+    region A (the plain map's) and the nearest other region B along the surface. Every seed
+    of A and B has a seam fraction (:func:`seam_fractions`: 0 within A's usual range, 1
+    within B's, part way for a seed pressing both). p takes B when a locally linear fit of
+    the fractions of the seeds around it (:func:`_local_linear_at`) exceeds 1/2 at p; deep
+    in A every seed around reads 0 and nothing moves, and a point with no seed in reach
+    keeps the plain map's label. The kernel width is
+    ``SEAM_KERNEL`` x the local seed spacing (the median nearest-seed distance of the
+    ``SPACING_K`` seeds nearest p), so several seeds on each side decide: the seam is a
+    smooth curve through the part-way seeds, not the polygon of the cells of one pair of
+    seeds (which follows each seed's position and one level's noise). A linear fit, not a
+    weighted mean: a mean pulls the crossing toward the side with more seeds near p (the
+    seeds densification put along a seam), a linear fit does not.
     """
     regions = np.unique(seed_labels)
     nodes = seed_nodes(graph, seeds_mm)
@@ -381,11 +391,8 @@ def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.nd
     blocked[nodes] = False
     free = _without(graph.lengths, blocked)
     dist = np.full((regions.size, len(graph)), np.inf)
-    src = np.full((regions.size, len(graph)), -1, dtype=np.int64)
     for k, r in enumerate(regions):
-        members = np.flatnonzero(seed_labels == r)
-        d, s = _multi_source(free, nodes[members])
-        dist[k], src[k] = d, np.where(s >= 0, members[np.maximum(s, 0)], -1)
+        dist[k] = _multi_source(free, nodes[seed_labels == r])[0]
     out = labels.copy()
     # A: the region the plain map gave (ties stay as it broke them); B: the nearest other one.
     k_of = np.full(int(regions.max()) + 1, -1, dtype=np.int64)
@@ -395,19 +402,66 @@ def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.nd
     others = dist[:, pts].copy()
     others[ka, np.arange(pts.size)] = np.inf
     kb = np.argmin(others, axis=0)
-    near = np.isfinite(others[kb, np.arange(pts.size)])
-    pts, ka, kb = pts[near], ka[near], kb[near]
-    a, b = src[ka, pts], src[kb, pts]
-    s_a, s_b, usable = seam_fractions(seed_levels, seed_labels, a, b, interior)
-    # p's place along the way from a to b (law of cosines on its distances to both): beyond
-    # a on the far side from b (t < 0) the level is a's own, not one interpolated toward b.
-    da, db = dist[ka, pts], dist[kb, pts]
     seeds = np.asarray(seeds_mm, dtype=float).reshape(-1, 3)
-    dab2 = np.maximum(np.sum((seeds[a] - seeds[b]) ** 2, axis=1), 1e-12)
-    t = np.clip((da ** 2 - db ** 2 + dab2) / (2.0 * dab2), 0.0, 1.0)
-    flip = usable & (s_a + (s_b - s_a) * t > 0.5)
-    out[pts] = np.where(flip, regions[kb], regions[ka])
+    tree = cKDTree(seeds)
+    nearest_seed_mm = tree.query(seeds, k=2)[0][:, 1] if len(seeds) > 1 else np.zeros(1)
+    _, around = tree.query(graph.points_mm[pts], k=min(SPACING_K, len(seeds)))
+    spacing_mm = np.median(nearest_seed_mm[np.asarray(around).reshape(pts.size, -1)], axis=1)
+    h = SEAM_KERNEL * np.maximum(spacing_mm, 1e-3)      # coincident seeds: no zero width
+    band = np.isfinite(others[kb, np.arange(pts.size)])
+    for pair in np.unique(np.stack([ka[band], kb[band]], axis=1), axis=0):
+        here = band & (ka == pair[0]) & (kb == pair[1])
+        p, hp = pts[here], h[here]
+        ra, rb = regions[pair[0]], regions[pair[1]]
+        of_a, of_b = np.flatnonzero(seed_labels == ra), np.flatnonzero(seed_labels == rb)
+        s_a, _, usable = seam_fractions(seed_levels, seed_labels, of_a, np.full(of_a.size, of_b[0]), interior)
+        _, s_b, _ = seam_fractions(seed_levels, seed_labels, np.full(of_b.size, of_a[0]), of_b, interior)
+        if not usable.any():
+            continue                       # the two levels overlap: the plain midway split
+        members = np.concatenate([of_a, of_b])
+        frac = np.concatenate([s_a, s_b])
+        level, decided = _local_linear_at(graph.points_mm[p], hp, seeds[members], frac)
+        out[p[decided]] = np.where(level[decided] > 0.5, rb, ra)
     return out
+
+
+def _local_linear_at(points_mm: np.ndarray, width_mm: np.ndarray, seeds_mm: np.ndarray, values: np.ndarray,
+                     ridge: float = LOCAL_FIT_RIDGE) -> tuple[np.ndarray, np.ndarray]:
+    """The value at each point (P,3) of a linear function fitted to ``values`` (S,) at
+    ``seeds_mm`` (S,3), weighted by a Gaussian of sigma ``width_mm`` (P,) around the point
+    (seeds beyond 3 sigma left out): (value (P,), decided (P,) bool: some seed in reach).
+
+    The slopes carry a ridge of ``ridge`` x the weights' sum x width^2: seeds on a surface
+    say nothing about the slope along its normal (pinned to 0), nor across a single row of
+    seeds (the fit is then the row's own); along the surface the data's own weight is
+    about the sum x (width / 0.75)^2, so the ridge barely moves it. The value is clipped to
+    the range of the values in reach: the fit interpolates, it does not extrapolate."""
+    p = np.asarray(points_mm, dtype=float).reshape(-1, 3)
+    h = np.asarray(width_mm, dtype=float).reshape(-1)
+    near = cKDTree(p).sparse_distance_matrix(cKDTree(seeds_mm), 3.0 * float(h.max()), output_type="coo_matrix")
+    keep = near.data <= 3.0 * h[near.row]
+    row, col, d_mm = near.row[keep], near.col[keep], near.data[keep]
+    w = np.exp(-0.5 * (d_mm / h[row]) ** 2)
+    x = np.concatenate([np.ones((row.size, 1)), seeds_mm[col] - p[row]], axis=1)     # centred on the point
+    n = p.shape[0]
+    normal = np.zeros((n, 4, 4))
+    rhs = np.zeros((n, 4))
+    for i in range(4):
+        rhs[:, i] = np.bincount(row, w * x[:, i] * values[col], minlength=n)
+        for j in range(i, 4):
+            normal[:, i, j] = normal[:, j, i] = np.bincount(row, w * x[:, i] * x[:, j], minlength=n)
+    decided = normal[:, 0, 0] > 1e-9
+    slope_ridge = ridge * normal[:, 0, 0] * h ** 2
+    for i in range(1, 4):
+        normal[:, i, i] += slope_ridge
+    normal[~decided] = np.eye(4)
+    value = np.linalg.solve(normal, rhs[..., None])[:, 0, 0]
+    # Never beyond the values of the seeds in reach: past the last seeds (an object's rim) a
+    # slope read between two of them would run on unchecked.
+    low, high = np.full(n, np.inf), np.full(n, -np.inf)
+    np.minimum.at(low, row, values[col])
+    np.maximum.at(high, row, values[col])
+    return np.where(decided, np.clip(value, low, high), value), decided
 
 
 def _nearest_plane_label(point: np.ndarray, members: np.ndarray, labels: np.ndarray, min_points: int) -> int:
