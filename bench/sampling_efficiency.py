@@ -3,7 +3,9 @@
 Strategies, at an increasing budget of survey contacts (each contact: the plan's survey
 angle(s), here 90 degrees, at the plan's survey forces): raster (coarse-to-fine grid over
 the top surfaces), random (uniform surface points), neural_gas (the session's
-geometry-aware NG, one unit per contact), densify (a small NG start, then rounds of
+geometry-aware NG, one unit per contact), densify (the session's survey, an NG of the
+size the plan asks for (estimate.survey_units: ``sampling.units`` raised for
+``sampling.min_feature_mm``; ``--densify-start`` overrides it), then rounds of
 densify.plan_round where adjacent regions disagree, with survey-mean region models as the
 disagreement proxy) (bench/strategies.py), and gp: the palpation
 literature's Gaussian-process active search (Garg et al. 2016, Salman et al. 2018;
@@ -87,6 +89,7 @@ import numpy as np
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from elastoprobe.controller.estimate import survey_units  # noqa: E402
 from elastoprobe.sim import generate as gen  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -583,7 +586,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="looser error targets also reported (probes_to_error), comma-separated")
     ap.add_argument("--budgets", default=",".join(map(str, DEFAULT_BUDGETS)),
                     help="survey contacts per rung, increasing (comma-separated)")
-    ap.add_argument("--densify-start", type=int, default=16, help="neural-gas units before densifying")
+    ap.add_argument("--densify-start", type=int, default=None,
+                    help="neural-gas units before densifying (default: the session's survey size for the plan, "
+                         "estimate.survey_units: sampling.units raised for sampling.min_feature_mm)")
     ap.add_argument("--densify-per-round", type=int, default=None, help="default: the plan's points_per_round")
     ap.add_argument("--gp-start", type=int, default=4, help="raster probes before the GP search starts")
     ap.add_argument("--gp-spacing-mm", type=float, default=None,
@@ -715,6 +720,8 @@ def run_seed(args: argparse.Namespace, plan_path: str, seed: int, budgets: list[
     warnings.filterwarnings("ignore", category=RuntimeWarning)
     t0 = time.perf_counter()
     run = SeedRun(inputs, seed, args.cloud_points)
+    # Densify starts where a session starts it: after the survey the plan asks for.
+    survey_start = survey_units(inputs, run.prober.obj.mesh)
     curves: dict[str, list[Point]] = {}
     for s in strategies:
         if s == "raster":
@@ -728,7 +735,8 @@ def run_seed(args: argparse.Namespace, plan_path: str, seed: int, budgets: list[
         elif s == "neural_gas":
             curve = run_neural_gas(run, budgets, stop, steps_per_unit)
         elif s == "densify":
-            curve = run_densify(run, args.densify_start, per_round, max(budgets), stop, steps_per_unit)
+            start_units = args.densify_start or survey_start
+            curve = run_densify(run, start_units, per_round, max(budgets), stop, steps_per_unit)
         else:
             spacing = args.gp_spacing_mm or plan.phases.densify.min_spacing_mm
             curve = run_gp(run, args.gp_start, budgets, stop, spacing, plan.phases.densify.min_spacing_mm)
@@ -744,7 +752,8 @@ def run_seed(args: argparse.Namespace, plan_path: str, seed: int, budgets: list[
                               "survey_forces_n": list(map(float, sorted(plan.phases.survey.forces_n))),
                               "scans_per_step": plan.probing.scans_per_step, "densify_per_round": per_round,
                               "min_spacing_mm": plan.phases.densify.min_spacing_mm,
-                              "resolution_mm": plan.phases.densify.resolution_mm}}
+                              "resolution_mm": plan.phases.densify.resolution_mm,
+                              "densify_start_units": args.densify_start or survey_start}}
 
 
 def _ratio(a: float | None, b: float | None) -> float | None:
@@ -800,7 +809,7 @@ def summarise_plan(args: argparse.Namespace, rows: list[dict[str, Any]], budgets
         "stopped_after_two_rungs_under_target": not args.full_curve,
         "survey": {"angles_deg": settings["survey_angles_deg"], "forces_n": settings["survey_forces_n"],
                    "scans_per_step": settings["scans_per_step"]},
-        "densify": {"start_units": args.densify_start, "points_per_round": settings["densify_per_round"],
+        "densify": {"start_units": settings["densify_start_units"], "points_per_round": settings["densify_per_round"],
                     "min_spacing_mm": settings["min_spacing_mm"], "resolution_mm": settings["resolution_mm"],
                     "disagreement": "densify.plan_round with per-region survey-mean profiles and bootstrap "
                                     "spread as the models (no characterization probes, no training)"},
