@@ -55,6 +55,7 @@ MIN_INTERIOR_SEEDS = 3    # a region's level is read on its interior seeds from 
 SEAM_KERNEL = 0.75        # the seam's smoothing width (Gaussian sigma), in local seed spacings
 SPACING_K = 6             # seeds whose nearest-seed distances give the local spacing
 LOCAL_FIT_RIDGE = 0.1     # the seam fit's slope ridge, in (weights' sum x kernel width^2)
+LOCAL_FIT_CHUNK = 20_000  # cloud points fitted at once (bounds the seed-to-point table)
 
 
 @dataclass(frozen=True)
@@ -377,9 +378,9 @@ def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.nd
     within B's, part way for a seed pressing both). p takes B when a locally linear fit of
     the fractions of the seeds around it (:func:`_local_linear_at`) exceeds 1/2 at p; deep
     in A every seed around reads 0 and nothing moves, and a point with no seed in reach
-    keeps the plain map's label. The kernel width is
-    ``SEAM_KERNEL`` x the local seed spacing (the median nearest-seed distance of the
-    ``SPACING_K`` seeds nearest p), so several seeds on each side decide: the seam is a
+    keeps the plain map's label. The kernel width is ``SEAM_KERNEL`` x the local seed
+    spacing (the median nearest-seed distance of the ``SPACING_K`` seeds nearest p), so
+    several seeds on each side decide: the seam is a
     smooth curve through the part-way seeds, not the polygon of the cells of one pair of
     seeds (which follows each seed's position and one level's noise). A linear fit, not a
     weighted mean: a mean pulls the crossing toward the side with more seeds near p (the
@@ -408,12 +409,14 @@ def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.nd
     _, around = tree.query(graph.points_mm[pts], k=min(SPACING_K, len(seeds)))
     spacing_mm = np.median(nearest_seed_mm[np.asarray(around).reshape(pts.size, -1)], axis=1)
     h = SEAM_KERNEL * np.maximum(spacing_mm, 1e-3)      # coincident seeds: no zero width
-    band = np.isfinite(others[kb, np.arange(pts.size)])
-    for pair in np.unique(np.stack([ka[band], kb[band]], axis=1), axis=0):
-        here = band & (ka == pair[0]) & (kb == pair[1])
+    has_other = np.isfinite(others[kb, np.arange(pts.size)])
+    for pair in np.unique(np.stack([ka[has_other], kb[has_other]], axis=1), axis=0):
+        here = has_other & (ka == pair[0]) & (kb == pair[1])
         p, hp = pts[here], h[here]
         ra, rb = regions[pair[0]], regions[pair[1]]
         of_a, of_b = np.flatnonzero(seed_labels == ra), np.flatnonzero(seed_labels == rb)
+        # Each seed's place on the way from A to B (its partner in the pair only names the
+        # other region).
         s_a, _, usable = seam_fractions(seed_levels, seed_labels, of_a, np.full(of_a.size, of_b[0]), interior)
         _, s_b, _ = seam_fractions(seed_levels, seed_labels, np.full(of_b.size, of_a[0]), of_b, interior)
         if not usable.any():
@@ -438,7 +441,19 @@ def _local_linear_at(points_mm: np.ndarray, width_mm: np.ndarray, seeds_mm: np.n
     the range of the values in reach: the fit interpolates, it does not extrapolate."""
     p = np.asarray(points_mm, dtype=float).reshape(-1, 3)
     h = np.asarray(width_mm, dtype=float).reshape(-1)
-    near = cKDTree(p).sparse_distance_matrix(cKDTree(seeds_mm), 3.0 * float(h.max()), output_type="coo_matrix")
+    value, decided = np.zeros(p.shape[0]), np.zeros(p.shape[0], dtype=bool)
+    tree = cKDTree(seeds_mm)
+    # In chunks: a seed-to-point table over a whole cloud (every point beside another region
+    # is fitted) would grow with the cloud.
+    for start in range(0, p.shape[0], LOCAL_FIT_CHUNK):
+        part = slice(start, start + LOCAL_FIT_CHUNK)
+        value[part], decided[part] = _local_linear_chunk(p[part], h[part], tree, seeds_mm, values, ridge)
+    return value, decided
+
+
+def _local_linear_chunk(p: np.ndarray, h: np.ndarray, tree: cKDTree, seeds_mm: np.ndarray, values: np.ndarray,
+                        ridge: float) -> tuple[np.ndarray, np.ndarray]:
+    near = cKDTree(p).sparse_distance_matrix(tree, 3.0 * float(h.max()), output_type="coo_matrix")
     keep = near.data <= 3.0 * h[near.row]
     row, col, d_mm = near.row[keep], near.col[keep], near.data[keep]
     w = np.exp(-0.5 * (d_mm / h[row]) ** 2)
