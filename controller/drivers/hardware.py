@@ -65,10 +65,12 @@ from ..core.devices import ArmStatus, DeviceIdentity, MotionState, Trip, WrenchB
 from ..core.errors import DeviceError, DeviceTimeout, MotionRefused, ProgramNotRunning
 from ..core.forceloop import BlockVerdict, ForceLoopGains, ForceSupervisor, SupervisedMotion
 from ..core.geometry import Pose
+from ..core.kinematics import inverse, ur5e
 from ..core.process import set_parent_death_signal
 from ..core.safety import SafetyGuard, SafetyLimits
+from .ati_netft import NetFTClient
 from .supervised import await_ready, kill_child
-from .ur_link import LinkMove, URLinkConfig, URState
+from .ur_link import LinkMove, URLink, URLinkConfig, URState
 from .ur_primitives import URPrimitives
 
 _ACTIVE = (MotionState.RUNNING,)
@@ -280,9 +282,6 @@ class _HardwareServer:
     """Everything that runs inside the hardware process."""
 
     def __init__(self, conn: Any, cfg: HardwareConfig, parent_pid: int) -> None:
-        from .ati_netft import NetFTClient
-        from .ur_link import URLink
-
         class _NotifyingNetFT(NetFTClient):
             """The Net F/T client, waking the safety thread on every datagram."""
 
@@ -881,8 +880,6 @@ class HardwareArm:
                          stop_reason=str(d["stop_reason"]), link_generation=int(d.get("link_generation", 0)))
 
     def inverse_kinematics(self, tcp_pose: Pose, seed_joints_rad: np.ndarray | None = None) -> np.ndarray | None:
-        from ..core.kinematics import inverse, ur5e
-
         if self._model is None:
             self._model = ur5e(self._proc.cfg.flange_to_tcp, self._proc.cfg.joint_limits_rad)
         seed = self.status().joints_rad if seed_joints_rad is None else seed_joints_rad
