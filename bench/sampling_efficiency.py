@@ -720,8 +720,11 @@ def run_seed(args: argparse.Namespace, plan_path: str, seed: int, budgets: list[
     warnings.filterwarnings("ignore", category=RuntimeWarning)
     t0 = time.perf_counter()
     run = SeedRun(inputs, seed, args.cloud_points)
-    # Densify starts where a session starts it: after the survey the plan asks for.
-    survey_start = survey_units(inputs, run.prober.obj.mesh)
+    # Densify starts where a session starts it: after the survey the plan asks for (sampled
+    # from the mesh only when densify runs and no start was given).
+    densify_start = None
+    if "densify" in strategies:
+        densify_start = args.densify_start or survey_units(inputs, run.prober.obj.mesh)
     curves: dict[str, list[Point]] = {}
     for s in strategies:
         if s == "raster":
@@ -735,8 +738,7 @@ def run_seed(args: argparse.Namespace, plan_path: str, seed: int, budgets: list[
         elif s == "neural_gas":
             curve = run_neural_gas(run, budgets, stop, steps_per_unit)
         elif s == "densify":
-            start_units = args.densify_start or survey_start
-            curve = run_densify(run, start_units, per_round, max(budgets), stop, steps_per_unit)
+            curve = run_densify(run, densify_start, per_round, max(budgets), stop, steps_per_unit)
         else:
             spacing = args.gp_spacing_mm or plan.phases.densify.min_spacing_mm
             curve = run_gp(run, args.gp_start, budgets, stop, spacing, plan.phases.densify.min_spacing_mm)
@@ -753,7 +755,7 @@ def run_seed(args: argparse.Namespace, plan_path: str, seed: int, budgets: list[
                               "scans_per_step": plan.probing.scans_per_step, "densify_per_round": per_round,
                               "min_spacing_mm": plan.phases.densify.min_spacing_mm,
                               "resolution_mm": plan.phases.densify.resolution_mm,
-                              "densify_start_units": args.densify_start or survey_start}}
+                              "densify_start_units": densify_start}}
 
 
 def _ratio(a: float | None, b: float | None) -> float | None:

@@ -380,11 +380,11 @@ def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.nd
     in A every seed around reads 0 and nothing moves, and a point with no seed in reach
     keeps the plain map's label. The kernel width is ``SEAM_KERNEL`` x the local seed
     spacing (the median nearest-seed distance of the ``SPACING_K`` seeds nearest p), so
-    several seeds on each side decide: the seam is a
-    smooth curve through the part-way seeds, not the polygon of the cells of one pair of
-    seeds (which follows each seed's position and one level's noise). A linear fit, not a
-    weighted mean: a mean pulls the crossing toward the side with more seeds near p (the
-    seeds densification put along a seam), a linear fit does not.
+    several seeds on each side decide: the seam is a smooth curve through the part-way
+    seeds, not the polygon of the cells of one pair of seeds (which follows each seed's
+    position and one level's noise). A linear fit, not a weighted mean: a mean pulls the
+    crossing toward the side with more seeds near p (the seeds densification put along a
+    seam), a linear fit does not.
     """
     regions = np.unique(seed_labels)
     nodes = seed_nodes(graph, seeds_mm)
