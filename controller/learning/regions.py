@@ -695,8 +695,8 @@ def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbour
     fifth region.
 
     ``seen_from_mm`` (N,): where each point's peaks were read (:data:`SEEN_FROM_FEATURE`). A
-    region whose median lies beyond the piece's by more than :data:`NEAR_CONTACT_BAND_MM` has
-    only lower bounds of its dents, so a piece deeper than it at some force does not refute
+    region whose peaks were read (median) farther out than the piece's by more than
+    :data:`NEAR_CONTACT_BAND_MM` has only lower bounds of its dents, so a piece deeper than it at some force does not refute
     the blend, as long as the piece lies strictly between A and B at some other force (the
     contrast rule reads lower bounds the same way, :func:`_merge_by_contrast`). On suite slab
     1002 (seed 2) 11 gel probes on the foam's seam read 0.55-1.1 mm at 2 N, between the gel's
@@ -717,10 +717,10 @@ def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbour
             return labels, relabelled
         med = _region_medians(cols, labels, k)
         sizes = np.bincount(labels, minlength=k)
+        read_at = _region_medians(seen_from[:, None], labels, k)[:, 0]
         done = True
         for band in np.argsort(sizes, kind="stable"):
             pieces = _pieces(np.flatnonzero(labels == band), neighbours)
-            read_at = _region_medians(seen_from[:, None], labels, k)[:, 0]
             sides = [_sandwich(piece, int(band), labels, neighbours, cols, med, sizes, seen_from, read_at)
                      for piece in pieces]
             pairs = [pair for pair in sides if pair is not None]
