@@ -536,6 +536,16 @@ def _recorded_round(data, r):
         data[f"r{r}_previous"].astype(np.int64), data[f"r{r}_true"].astype(np.int64)
 
 
+def _each_material_in_a_region_of_its_own(rm, truth, inside, purity=0.0):
+    """Every material's probes in ``inside`` (away from the seams) lie mostly in one region,
+    a different one per material, and at least ``purity`` of them in it."""
+    materials = int(truth.max()) + 1
+    found = [np.bincount(rm.labels[inside & (truth == m)], minlength=rm.n_regions) for m in range(materials)]
+    assert sorted(int(np.argmax(f)) for f in found) == list(range(materials))
+    for f in found:
+        assert f.max() >= purity * f.sum()
+
+
 def test_recorded_two_inclusions_told_apart_in_round_0_stay_apart_when_points_arrive():
     """Recorded survey of suite slab 1003 (gel 0, foam strip 1, hard-rubber disc 2, elastomer
     ellipse 3; run seed 1), round 1: 385 round-0 points with round 0's four regions, 16
@@ -569,9 +579,7 @@ def test_recorded_seam_band_bigger_than_an_inclusion_but_each_piece_smaller_is_a
     rm = cluster_regions(feats, edges, names, seed=1, noise_mm=noise, previous_labels=previous, far_field_mm=far)
     assert rm.n_regions == 4
     assert len(rm.stats["transition_band_points"]) >= 12
-    inside = data["r3_seam"] > 3.0
-    regions = [int(np.argmax(np.bincount(rm.labels[inside & (truth == m)], minlength=4))) for m in range(4)]
-    assert sorted(regions) == [0, 1, 2, 3]
+    _each_material_in_a_region_of_its_own(rm, truth, data["r3_seam"] > 3.0)
 
 
 def test_recorded_user_object_probe_read_farther_out_is_not_a_stiffer_material():
@@ -610,3 +618,42 @@ def test_recorded_inclusion_measured_on_its_interior_stays_apart_when_seam_probe
     ellipse = np.bincount(rm.labels[inside]).argmax()
     assert np.all(rm.labels[inside] == ellipse)
     assert not np.any(rm.labels[(truth == 0) & (seam > 3.0)] == ellipse)
+
+
+def test_the_last_sample_before_a_rim_is_no_peak():
+    """A probe 3.5 mm from a slab's rim: the tip hides the centre, the probe's shadow one
+    side, and the line leaves the face 3.3 mm out. The last sample before the rim reads the
+    rim's drop (suite slab 1001, seed 2: 0.082 mm beside the elastomer's 0.02). The peak is
+    the dent's, as on a profile that runs on past the rim; a run that ends at the profile's
+    own end, not at a gap, keeps its last sample."""
+    d = np.stack([hertz_normal_mm(X_MM, f, 8.0) for f in FORCES_N])[None].repeat(2, axis=0)
+    d[:, :, (X_MM < 2.0)] = np.nan                       # the tip and its shadow
+    clean, _ = survey_features(d[:1], X_MM, FORCES_N)
+    d[1, :, X_MM > 3.3] = np.nan                         # off the face past the rim
+    last = np.flatnonzero(np.isfinite(d[1, 0]))[-1]
+    d[1, :, last] += 0.15                                # the rim's drop in the last sample
+    rim, names = survey_features(d[1:], X_MM, FORCES_N)
+    peaks = [names.index(f"peak_mm@{f:g}N") for f in FORCES_N]
+    assert np.allclose(rim[0, peaks], clean[0, peaks])
+    # Without the rule the spike would be the peak: the test can tell.
+    assert np.all(d[1, :, last] > np.nanmax(d[1, :, :last], axis=1))
+    # A run cut by the profile's end (the window), not by a gap, is read to its end.
+    x_short = X_MM[(X_MM > 2.0) & (X_MM <= 3.3)]
+    ramp = np.linspace(0.01, 0.05, x_short.size)[None, None].repeat(len(FORCES_N), axis=1)
+    f_short, _ = survey_features(ramp, x_short, FORCES_N)
+    assert np.allclose(f_short[0, peaks], 0.05)
+
+
+def test_recorded_seam_band_deeper_than_a_foam_read_far_out_is_absorbed():
+    """Recorded survey of suite slab 1002 (gel 0, elastomer disc 1, foam strip 2; run seed 2),
+    round 3, features as the session read them: 11 gel probes within 1-2 mm of the foam's
+    seam read 0.55-1.1 mm at 2 N (the gel 0.18, the foam 1.41) and 1.3-2.2 mm at 6 N, beside
+    the foam's 1.97 read 8 mm out (its own dent hides the contact), the band's from 3.6 mm:
+    deeper than a lower bound is no evidence against a blend. Three regions, each material's
+    probes away from the seams in one region of their own."""
+    data, names, noise = _recorded("slab_disc_and_strip_1002_s2.npz")
+    feats, edges, far, previous, truth = _recorded_round(data, 3)
+    rm = cluster_regions(feats, edges, names, seed=2, noise_mm=noise, previous_labels=previous, far_field_mm=far)
+    assert rm.n_regions == 3
+    assert len(rm.stats["transition_band_points"]) >= 11
+    _each_material_in_a_region_of_its_own(rm, truth, data["r3_seam"] > 3.0, purity=0.95)

@@ -27,7 +27,8 @@ slope), and the surface graph (neighbour pairs of the neural-gas units).
    smaller than ``min_island_points`` are relabelled to their neighbours' majority
    (recorded in ``stats["islands"]``, so densification can look there again); and a
    region that is only the blend along the seams of others (each of its connected pieces
-   sandwiched between two regions, smaller than both, its dent between theirs) is split
+   sandwiched between two regions, smaller than both, its dent between theirs, or beyond
+   a neighbour's lower bound: :func:`_absorb_transition_bands`) is split
    between them (``stats["transition_band_points"]``).
 4. Region ids are sorted by the mean of one feature (default column 0, the peak depth
    at the smallest survey force: region 0 is the stiffest), so reruns on the same data
@@ -74,8 +75,16 @@ def _half_max_width_mm(x_mm: np.ndarray, depth_mm: np.ndarray,
     the seen sample closest to x = 0. The tip hides the dent's centre and the probe shadows
     one side, so the deepest SEEN sample is the one nearest the contact; a deeper value far
     out is an occlusion artefact (a box's edge or wall in the scan line), not the dent.
+
+    The last seen sample before a gap, on the side away from the contact, is not read
+    (:func:`_outer_run_ends`): where the line leaves the face at a rim, a tenth of a
+    millimetre's shift of where the loaded and the reference scans last hit it changes that
+    sample's depth by the rim's drop. On suite slab 1001 (seed 2) an elastomer probe 3.5 mm
+    from the slab's rim saw 4 samples; the last read 0.082 and 0.085 mm at 1.5 and 4.5 N
+    (the other three 0.02 and 0.05, the elastomer's dent), and that one sample made a
+    third region of one probe.
     """
-    ok = np.isfinite(depth_mm)
+    ok = np.isfinite(depth_mm) & ~_outer_run_ends(x_mm, depth_mm)
     if np.count_nonzero(ok) < 3:
         return np.nan, np.nan
     x, d = x_mm[ok], depth_mm[ok]
@@ -98,6 +107,23 @@ def _half_max_width_mm(x_mm: np.ndarray, depth_mm: np.ndarray,
         return float(x[j] + frac * (x[k] - x[j]))
 
     return peak, crossing(1) - crossing(-1)
+
+
+def _outer_run_ends(x_mm: np.ndarray, depth_mm: np.ndarray) -> np.ndarray:
+    """(L,) True at each seen sample whose next sample AWAY from the contact (x = 0) is
+    unseen: where a seen run ends short of the profile's ends (a rim, an occluder, a
+    dropout). The contact's side of a run (the tip's shadow) and the profile's own ends
+    are not run ends."""
+    x = np.asarray(x_mm, dtype=float)
+    seen = np.isfinite(np.asarray(depth_mm, dtype=float))
+    ends = np.zeros_like(seen)
+    outward_unseen = np.zeros_like(seen)
+    outward_unseen[:-1] = ~seen[1:]          # for x > 0 the next sample outward is i + 1
+    inward_unseen = np.zeros_like(seen)
+    inward_unseen[1:] = ~seen[:-1]           # for x < 0 it is i - 1
+    ends[x > 0] = (seen & outward_unseen)[x > 0]
+    ends[x < 0] = (seen & inward_unseen)[x < 0]
+    return ends
 
 
 def survey_features(depth_mm: np.ndarray, x_mm: np.ndarray, forces_n: np.ndarray
@@ -648,7 +674,8 @@ def _region_medians(columns: np.ndarray, labels: np.ndarray, k: int) -> np.ndarr
 
 
 def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray],
-                             depth_columns: list[int]) -> tuple[np.ndarray, list[int]]:
+                             depth_columns: list[int], seen_from_mm: np.ndarray | None = None
+                             ) -> tuple[np.ndarray, list[int]]:
     """Relabel a region that is only the blend between others into those others.
 
     Where two materials meet, a probe on the seam presses both: its dent lies between
@@ -665,23 +692,37 @@ def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbour
     has interior points and is kept. The piece, not the region, is weighed against A and B:
     densification keeps adding seam probes, and on slab 1003's round 3 the band's 12 (on two
     seams) matched the hard-rubber disc's 12 interior probes, so a region-wide count kept a
-    fifth region. Returns (labels, relabelled point indices).
+    fifth region.
+
+    ``seen_from_mm`` (N,): where each point's peaks were read (:data:`SEEN_FROM_FEATURE`). A
+    region whose peaks were read (median) farther out than the piece's by more than
+    :data:`NEAR_CONTACT_BAND_MM` has only lower bounds of its dents, so a piece deeper than it at some force does not refute
+    the blend, as long as the piece lies strictly between A and B at some other force (the
+    contrast rule reads lower bounds the same way, :func:`_merge_by_contrast`). On suite slab
+    1002 (seed 2) 11 gel probes on the foam's seam read 0.55-1.1 mm at 2 N, between the gel's
+    0.18 and the foam's 1.41, and 1.3-2.2 mm at 6 N beside the foam's 1.97 read 8 mm out (the
+    piece's from 3.6 mm): a fourth region of no material. Returns (labels, relabelled point
+    indices).
     """
     relabelled: list[int] = []
     if not depth_columns:
         return labels, relabelled
     labels = labels.copy()
     cols = np.log(np.maximum(features[:, depth_columns], 1e-6))
+    seen_from = (np.zeros(labels.shape[0]) if seen_from_mm is None
+                 else np.asarray(seen_from_mm, dtype=float).reshape(-1))
     while True:
         labels, k = _compact(labels)
         if k < 3:
             return labels, relabelled
         med = _region_medians(cols, labels, k)
         sizes = np.bincount(labels, minlength=k)
+        read_at = _region_medians(seen_from[:, None], labels, k)[:, 0]
         done = True
         for band in np.argsort(sizes, kind="stable"):
             pieces = _pieces(np.flatnonzero(labels == band), neighbours)
-            sides = [_sandwich(piece, int(band), labels, neighbours, cols, med, sizes) for piece in pieces]
+            sides = [_sandwich(piece, int(band), labels, neighbours, cols, med, sizes, seen_from, read_at)
+                     for piece in pieces]
             pairs = [pair for pair in sides if pair is not None]
             if len(pairs) < len(pieces):
                 continue
@@ -715,19 +756,32 @@ def _pieces(members: np.ndarray, neighbours: list[np.ndarray]) -> list[np.ndarra
 
 
 def _sandwich(piece: np.ndarray, band: int, labels: np.ndarray, neighbours: list[np.ndarray],
-              log_depth: np.ndarray, region_median: np.ndarray, sizes: np.ndarray) -> tuple[int, int] | None:
+              log_depth: np.ndarray, region_median: np.ndarray, sizes: np.ndarray,
+              seen_from_mm: np.ndarray, region_read_at_mm: np.ndarray) -> tuple[int, int] | None:
     """The pair of regions (a, b) a piece of region ``band`` is the blend of, or None: every
-    point of the piece borders both, both regions have more points than the piece, and the
-    piece's median log depth lies strictly between theirs at every force."""
+    point of the piece borders both, both regions have more points than the piece, and at
+    every force the piece's median log depth lies strictly between theirs, or beyond the
+    deeper one's where that one's peaks were read farther out than the piece's by more than
+    :data:`NEAR_CONTACT_BAND_MM` (lower bounds); strictly between at one force at least."""
     touching = [set(int(v) for v in labels[neighbours[i]]) - {band} for i in piece]
     common = set.intersection(*touching) if touching else set()
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         mid = np.nanmedian(log_depth[piece], axis=0)
+        piece_read_at = float(np.nanmedian(seen_from_mm[piece]))
+
+    def blend_of(a: int, b: int) -> bool:
+        if not (np.all(np.isfinite(region_median[[a, b]])) and np.all(np.isfinite(mid))):
+            return False
+        between = (mid - region_median[a]) * (mid - region_median[b]) < 0
+        deeper = np.where(region_median[a] >= region_median[b], a, b)             # per force
+        with np.errstate(invalid="ignore"):
+            lower_bound = region_read_at_mm[deeper] > piece_read_at + NEAR_CONTACT_BAND_MM
+        beyond = (mid >= region_median[deeper, np.arange(mid.size)]) & lower_bound
+        return bool(np.any(between) and np.all(between | beyond))
+
     return next(((a, b) for a in sorted(common) for b in sorted(common)
-                 if a < b and sizes[a] > piece.size and sizes[b] > piece.size
-                 and np.all(np.isfinite(region_median[[a, b]])) and np.all(np.isfinite(mid))
-                 and np.all((mid - region_median[a]) * (mid - region_median[b]) < 0)), None)
+                 if a < b and sizes[a] > piece.size and sizes[b] > piece.size and blend_of(a, b)), None)
 
 
 def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list[str] | None = None, *,
@@ -836,7 +890,7 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
 
         labels, islands, kept = _remove_islands(labels, e, neighbours, min_island_points,
                                                 distinct if log_cols and min_contrast > 1.0 else None)
-        labels, bands = _absorb_transition_bands(x, labels, neighbours, depth_cols)
+        labels, bands = _absorb_transition_bands(x, labels, neighbours, depth_cols, seen_from)
         labels, k = _compact(labels)
     else:
         islands, bands = [], []
