@@ -122,14 +122,9 @@ def _outer_run_ends(x_mm: np.ndarray, depth_mm: np.ndarray) -> np.ndarray:
     are not run ends."""
     x = np.asarray(x_mm, dtype=float)
     seen = np.isfinite(np.asarray(depth_mm, dtype=float))
-    ends = np.zeros_like(seen)
-    outward_unseen = np.zeros_like(seen)
-    outward_unseen[:-1] = ~seen[1:]          # for x > 0 the next sample outward is i + 1
-    inward_unseen = np.zeros_like(seen)
-    inward_unseen[1:] = ~seen[:-1]           # for x < 0 it is i - 1
-    ends[x > 0] = (seen & outward_unseen)[x > 0]
-    ends[x < 0] = (seen & inward_unseen)[x < 0]
-    return ends
+    next_unseen = np.append(~seen[1:], False)        # outward for x > 0
+    previous_unseen = np.insert(~seen[:-1], 0, False)  # outward for x < 0
+    return seen & np.where(x > 0, next_unseen, (x < 0) & previous_unseen)
 
 
 def survey_features(depth_mm: np.ndarray, x_mm: np.ndarray, forces_n: np.ndarray
@@ -733,9 +728,10 @@ def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbour
 
     ``seen_from_mm`` (N,): where each point's peaks were read (:data:`SEEN_FROM_FEATURE`). A
     region whose peaks were read (median) farther out than the piece's by more than
-    :data:`NEAR_CONTACT_BAND_MM` has only lower bounds of its dents, so a piece deeper than it at some force does not refute
-    the blend, as long as the piece lies strictly between A and B at some other force (the
-    contrast rule reads lower bounds the same way, :func:`_merge_by_contrast`). On suite slab
+    :data:`NEAR_CONTACT_BAND_MM` has only lower bounds of its dents, so a piece deeper than
+    it at some force does not refute the blend, as long as the piece lies strictly between
+    A and B at some other force (the contrast rule reads lower bounds the same way,
+    :func:`_merge_by_contrast`). On suite slab
     1002 (seed 2) 11 gel probes on the foam's seam read 0.55-1.1 mm at 2 N, between the gel's
     0.18 and the foam's 1.41, and 1.3-2.2 mm at 6 N beside the foam's 1.97 read 8 mm out (the
     piece's from 3.6 mm): a fourth region of no material. Returns (labels, relabelled point
