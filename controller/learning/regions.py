@@ -397,10 +397,10 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     ``MEASURED_DENT_NOISES`` x the scatter of one of its points' peak depth, measured from
     its points' far fields ``far_field_mm`` (N,2), see :func:`peak_noise_mm`; ``floor_mm``
     without them; or with a median deeper than ``PEAK_BIAS_SAMPLE_NOISES`` sample noises
-    (:func:`sample_noise_mm`) plus 3 standard errors of the median), their median depths (+ ``floor_mm``) differ by at least a factor
-    ``min_contrast`` and by more than 3 standard errors of the difference of the medians
-    (:func:`_difference_standard_error`), and at no
-    measured force is the other one deeper by more than 3 standard errors; a cluster of
+    (:func:`sample_noise_mm`) plus 3 standard errors of the median), their median depths
+    (+ ``floor_mm``) differ by at least a factor ``min_contrast`` and by more than 3
+    standard errors of the difference of the medians (:func:`_difference_standard_error`),
+    and at no measured force is the other one deeper by more than 3 standard errors; a cluster of
     fewer than ``MIN_POINTS_FOR_ONE_FORCE`` points must be deeper (or shallower) by 3
     standard errors at every measured force. ``depth_columns``: the peak-depth features.
     ``seen_from_mm`` (N,): how far from the contact each point's peaks were read
