@@ -55,12 +55,6 @@ _MAX_ISLAND_PASSES = 10
 # contact (about two noises above the dent on the 10-20 samples there), so two such peaks
 # say nothing of which material is stiffer. See _merge_by_contrast.
 MEASURED_DENT_NOISES = 5.0
-# ... or a cluster's median dent beyond what noise alone gives a median of its peaks: the
-# largest of the 10-20 noisy samples near the contact lies about this many sample noises
-# above the dent (the expected largest of 10 and 20 standard normals: 1.54 and 1.87), a bias
-# no number of probes averages out, plus 3 standard errors of the median, which shrink with
-# the probes (see _merge_by_contrast).
-PEAK_BIAS_SAMPLE_NOISES = 2.0
 # A cluster with fewer points is split off only by a contrast that holds at every measured
 # survey force (see _merge_by_contrast).
 MIN_POINTS_FOR_ONE_FORCE = 3
@@ -396,11 +390,10 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     materials when, at some survey force at which either dent is measured (deeper than
     ``MEASURED_DENT_NOISES`` x the scatter of one of its points' peak depth, measured from
     its points' far fields ``far_field_mm`` (N,2), see :func:`peak_noise_mm`; ``floor_mm``
-    without them; or with a median deeper than ``PEAK_BIAS_SAMPLE_NOISES`` sample noises
-    (:func:`sample_noise_mm`) plus 3 standard errors of the median), their median depths
-    (+ ``floor_mm``) differ by at least a factor ``min_contrast`` and by more than 3
-    standard errors of the difference of the medians (:func:`_difference_standard_error`),
-    and at no measured force is the other one deeper by more than 3 standard errors; a cluster of
+    without them), their median depths (+ ``floor_mm``) differ by at least a factor
+    ``min_contrast`` and by more than 3 standard errors of the difference of the medians
+    (:func:`_difference_standard_error`), and at no
+    measured force is the other one deeper by more than 3 standard errors; a cluster of
     fewer than ``MIN_POINTS_FOR_ONE_FORCE`` points must be deeper (or shallower) by 3
     standard errors at every measured force. ``depth_columns``: the peak-depth features.
     ``seen_from_mm`` (N,): how far from the contact each point's peaks were read
@@ -456,17 +449,6 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     less at every force, so an order clearly reversed at another force refutes the pair;
     one merely unresolved there does not. A pair measured at no force is one material as
     far as the survey can tell.
-
-    Why a cluster's median may be measured where one point's peak is not: the scatter of
-    one peak is mostly the scanner's correlated floor (an offset along the whole line,
-    ~0.013 mm on suite slab 1003's elastomer against 0.005 mm of one sample), and a median
-    of many probes averages it out; what it does not average out is the bias of reading
-    the largest of the noisy samples near the contact. On suite slab 1003, seed 2, the
-    elastomer ellipse's 8 interior probes read a median of 0.047 mm at 4.5 N, the
-    hard-rubber disc's 0.010 mm (4.7x), one peak's scatter 0.014 mm: neither dent counted
-    as measured by 5 scatters (0.07 mm), the two inclusions were one region from round 0
-    to the end, and the hard rubber's worst IoU was 0. The elastomer's median clears
-    2 sample noises + 3 standard errors of its median (0.021 mm): four regions.
     """
     merges = 0
     if not depth_columns or min_contrast <= 1.0:
@@ -481,23 +463,20 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
 
     interior = None if edges is None else sm.interior_seeds(labels, edges)
 
-    def measure(c: int) -> tuple[np.ndarray, float, np.ndarray, float, float]:
-        # (median depths + floor (C,), peak scatter, finite counts (C,), median seen-from,
-        # one sample's scatter) of cluster c
+    def measure(c: int) -> tuple[np.ndarray, float, np.ndarray, float]:
+        # (median depths + floor (C,), peak scatter, finite counts (C,), median seen-from) of cluster c
         basis = _measured_points(labels, c, interior)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             depth = np.maximum(np.nanmedian(cols[basis], axis=0), 0.0) + floor
             where = float(np.nanmedian(seen_from[basis]))
-        return (depth, peak_noise_mm(far[basis], floor), np.sum(np.isfinite(cols[basis]), axis=0).astype(float),
-                where, sample_noise_mm(far[basis], floor))
+        return depth, peak_noise_mm(far[basis], floor), np.sum(np.isfinite(cols[basis]), axis=0).astype(float), where
 
     measured_clusters = [measure(c) for c in range(k)]
     med = np.stack([m[0] for m in measured_clusters])
     noise = np.array([m[1] for m in measured_clusters])
     count = np.stack([m[2] for m in measured_clusters])
     read_at = np.array([m[3] for m in measured_clusters])                       # (k,) mm
-    sample = np.array([m[4] for m in measured_clusters])                        # (k,) mm
     prev = (np.full(labels.shape[0], -1, dtype=np.int64) if previous_labels is None
             else np.asarray(previous_labels, dtype=np.int64).reshape(-1))
     came_from = np.array([_one_previous(prev[labels == c]) for c in range(k)], dtype=np.int64)
@@ -505,9 +484,7 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
         logs = np.log(med)
         signed = logs[:, None, :] - logs[None, :, :]                       # (k,k,F)
         finite = np.isfinite(signed)
-        seen = ((med > MEASURED_DENT_NOISES * noise[:, None])                # (k,F)
-                | (med > PEAK_BIAS_SAMPLE_NOISES * sample[:, None] + 3.0 * _median_standard_error(noise, count)
-                   + floor))
+        seen = med > MEASURED_DENT_NOISES * noise[:, None]                   # (k,F)
         measured = finite & (seen[:, None, :] | seen[None, :, :])
         seen_at_all = measured.any(axis=2)
         diff_mm = med[:, None, :] - med[None, :, :]                         # > 0: i deeper
@@ -547,10 +524,10 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
         labels = np.where(labels > j, labels - 1, labels)
         k -= 1
         members = labels == i
-        med, count, noise, read_at, sample = (np.delete(a, j, axis=0) for a in (med, count, noise, read_at, sample))
+        med, count, noise, read_at = (np.delete(a, j, axis=0) for a in (med, count, noise, read_at))
         # Only the joined cluster changes: its points that bordered each other are interior now.
         interior = None if edges is None else sm.interior_seeds(labels, edges)
-        med[i], noise[i], count[i], read_at[i], sample[i] = measure(int(i))
+        med[i], noise[i], count[i], read_at[i] = measure(int(i))
         came_from = np.delete(came_from, j)
         came_from[i] = _one_previous(prev[members])
         merges += 1
@@ -602,29 +579,15 @@ def peak_noise_mm(far_field_mm: np.ndarray, floor_mm: float) -> float:
     return max(float(np.hypot(common, one)), 1e-6)
 
 
-def sample_noise_mm(far_field_mm: np.ndarray, floor_mm: float) -> float:
-    """The scatter (mm) of one sample of an averaged profile among points of one material:
-    the median of their far fields' sample scatter (``far_field_mm`` (M,2), see
-    :func:`peak_noise_mm`); ``floor_mm`` when no point saw its far field."""
-    scatter = np.asarray(far_field_mm, dtype=float).reshape(-1, 2)[:, 1]
-    scatter = scatter[np.isfinite(scatter)]
-    return max(float(np.median(scatter)), 1e-6) if scatter.size else float(floor_mm)
-
-
-def _median_standard_error(noise_mm: np.ndarray, count: np.ndarray) -> np.ndarray:
-    """(k, C) standard error (mm) of each region's median peak depth from the measurement
-    alone: its peak scatter ``noise_mm`` (k,) over sqrt(n), times sqrt(pi / 2) from three
-    points on (a median's efficiency against the mean's)."""
-    eff = np.where(count >= 3, np.pi / 2.0, 1.0) / np.maximum(count, 1.0)
-    return np.asarray(noise_mm, dtype=float)[:, None] * np.sqrt(eff)
-
-
 def _difference_standard_error(noise_mm: np.ndarray, count: np.ndarray) -> np.ndarray:
     """(k, k, C) standard error (mm) of the difference of two regions' median peak depths
-    (:func:`_median_standard_error`). A material's own drift with geometry and support is
-    not measurement error: the contrast factor is what tells it from another material."""
-    se = _median_standard_error(noise_mm, count)
-    return np.sqrt(se[:, None, :] ** 2 + se[None, :, :] ** 2)
+    from the measurement alone: each region's peak scatter ``noise_mm`` (k,) over sqrt(n),
+    times sqrt(pi / 2) from three points on (a median's efficiency against the mean's).
+    A material's own drift with geometry and support is not measurement error: the
+    contrast factor is what tells it from another material."""
+    eff = np.where(count >= 3, np.pi / 2.0, 1.0) / np.maximum(count, 1.0)
+    var = np.asarray(noise_mm, dtype=float)[:, None] ** 2 * eff                  # (k,C)
+    return np.sqrt(var[:, None, :] + var[None, :, :])
 
 
 def _icm(loglik: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray], beta: float,
