@@ -309,8 +309,8 @@ class SeedRun:
         seen, labels, rmap, edges = self.regions(points, normals, measured)
         depth = self.profiles(measured)[seen]
         feats, names = st.dent_features(depth, self.prober.grid.x_mm, self.prober.forces_n, FEATURE_HALF_WINDOW_MM)
-        levels = rg.log_peaks(feats, names, self.noise(measured))[0].mean(axis=1)
-        scores = self.score_surface_labels(sm.labels_from_seeds(self.graph, points[seen], labels, seed_levels=levels))
+        scores = self.score_surface_labels(sm.labels_from_seeds(self.graph, points[seen], labels,
+                                                                seed_levels=rg.mean_peak_mm(feats, names)))
         scores["n_regions_found"] = int(rmap.n_regions)
         scores["unseen_targets"] = int(np.sum(~seen))
         return scores, seen, labels, edges

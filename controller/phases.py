@@ -806,13 +806,13 @@ def _region_features(ctx: PhaseContext, ids: list[int]) -> tuple[np.ndarray, lis
 
 
 def _survey_levels(ctx: PhaseContext, ids: list[int]) -> np.ndarray | None:
-    """Each labelled target's dent on the scale regions differ on (mean over survey forces of
-    log(peak + noise), regions.log_peaks); None without a regions round."""
+    """Each labelled target's dent, the level the final map draws seams through (mean peak
+    depth in mm over the survey forces, regions.mean_peak_mm); None without a regions round."""
 
     found = _region_features(ctx, ids)
     if found is None:
         return None
-    return rg.log_peaks(found[0], found[1], measured_noise_mm(ctx))[0].mean(axis=1)
+    return rg.mean_peak_mm(found[0], found[1])
 
 
 def _cloud_normals_at(ctx: PhaseContext, points_mm: np.ndarray) -> np.ndarray:

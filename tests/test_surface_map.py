@@ -139,7 +139,8 @@ def test_a_small_region_mostly_seam_seeds_is_read_on_its_interior():
     assert not interior[seeds[:, 0] == 30.0].any() and not interior[seeds[:, 0] == 36.0].any()
     assert interior[seeds[:, 0] == 10.0].all() and interior[seeds[:, 0] == 66.0].all()
     a, b = np.flatnonzero(seeds[:, 0] == 30.0)[6:7], np.flatnonzero(seeds[:, 0] == 36.0)[2:3]
-    assert not sm.seam_fractions(levels, labels, a, b)[2].any()          # on all seeds the ranges overlap
+    # Read on all seeds, the ranges (3 sigmas, densification's reading) overlap.
+    assert not sm.seam_fractions(levels, labels, a, b, edge_sigmas=3.0)[2].any()
     s_a, s_b, usable = sm.seam_fractions(levels, labels, a, b, interior)
     assert usable.all() and s_a[0] == pytest.approx(0.45) and s_b[0] == 1.0
     plain = sm.labels_from_seeds(g, seeds, labels)
@@ -193,6 +194,39 @@ def test_a_disc_seam_is_drawn_round_through_the_probes_that_straddle_it():
 
     assert disc_iou(plain) < 0.85
     assert disc_iou(refined) > 0.9
+
+
+def test_a_stiff_disc_keeps_its_size_when_the_seam_is_read_in_mm():
+    """A stiff disc (radius 10 mm, dent 0.1 mm) in a soft plane (1.0 mm), probed on a jittered
+    6 mm grid; a probe within 3 mm of the rim dents as the smoothstep-weighted mean of the
+    two materials in mm (the simulator's contact model, docs/design.md §8), with 5 % noise.
+    Drawn through the probes' mm levels the seam keeps the disc near its size; through
+    their logarithms it runs where the dent is the geometric mean (0.32 mm, most of the way
+    to the soft level in mm), inside the disc, and the disc shrinks (stops 29 and 33)."""
+    pts, nrm = plane(81, 81, 1.0)
+    g = sm.build_graph(pts, nrm)
+    truth = np.linalg.norm(pts[:, :2] - 40.0, axis=1) < 10.0
+    ratio_mm, ratio_log, iou_mm = [], [], []
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        g1 = np.arange(3.0, 80.0, 6.0)
+        gx, gy = np.meshgrid(g1, g1, indexing="ij")
+        xy = np.column_stack([gx.ravel(), gy.ravel()]) + rng.uniform(-1.5, 1.5, (gx.size, 2))
+        seeds = np.column_stack([xy, np.zeros(len(xy))])
+        inside_mm = 10.0 - np.linalg.norm(xy - 40.0, axis=1)
+        labels = (inside_mm > 0).astype(int)
+        u = np.clip(0.5 - np.abs(inside_mm) / 6.0, 0.0, 1.0)
+        w_other = u * u * (3.0 - 2.0 * u)
+        w_disc = np.where(inside_mm > 0, 1.0 - w_other, w_other)
+        dent_mm = (0.1 * w_disc + 1.0 * (1.0 - w_disc)) * np.exp(rng.normal(0.0, 0.05, len(xy)))
+        disc_mm = sm.labels_from_seeds(g, seeds, labels, seed_levels=dent_mm) == 1
+        disc_log = sm.labels_from_seeds(g, seeds, labels, seed_levels=np.log(dent_mm)) == 1
+        assert disc_mm.sum() > disc_log.sum()
+        ratio_mm.append(disc_mm.sum() / truth.sum())
+        ratio_log.append(disc_log.sum() / truth.sum())
+        iou_mm.append(np.sum(disc_mm & truth) / np.sum(disc_mm | truth))
+    assert 0.85 <= np.mean(ratio_mm) <= 1.1 and np.mean(ratio_log) < 0.85
+    assert np.mean(iou_mm) >= 0.85
 
 
 def test_the_seam_fit_interpolates_and_never_extrapolates():

@@ -55,6 +55,9 @@ RING_DIRECTIONS = 6
 # cluster this small to a contrast at every measured force (regions.MIN_POINTS_FOR_ONE_FORCE),
 # and a probe on a small inclusion is usually alone there.
 LONE_REGION_POINTS = rg.MIN_POINTS_FOR_ONE_FORCE
+# Where a new probe goes on a crossing edge: a point within this many robust sigmas of its
+# region's median counts as pure (surface_map.seam_fractions).
+CROSSING_EDGE_SIGMAS = 3.0
 
 
 class ProfileModel(Protocol):
@@ -426,7 +429,10 @@ def _crossing_fraction(edges: np.ndarray, labels: np.ndarray, levels: np.ndarray
     cross = np.flatnonzero(np.asarray(labels)[e[:, 0]] != np.asarray(labels)[e[:, 1]])
     if cross.size == 0:
         return out
-    s_a, s_b, usable = sm.seam_fractions(levels, labels, e[cross, 0], e[cross, 1], sm.interior_seeds(labels, e))
+    # Log levels and 3-sigma edges, where the final map now reads mm halfway between the
+    # medians: this places probes, and changing it moves every run's probing (not measured).
+    s_a, s_b, usable = sm.seam_fractions(levels, labels, e[cross, 0], e[cross, 1], sm.interior_seeds(labels, e),
+                                         edge_sigmas=CROSSING_EDGE_SIGMAS)
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(np.abs(s_b - s_a) > 1e-9, (0.5 - s_a) / (s_b - s_a), 0.5)
     out[cross] = np.where(usable, np.clip(t, *clip), 0.5)

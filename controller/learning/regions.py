@@ -924,6 +924,16 @@ def log_peaks(features: np.ndarray, feature_names: list[str], noise_mm: float) -
     return np.log(peaks + floor), floor / (peaks + floor)
 
 
+def mean_peak_mm(features: np.ndarray, feature_names: list[str]) -> np.ndarray:
+    """(N,) each point's peak depth (mm, negative readings as 0) averaged over the survey
+    forces (the features named ``peak...``): the level the final map draws seams through.
+    In mm and not in log: a tip straddling a seam dents as the weighted mean of the two
+    materials' dents (surface_map.seam_fractions)."""
+    x = np.asarray(features, dtype=float)
+    cols = [j for j, name in enumerate(feature_names) if name.startswith("peak")]
+    return np.maximum(x[:, cols], 0.0).mean(axis=1)
+
+
 def survey_misfit(features: np.ndarray, labels: np.ndarray, feature_names: list[str], noise_mm: float,
                   min_contrast: float = MIN_CONTRAST, sigmas: float = 3.0) -> np.ndarray:
     """(N,) how far each point's peak depths lie from its region's, in units of what the

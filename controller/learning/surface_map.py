@@ -54,6 +54,10 @@ SEAM_SIDE = 0.45          # the most of the way to the other region a seed's lev
 MIN_INTERIOR_SEEDS = 3    # a region's level is read on its interior seeds from this many on
 SEAM_KERNEL = 0.75        # the seam's smoothing width (Gaussian sigma), in local seed spacings
 SPACING_K = 6             # seeds whose nearest-seed distances give the local spacing
+# How far (robust sigmas) from its region's median a seed still counts as pure when the
+# final map draws a seam: 0, the seam is where the dent lies halfway between the two
+# regions' medians (see seam_fractions for why, and docs/generated_objects.md, stop 33).
+SEAM_EDGE_SIGMAS = 0.0
 LOCAL_FIT_RIDGE = 0.1     # the seam fit's slope ridge, in (weights' sum x kernel width^2)
 LOCAL_FIT_CHUNK = 20_000  # cloud points fitted at once (bounds the seed-to-point table)
 
@@ -265,10 +269,11 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
                       seed_levels: np.ndarray | None = None) -> np.ndarray:
     """Region label (P,) of every cloud point (see the module docstring, steps 3 and 4).
 
-    ``seed_levels`` (S,): each seed's dent on a scale where regions differ (e.g. its mean
-    log peak depth); with them, the faces between seeds of two regions are split where
-    the level interpolated along the surface crosses midway (:func:`_split_between`)
-    instead of midway between the seeds.
+    ``seed_levels`` (S,): each seed's dent on a scale where a seed pressing two materials
+    reads their weighted mean (the session passes the mean peak depth in mm over the survey
+    forces, regions.mean_peak_mm); with them, the faces between seeds of two regions are
+    split where the level interpolated along the surface crosses midway
+    (:func:`_split_between`) instead of midway between the seeds.
     """
     lab = np.asarray(seed_labels, dtype=np.int64).reshape(-1)
     n = len(graph)
@@ -320,15 +325,28 @@ def interior_seeds(seed_labels: np.ndarray, neighbour_pairs: list[tuple[int, int
 
 
 def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.ndarray,
-                   interior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   interior: np.ndarray | None = None, edge_sigmas: float = SEAM_EDGE_SIGMAS
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where seeds a (M,) and b (M,) (indices into ``levels``/``labels`` (N,)) stand on the way
     from a's region A to b's region B: (s_a (M,), s_b (M,), usable (M,) bool).
 
     s = (level - edge_A) / (edge_B - edge_A) clipped to [0, 1], with edge_A = A's median
-    level + 3 robust sigmas (1.4826 MAD) toward B and edge_B likewise: a seed within its
-    region's usual range counts as pure (0 or 1), so the drift of the dent within one
-    material moves nothing (the median and MAD, not percentiles: the seeds densification
-    put on the seam belong to a region too, and are exactly the ones that must count).
+    level + ``edge_sigmas`` robust sigmas (1.4826 MAD) toward B and edge_B likewise (the
+    median and MAD, not percentiles: the seeds densification put on the seam belong to a
+    region too, and are exactly the ones that must count).
+
+    With ``edge_sigmas`` 0 (the final map's) s = 1/2 where the level lies halfway between
+    the two medians. A tip straddling a seam presses both materials, and under the contact
+    model (docs/design.md §8: the profiles of the two materials weighted by how much of the
+    contact each takes, equal shares on the seam) its dent in mm is halfway between theirs
+    exactly on the seam, so the seam is drawn there. Edges pulled toward each other by
+    their regions' spreads move that crossing by half the difference of the spreads (in mm
+    the softer material's is the larger, so the soft side grew); on log levels the midway
+    is the geometric mean, nearer the stiff level, and soft inclusions grew, stiff ones
+    shrank (docs/generated_objects.md, stops 29 and 33). ``edge_sigmas`` 3 counts a seed
+    within its region's usual range as pure (0 or 1): densification's false-position
+    placement reads it that way (densify._crossing_fraction).
+
     ``interior`` (N,) bool (:func:`interior_seeds`): a region's median and MAD come from its
     interior seeds when it has ``MIN_INTERIOR_SEEDS`` of them. A seed beside another region
     presses both materials; on a small inclusion densification makes such seeds most of
@@ -352,7 +370,7 @@ def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.
     per = [lev[read_on(r)] for r in regions]
     median = np.array([np.median(v) for v in per])
     sigma = np.array([1.4826 * np.median(np.abs(v - np.median(v))) for v in per])
-    low, high = median - 3.0 * sigma, median + 3.0 * sigma
+    low, high = median - edge_sigmas * sigma, median + edge_sigmas * sigma
     ka = np.array([k_of[int(v)] for v in lab[a]], dtype=np.int64)
     kb = np.array([k_of[int(v)] for v in lab[b]], dtype=np.int64)
     toward_b = median[kb] > median[ka]
@@ -374,10 +392,10 @@ def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.nd
     A probe that straddles a seam presses both materials: its dent lies between theirs,
     and the seam passes within a contact's width of it. Each reached point p has its
     region A (the plain map's) and the nearest other region B along the surface. Every seed
-    of A and B has a seam fraction (:func:`seam_fractions`: 0 within A's usual range, 1
-    within B's, part way for a seed pressing both). p takes B when a locally linear fit of
-    the fractions of the seeds around it (:func:`_local_linear_at`) exceeds 1/2 at p; deep
-    in A every seed around reads 0 and nothing moves, and a point with no seed in reach
+    of A and B has a seam fraction (:func:`seam_fractions`: 0 at or beyond A's median
+    level, 1 at or beyond B's, part way for a seed pressing both). p takes B when a locally
+    linear fit of the fractions of the seeds around it (:func:`_local_linear_at`) exceeds
+    1/2 at p; deep in A the seeds around read about 0 and nothing moves, and a point with no seed in reach
     keeps the plain map's label. The kernel width is ``SEAM_KERNEL`` x the local seed
     spacing (the median nearest-seed distance of the ``SPACING_K`` seeds nearest p), so
     several seeds on each side decide: the seam is a smooth curve through the part-way
