@@ -22,7 +22,7 @@ from .core.config import SessionInputs
 from .core.devices import Cell
 from .core.errors import BudgetSpent, SessionAborted
 from .core.geometry import INTERIOR_ANGLES_DEG, Pose, scan_direction
-from .journal import Journal, StepPlan
+from .journal import Journal, PhaseRecord, StepPlan
 from .learning import cloud as cl
 from .learning import contact as ct
 from .learning import densify as dn
@@ -789,14 +789,18 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
     return int(rec.outputs["n_new"]) > 0
 
 
+def _latest_regions(ctx: PhaseContext) -> PhaseRecord | None:
+    """The journal's latest regions round (None before the first)."""
+    r = 0
+    while ctx.journal.phase("regions", r + 1) is not None:
+        r += 1
+    return ctx.journal.phase("regions", r)
+
+
 def _region_features(ctx: PhaseContext, ids: list[int]) -> tuple[np.ndarray, list[str]] | None:
     """Survey features (len(ids), D) and their names of labelled targets, from the latest
     regions round (None when there is none, or it did not label every one of ``ids``)."""
-    j = ctx.journal
-    r = 0
-    while j.phase("regions", r + 1) is not None:
-        r += 1
-    rec = j.phase("regions", r)
+    rec = _latest_regions(ctx)
     if rec is None:
         return None
     row = {int(t): k for k, t in enumerate(rec.arrays["labelled_targets"])}
@@ -813,6 +817,19 @@ def _survey_levels(ctx: PhaseContext, ids: list[int]) -> np.ndarray | None:
     if found is None:
         return None
     return rg.mean_peak_mm(found[0], found[1])
+
+
+def _dents_not_read(ctx: PhaseContext, ids: list[int]) -> np.ndarray | None:
+    """Each labelled target: True when its peak fell as the survey force rose
+    (regions.dent_falls_with_force), against the latest regions round's peak scatter (the
+    scans' standard error where no far field was read); None without a regions round."""
+
+    found = _region_features(ctx, ids)
+    rec = _latest_regions(ctx)
+    if found is None or rec is None:
+        return None
+    noise = rec.outputs.get("stats", {}).get("peak_noise_mm")
+    return rg.dent_falls_with_force(found[0], found[1], float(noise) if noise else measured_noise_mm(ctx))
 
 
 def _cloud_normals_at(ctx: PhaseContext, points_mm: np.ndarray) -> np.ndarray:
@@ -858,7 +875,8 @@ def phase_final(ctx: PhaseContext) -> None:
         # parts split at concave folds, the seam drawn through targets whose dent lies
         # between two regions (learning/surface_map.py).
         cloud_labels = sm.labels_from_seeds(ctx.surface(), pts, np.array([ctx.labels[i] for i in ids]),
-                                            seed_levels=_survey_levels(ctx, ids))
+                                            seed_levels=_survey_levels(ctx, ids),
+                                            dent_not_read=_dents_not_read(ctx, ids))
         j.commit_phase("final", 0, {"n_regions": ctx.n_regions, "model_round": ctx.model_round,
                                     "robot_hours": j.robot_time_s()["total"] / 3600.0},
                        {"cloud_labels": cloud_labels.astype(np.int64)})

@@ -6,7 +6,7 @@ import pytest
 
 from elastoprobe.controller.learning.profiles import ProfileGrid
 from elastoprobe.controller.learning.regions import (
-    RegionMap, cluster_regions, label_new_points, propagate_labels, survey_features,
+    RegionMap, cluster_regions, dent_falls_with_force, label_new_points, propagate_labels, survey_features,
 )
 
 X_MM = ProfileGrid(80.0, 256).x_mm
@@ -155,6 +155,25 @@ def test_geometry_shift_of_one_material_is_one_region(seed):
     assert rm.n_regions == 1
     split = cluster_regions(feats, EDGES, names, seed=0, min_contrast=1.0)
     assert split.n_regions >= 2                                  # what the contrast rule prevents
+
+
+def test_a_dent_that_falls_as_the_force_rises_was_not_read():
+    """Peaks at 1.5 and 4.5 N, one peak's scatter 0.02 mm (slope error 0.0094 mm/N). Suite
+    1007's dome foot: 0.13 mm at 1.5 N, nothing at 4.5 N (a slope of -0.043 mm/N, 4.6 errors
+    below zero): not read. A stiff material at its noise (0.031 then 0.009 mm, with that
+    material's scatter 0.014 mm), a normal dent, and a target the scanner never saw: read,
+    or nothing to say."""
+    names = ["peak_mm@1.5N", "peak_mm@4.5N", "width_mm@1.5N", "width_mm@4.5N", "compliance_mm_per_n",
+             "seen_from_mm"]
+
+    def row(p1: float, p2: float) -> list[float]:
+        return [p1, p2, 8.0, 9.0, (p2 - p1) / 3.0, 4.0]
+
+    feats = np.array([row(0.127, 0.0001), row(0.36, 0.80), row(np.nan, np.nan)])
+    assert dent_falls_with_force(feats, names, 0.02).tolist() == [True, False, False]
+    assert not dent_falls_with_force(np.array([row(0.031, 0.009)]), names, 0.014).any()
+    one_force = ["peak_mm@1.5N", "width_mm@1.5N", "seen_from_mm"]
+    assert not dent_falls_with_force(np.array([[0.2, 8.0, 4.0]]), one_force, 0.02).any()
 
 
 def test_peak_is_read_near_the_contact_not_at_an_occlusion_far_out():

@@ -229,6 +229,30 @@ def test_a_stiff_disc_keeps_its_size_when_the_seam_is_read_in_mm():
     assert np.mean(iou_mm) >= 0.85
 
 
+def test_a_lone_seed_whose_dent_was_not_read_labels_no_area():
+    """A soft plane (region 0) on a 10 mm grid with a stiff inclusion of three neighbouring
+    seeds (region 1) and, 40 mm away, one more seed labelled stiff whose dent fell as the
+    force rose (a reading of the dent's tail, regions.dent_falls_with_force). The plain map
+    (no levels) gives the lone seed its cell; flagged, it draws no island, and one flagged
+    seed of the inclusion, beside its own region, keeps the inclusion as it was."""
+    pts, nrm = plane(101, 61, 1.0)
+    g = sm.build_graph(pts, nrm)
+    seeds = np.array([[x, y, 0.0] for x in np.arange(0.0, 101.0, 10.0) for y in np.arange(0.0, 61.0, 10.0)])
+    labels = np.zeros(len(seeds), dtype=int)
+    inclusion = [int(np.flatnonzero((seeds[:, 0] == x) & (seeds[:, 1] == 30.0))[0]) for x in (20.0, 30.0)]
+    inclusion.append(int(np.flatnonzero((seeds[:, 0] == 20.0) & (seeds[:, 1] == 40.0))[0]))
+    lone = int(np.flatnonzero((seeds[:, 0] == 70.0) & (seeds[:, 1] == 30.0))[0])
+    labels[inclusion + [lone]] = 1
+    as_run = sm.labels_from_seeds(g, seeds, labels)
+    not_read = np.zeros(len(seeds), dtype=bool)
+    not_read[[lone, inclusion[0]]] = True
+    flagged = sm.labels_from_seeds(g, seeds, labels, dent_not_read=not_read)
+    near_lone = np.linalg.norm(pts[:, :2] - [70.0, 30.0], axis=1) < 4.5
+    assert np.all(as_run[near_lone] == 1) and np.all(flagged[near_lone] == 0)
+    away = np.linalg.norm(pts[:, :2] - [70.0, 30.0], axis=1) > 15.0
+    assert np.array_equal(flagged[away], as_run[away]) and np.any(flagged[away] == 1)
+
+
 def test_the_seam_fit_interpolates_and_never_extrapolates():
     """Seeds in two rows (x = 0, 4, 8 mm) whose fractions rise to 0.45 at x = 8 (a probe by the
     rim of an object reading part way to another material): inside the rows the local fit

@@ -266,7 +266,8 @@ def cells(graph: SurfaceGraph, seeds_mm: np.ndarray) -> Cells:
 
 def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.ndarray,
                       fit_radius_mm: float = 15.0, min_fit_points: int = 12,
-                      seed_levels: np.ndarray | None = None) -> np.ndarray:
+                      seed_levels: np.ndarray | None = None,
+                      dent_not_read: np.ndarray | None = None) -> np.ndarray:
     """Region label (P,) of every cloud point (see the module docstring, steps 3 and 4).
 
     ``seed_levels`` (S,): each seed's dent on a scale where a seed pressing two materials
@@ -274,6 +275,11 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
     forces, regions.mean_peak_mm); with them, the faces between seeds of two regions are
     split where the level interpolated along the surface crosses midway
     (:func:`_split_between`) instead of midway between the seeds.
+    ``dent_not_read`` (S,) bool: seeds whose measurement does not support their label (the
+    session passes regions.dent_falls_with_force). One that no seed of its own region
+    neighbours on the surface labels no area: it alone would draw an island of its region,
+    and the seeds around it share its cell instead. Beside its own region it stays (it
+    claims nothing its neighbours do not).
     """
     lab = np.asarray(seed_labels, dtype=np.int64).reshape(-1)
     n = len(graph)
@@ -281,6 +287,13 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
     if lab.size == 0 or n == 0:
         return out
     c = cells(graph, seeds_mm)
+    if dent_not_read is not None and np.any(dent_not_read):
+        drop = np.asarray(dent_not_read, dtype=bool).reshape(-1) & ~_with_own_neighbour(lab, seed_neighbours(graph, c))
+        if drop.any() and not drop.all():
+            keep = ~drop
+            return labels_from_seeds(graph, np.asarray(seeds_mm, dtype=float).reshape(-1, 3)[keep], lab[keep],
+                                     fit_radius_mm, min_fit_points,
+                                     None if seed_levels is None else np.asarray(seed_levels).reshape(-1)[keep])
     reached = c.source >= 0
     out[reached] = lab[c.source[reached]]
     if seed_levels is not None and np.unique(lab).size > 1:
@@ -307,6 +320,16 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
             done = np.flatnonzero(~left)
             _, near = cKDTree(graph.points_mm[done]).query(graph.points_mm[left])
             out[left] = out[done[near]]
+    return out
+
+
+def _with_own_neighbour(seed_labels: np.ndarray, neighbour_pairs: list[tuple[int, int]]) -> np.ndarray:
+    """(S,) True for a seed with at least one surface neighbour of its own region."""
+    lab = np.asarray(seed_labels, dtype=np.int64).reshape(-1)
+    pairs = np.asarray(neighbour_pairs, dtype=np.int64).reshape(-1, 2)
+    pairs = pairs[(pairs[:, 0] != pairs[:, 1]) & (lab[pairs[:, 0]] == lab[pairs[:, 1]])]
+    out = np.zeros(lab.size, dtype=bool)
+    out[pairs.ravel()] = True
     return out
 
 
