@@ -418,8 +418,8 @@ def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.nd
     of A and B has a seam fraction (:func:`seam_fractions`: 0 at or beyond A's median
     level, 1 at or beyond B's, part way for a seed pressing both). p takes B when a locally
     linear fit of the fractions of the seeds around it (:func:`_local_linear_at`) exceeds
-    1/2 at p; deep in A the seeds around read about 0 and nothing moves, and a point with no seed in reach
-    keeps the plain map's label. The kernel width is ``SEAM_KERNEL`` x the local seed
+    1/2 at p; deep in A the seeds around read about 0 and nothing moves, and a point with
+    no seed in reach keeps the plain map's label. The kernel width is ``SEAM_KERNEL`` x the local seed
     spacing (the median nearest-seed distance of the ``SPACING_K`` seeds nearest p), so
     several seeds on each side decide: the seam is a smooth curve through the part-way
     seeds, not the polygon of the cells of one pair of seeds (which follows each seed's
