@@ -309,7 +309,7 @@ class SeedRun:
         seen, labels, rmap, edges = self.regions(points, normals, measured)
         depth = self.profiles(measured)[seen]
         feats, names = st.dent_features(depth, self.prober.grid.x_mm, self.prober.forces_n, FEATURE_HALF_WINDOW_MM)
-        not_read = rg.dent_falls_with_force(feats, names, rmap.stats.get("peak_noise_mm", self.noise(measured)))
+        not_read = rg.dent_falls_with_force(feats, names, self.noise(measured))
         scores = self.score_surface_labels(sm.labels_from_seeds(self.graph, points[seen], labels,
                                                                 seed_levels=rg.mean_peak_mm(feats, names),
                                                                 dent_not_read=not_read))

@@ -22,7 +22,7 @@ from .core.config import SessionInputs
 from .core.devices import Cell
 from .core.errors import BudgetSpent, SessionAborted
 from .core.geometry import INTERIOR_ANGLES_DEG, Pose, scan_direction
-from .journal import Journal, PhaseRecord, StepPlan
+from .journal import Journal, StepPlan
 from .learning import cloud as cl
 from .learning import contact as ct
 from .learning import densify as dn
@@ -789,18 +789,14 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
     return int(rec.outputs["n_new"]) > 0
 
 
-def _latest_regions(ctx: PhaseContext) -> PhaseRecord | None:
-    """The journal's latest regions round (None before the first)."""
-    r = 0
-    while ctx.journal.phase("regions", r + 1) is not None:
-        r += 1
-    return ctx.journal.phase("regions", r)
-
-
 def _region_features(ctx: PhaseContext, ids: list[int]) -> tuple[np.ndarray, list[str]] | None:
     """Survey features (len(ids), D) and their names of labelled targets, from the latest
     regions round (None when there is none, or it did not label every one of ``ids``)."""
-    rec = _latest_regions(ctx)
+    j = ctx.journal
+    r = 0
+    while j.phase("regions", r + 1) is not None:
+        r += 1
+    rec = j.phase("regions", r)
     if rec is None:
         return None
     row = {int(t): k for k, t in enumerate(rec.arrays["labelled_targets"])}
@@ -821,15 +817,15 @@ def _survey_levels(ctx: PhaseContext, ids: list[int]) -> np.ndarray | None:
 
 def _dents_not_read(ctx: PhaseContext, ids: list[int]) -> np.ndarray | None:
     """Each labelled target: True when its peak fell as the survey force rose
-    (regions.dent_falls_with_force), against the latest regions round's peak scatter (the
-    scans' standard error where no far field was read); None without a regions round."""
+    (regions.dent_falls_with_force); None without a regions round. The noise is the scans'
+    standard error: one set of reference scans serves every force level of a probe
+    (probe.py), so its error, most of one peak's scatter among probes, is the same at
+    every force and leaves the slope alone."""
 
     found = _region_features(ctx, ids)
-    rec = _latest_regions(ctx)
-    if found is None or rec is None:
+    if found is None:
         return None
-    noise = rec.outputs.get("stats", {}).get("peak_noise_mm")
-    return rg.dent_falls_with_force(found[0], found[1], float(noise) if noise else measured_noise_mm(ctx))
+    return rg.dent_falls_with_force(found[0], found[1], measured_noise_mm(ctx))
 
 
 def _cloud_normals_at(ctx: PhaseContext, points_mm: np.ndarray) -> np.ndarray:

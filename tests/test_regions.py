@@ -158,11 +158,11 @@ def test_geometry_shift_of_one_material_is_one_region(seed):
 
 
 def test_a_dent_that_falls_as_the_force_rises_was_not_read():
-    """Peaks at 1.5 and 4.5 N, one peak's scatter 0.02 mm (slope error 0.0094 mm/N). Suite
-    1007's dome foot: 0.13 mm at 1.5 N, nothing at 4.5 N (a slope of -0.043 mm/N, 4.6 errors
-    below zero): not read. A stiff material at its noise (0.031 then 0.009 mm, with that
-    material's scatter 0.014 mm), a normal dent, and a target the scanner never saw: read,
-    or nothing to say."""
+    """Peaks at 1.5 and 4.5 N, the scans' standard error 0.0094 mm (slope error 0.0044
+    mm/N). Suite 1007's dome foot: 0.13 mm at 1.5 N, nothing at 4.5 N (a slope of -0.043
+    mm/N, 9.6 errors below zero): not read. A stiff material at its noise (suite 1003's hard
+    rubber, 0.031 then 0.009 mm with a standard error of 0.0055 mm: 2.8 errors), a normal
+    dent, and a target the scanner never saw: read, or nothing to say."""
     names = ["peak_mm@1.5N", "peak_mm@4.5N", "width_mm@1.5N", "width_mm@4.5N", "compliance_mm_per_n",
              "seen_from_mm"]
 
@@ -170,8 +170,8 @@ def test_a_dent_that_falls_as_the_force_rises_was_not_read():
         return [p1, p2, 8.0, 9.0, (p2 - p1) / 3.0, 4.0]
 
     feats = np.array([row(0.127, 0.0001), row(0.36, 0.80), row(np.nan, np.nan)])
-    assert dent_falls_with_force(feats, names, 0.02).tolist() == [True, False, False]
-    assert not dent_falls_with_force(np.array([row(0.031, 0.009)]), names, 0.014).any()
+    assert dent_falls_with_force(feats, names, 0.0094).tolist() == [True, False, False]
+    assert not dent_falls_with_force(np.array([row(0.031, 0.009)]), names, 0.0055).any()
     one_force = ["peak_mm@1.5N", "width_mm@1.5N", "seen_from_mm"]
     assert not dent_falls_with_force(np.array([[0.2, 8.0, 4.0]]), one_force, 0.02).any()
 

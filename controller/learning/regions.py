@@ -934,16 +934,17 @@ def mean_peak_mm(features: np.ndarray, feature_names: list[str]) -> np.ndarray:
     return np.maximum(x[:, cols], 0.0).mean(axis=1)
 
 
-def dent_falls_with_force(features: np.ndarray, feature_names: list[str], peak_noise_mm: float,
+def dent_falls_with_force(features: np.ndarray, feature_names: list[str], noise_mm: float,
                           sigmas: float = 3.0) -> np.ndarray:
     """(N,) True where a point's peak depth falls as the survey force rises: its least-squares
     slope against force (the ``compliance_mm_per_n`` feature) lies more than ``sigmas``
-    standard errors below zero, the error from ``peak_noise_mm`` (one peak's scatter, mm;
-    :func:`peak_noise_mm`). A passive material's dent only deepens under more force, so such
-    a point did not read its dent: the scanner saw only the dent's fading tail, from farther
-    out at the larger force (the contact hidden; a thin layer at the foot of a dome reads
-    0.13-0.20 mm at 1.5 N and nothing at 4.5 N, suite 1007). False without the feature (one
-    survey force) or where it is NaN."""
+    standard errors below zero, the error from ``noise_mm`` (the part of one peak's error
+    that differs between the forces of one probe, mm: the loaded scans' standard error, as
+    the probe's reference scans serve all its forces). A passive material's dent only
+    deepens under more force, so such a point did not read its dent: the scanner saw only
+    the dent's fading tail, from farther out at the larger force (the contact hidden; a
+    thin layer at the foot of a dome reads 0.13-0.20 mm at 1.5 N and nothing at 4.5 N,
+    suite 1007). False without the feature (one survey force) or where it is NaN."""
     names = list(feature_names)
     x = np.asarray(features, dtype=float)
     if "compliance_mm_per_n" not in names:
@@ -953,7 +954,7 @@ def dent_falls_with_force(features: np.ndarray, feature_names: list[str], peak_n
     if spread <= 0.0:
         return np.zeros(x.shape[0], dtype=bool)
     slope = x[:, names.index("compliance_mm_per_n")]
-    return np.nan_to_num(slope, nan=0.0) < -sigmas * float(peak_noise_mm) / spread
+    return np.nan_to_num(slope, nan=0.0) < -sigmas * float(noise_mm) / spread
 
 
 def survey_misfit(features: np.ndarray, labels: np.ndarray, feature_names: list[str], noise_mm: float,
