@@ -805,27 +805,20 @@ def _region_features(ctx: PhaseContext, ids: list[int]) -> tuple[np.ndarray, lis
     return rec.arrays["features"][[row[i] for i in ids]], list(rec.outputs["feature_names"])
 
 
-def _survey_levels(ctx: PhaseContext, ids: list[int]) -> np.ndarray | None:
-    """Each labelled target's dent, the level the final map draws seams through (mean peak
-    depth in mm over the survey forces, regions.mean_peak_mm); None without a regions round."""
-
-    found = _region_features(ctx, ids)
-    if found is None:
-        return None
-    return rg.mean_peak_mm(found[0], found[1])
-
-
-def _dents_not_read(ctx: PhaseContext, ids: list[int]) -> np.ndarray | None:
-    """Each labelled target: True when its peak fell as the survey force rose
-    (regions.dent_falls_with_force); None without a regions round. The noise is the scans'
-    standard error: one set of reference scans serves every force level of a probe
-    (probe.py), so its error, most of one peak's scatter among probes, is the same at
+def _seam_evidence(ctx: PhaseContext, ids: list[int]) -> dict[str, np.ndarray | None]:
+    """The final map's keyword arguments from the labelled targets' survey features (None
+    each without a regions round): ``seed_levels``, each target's mean peak depth in mm
+    over the survey forces (regions.mean_peak_mm), and ``dent_not_read``, True where its
+    peak fell as the survey force rose (regions.dent_falls_with_force). That rule's noise is
+    the scans' standard error: one set of reference scans serves every force level of a
+    probe (probe.py), so its error, most of one peak's scatter among probes, is the same at
     every force and leaves the slope alone."""
 
     found = _region_features(ctx, ids)
     if found is None:
-        return None
-    return rg.dent_falls_with_force(found[0], found[1], measured_noise_mm(ctx))
+        return {"seed_levels": None, "dent_not_read": None}
+    return {"seed_levels": rg.mean_peak_mm(found[0], found[1]),
+            "dent_not_read": rg.dent_falls_with_force(found[0], found[1], measured_noise_mm(ctx))}
 
 
 def _cloud_normals_at(ctx: PhaseContext, points_mm: np.ndarray) -> np.ndarray:
@@ -871,8 +864,7 @@ def phase_final(ctx: PhaseContext) -> None:
         # parts split at concave folds, the seam drawn through targets whose dent lies
         # between two regions (learning/surface_map.py).
         cloud_labels = sm.labels_from_seeds(ctx.surface(), pts, np.array([ctx.labels[i] for i in ids]),
-                                            seed_levels=_survey_levels(ctx, ids),
-                                            dent_not_read=_dents_not_read(ctx, ids))
+                                            **_seam_evidence(ctx, ids))
         j.commit_phase("final", 0, {"n_regions": ctx.n_regions, "model_round": ctx.model_round,
                                     "robot_hours": j.robot_time_s()["total"] / 3600.0},
                        {"cloud_labels": cloud_labels.astype(np.int64)})

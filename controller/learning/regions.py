@@ -913,12 +913,17 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
                      log_floor_mm=floor_mm if log_cols else 0.0)
 
 
+def _peak_columns(feature_names: list[str]) -> list[int]:
+    """Indices of the peak-depth features (named ``peak...``, one per survey force)."""
+    return [j for j, name in enumerate(feature_names) if name.startswith("peak")]
+
+
 def log_peaks(features: np.ndarray, feature_names: list[str], noise_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """(log(peak + noise) (N,F), relative noise noise / (peak + noise) (N,F)) of the peak-depth
     features (named ``peak...``), one column per survey force; ``noise_mm`` the standard
     error of an averaged survey profile."""
     x = np.asarray(features, dtype=float)
-    cols = [j for j, name in enumerate(feature_names) if name.startswith("peak")]
+    cols = _peak_columns(feature_names)
     floor = max(float(noise_mm), 1e-6)
     peaks = np.maximum(x[:, cols], 0.0)
     return np.log(peaks + floor), floor / (peaks + floor)
@@ -930,8 +935,7 @@ def mean_peak_mm(features: np.ndarray, feature_names: list[str]) -> np.ndarray:
     In mm and not in log: a tip straddling a seam dents as the weighted mean of the two
     materials' dents (surface_map.seam_fractions)."""
     x = np.asarray(features, dtype=float)
-    cols = [j for j, name in enumerate(feature_names) if name.startswith("peak")]
-    return np.maximum(x[:, cols], 0.0).mean(axis=1)
+    return np.maximum(x[:, _peak_columns(feature_names)], 0.0).mean(axis=1)
 
 
 def dent_falls_with_force(features: np.ndarray, feature_names: list[str], noise_mm: float,
@@ -949,7 +953,7 @@ def dent_falls_with_force(features: np.ndarray, feature_names: list[str], noise_
     x = np.asarray(features, dtype=float)
     if "compliance_mm_per_n" not in names:
         return np.zeros(x.shape[0], dtype=bool)
-    forces = np.array([float(name.split("@", 1)[1].rstrip("N")) for name in names if name.startswith("peak")])
+    forces = np.array([float(names[j].split("@", 1)[1].rstrip("N")) for j in _peak_columns(names)])
     spread = float(np.sqrt(np.sum((forces - forces.mean()) ** 2)))
     if spread <= 0.0:
         return np.zeros(x.shape[0], dtype=bool)
