@@ -253,6 +253,50 @@ def test_a_lone_seed_whose_dent_was_not_read_labels_no_area():
     assert np.array_equal(flagged[away], as_run[away]) and np.any(flagged[away] == 1)
 
 
+def _hard_gel_foam(gel_columns_mm: tuple[float, ...]):
+    """A hard plane (region 0, 0.016 mm) with a foam strip from x = 84 mm (region 2, 1.6 mm)
+    and a gel disc of radius 12 mm at (30, 40) (region 1, 0.4 mm), seeds on a 6 mm grid;
+    the seed columns at ``gel_columns_mm`` are labelled gel and read 0.3 mm."""
+    pts, nrm = plane(121, 81, 1.0)
+    seeds = np.array([[x, y, 0.0] for x in np.arange(0.0, 121.0, 6.0) for y in np.arange(4.0, 77.0, 6.0)])
+    labels = np.where(seeds[:, 0] >= 84.0, 2, 0)
+    levels = np.where(labels == 2, 1.6, 0.016)
+    disc = np.linalg.norm(seeds[:, :2] - [30.0, 40.0], axis=1) <= 12.0
+    labels[disc], levels[disc] = 1, 0.4
+    column = np.isin(seeds[:, 0], gel_columns_mm)
+    labels[column], levels[column] = 1, 0.3
+    return pts, sm.build_graph(pts, nrm), seeds, labels, levels
+
+
+def test_a_band_beside_a_seam_that_reads_a_third_material_goes_to_the_seams_two_sides():
+    """Beside a seam between hard rubber and foam the dent passes through the gel's level: a
+    line of probes 6 mm from the foam strip (x = 78 mm) reading 0.3 mm, labelled gel, drew a
+    gel band along the strip (unseen slab 1102). With levels it is hard rubber (0.3 mm lies
+    below the hard-foam midway), and the gel disc, which has interior seeds, stays."""
+    pts, g, seeds, labels, levels = _hard_gel_foam((78.0,))
+    plain = sm.labels_from_seeds(g, seeds, labels)
+    mapped = sm.labels_from_seeds(g, seeds, labels, seed_levels=levels)
+    band = (np.abs(pts[:, 0] - 78.0) <= 2.0) & (pts[:, 1] > 10.0) & (pts[:, 1] < 70.0)
+    assert np.all(plain[band] == 1)
+    assert not np.any(mapped[band] == 1) and np.all(mapped[band] == 0)
+    in_disc = np.linalg.norm(pts[:, :2] - [30.0, 40.0], axis=1) < 8.0
+    assert np.all(mapped[in_disc] == 1)
+    assert np.all(mapped[pts[:, 0] > 90.0] == 2)
+
+
+def test_a_strip_of_the_third_material_wide_enough_for_an_interior_seed_stays():
+    """The same cell with three seed columns of gel (x = 66, 72, 78 mm) between the hard
+    rubber and the foam: the middle column's seeds neighbour only gel, so the strip is a
+    material of its own, and it stays gel."""
+    pts, g, seeds, labels, levels = _hard_gel_foam((66.0, 72.0, 78.0))
+    mapped = sm.labels_from_seeds(g, seeds, labels, seed_levels=levels)
+    strip = (np.abs(pts[:, 0] - 72.0) <= 2.0) & (pts[:, 1] > 10.0) & (pts[:, 1] < 70.0)
+    assert np.all(mapped[strip] == 1)
+    levels_only = sm.transition_bands(levels, labels, sm.seed_neighbours(g, sm.cells(g, seeds)),
+                                      sm.interior_seeds(labels, sm.seed_neighbours(g, sm.cells(g, seeds))))
+    assert np.array_equal(levels_only, labels)
+
+
 def test_the_seam_fit_interpolates_and_never_extrapolates():
     """Seeds in two rows (x = 0, 4, 8 mm) whose fractions rise to 0.45 at x = 8 (a probe by the
     rim of an object reading part way to another material): inside the rows the local fit

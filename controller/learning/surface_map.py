@@ -37,8 +37,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import dijkstra
+from scipy.sparse import coo_matrix, csr_matrix
+from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
 
 DEFAULT_K = 8
@@ -275,6 +275,8 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
     forces, regions.mean_peak_mm); with them, the faces between seeds of two regions are
     split where the level interpolated along the surface crosses midway
     (:func:`_split_between`) instead of midway between the seeds.
+    With levels and three regions or more, a band of seeds that only a seam between two other
+    regions explains is first given to those two (:func:`transition_bands`).
     ``dent_not_read`` (S,) bool: seeds whose measurement does not support their label (the
     session passes regions.dent_falls_with_force). One that no seed of its own region
     neighbours on the surface labels no area: it alone would draw an island of its region,
@@ -294,6 +296,10 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
             return labels_from_seeds(graph, np.asarray(seeds_mm, dtype=float).reshape(-1, 3)[keep], lab[keep],
                                      fit_radius_mm, min_fit_points,
                                      None if seed_levels is None else np.asarray(seed_levels).reshape(-1)[keep])
+    if seed_levels is not None and np.unique(lab).size > 2:
+        pairs = seed_neighbours(graph, c)
+        lab = transition_bands(np.asarray(seed_levels, dtype=float).reshape(-1), lab, pairs,
+                               interior_seeds(lab, pairs))
     reached = c.source >= 0
     out[reached] = lab[c.source[reached]]
     if seed_levels is not None and np.unique(lab).size > 1:
@@ -320,6 +326,67 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
             done = np.flatnonzero(~left)
             _, near = cKDTree(graph.points_mm[done]).query(graph.points_mm[left])
             out[left] = out[done[near]]
+    return out
+
+
+def transition_bands(levels: np.ndarray, seed_labels: np.ndarray, neighbour_pairs: list[tuple[int, int]],
+                     interior: np.ndarray) -> np.ndarray:
+    """Seed labels (S,) with the bands that only a seam between two other regions explains
+    given to those two regions.
+
+    Across a seam between A and C the dent passes through every level between theirs, so
+    the probes densification lines up beside a high-contrast seam (hard rubber beside foam)
+    read the level of any material B lying between the two, and cluster with B (unseen
+    slab 1102: a line of hard-rubber probes 1.8 mm from a foam strip, reading 0.3 mm at
+    2 N, joined the gel disc's region, 0.4 mm, and drew a gel band 180 mm long). The regions
+    step relabels a region made only of such runs (regions._absorb_transition_bands); a run
+    that is one piece of a real material's region is left to the map, here.
+
+    A connected run of B's seeds (joined by surface neighbours of B) is such a band when
+    none of them is interior (:func:`interior_seeds`), B has interior seeds elsewhere (its
+    own body, which the run does not reach), and every seed of the run neighbours a region
+    A whose level lies below both B's and the seed's and a region C whose level lies above
+    both. Each seed of the band then goes to A or C by which side of the two regions' mid
+    level (the mm halfway, as :func:`seam_fractions` draws the seam) it reads. A material
+    really present as such a strip narrower than the probe spacing is lost with it; one
+    wide enough to hold an interior seed is kept. Levels are each region's median, read
+    on its interior seeds as in :func:`seam_fractions`. With fewer than three regions there
+    is no third level to mistake, and nothing changes.
+    """
+    lev = np.asarray(levels, dtype=float).reshape(-1)
+    lab = np.asarray(seed_labels, dtype=np.int64).reshape(-1).copy()
+    inner = np.asarray(interior, dtype=bool).reshape(-1)
+    regions = np.unique(lab)
+    if regions.size < 3:
+        return lab
+    median = {}
+    for r in regions.tolist():
+        members = lab == r
+        read = members & inner if np.count_nonzero(members & inner) >= MIN_INTERIOR_SEEDS else members
+        median[r] = float(np.median(lev[read]))
+    pairs = np.asarray(neighbour_pairs, dtype=np.int64).reshape(-1, 2)
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    neighbours: list[set[int]] = [set() for _ in range(lab.size)]
+    for i, j in pairs.tolist():
+        neighbours[i].add(lab[j])
+        neighbours[j].add(lab[i])
+    goes_to = np.full(lab.size, -1, dtype=np.int64)
+    for s in range(lab.size):
+        b = int(lab[s])
+        below = [r for r in neighbours[s] if median[r] < min(median[b], lev[s])]
+        above = [r for r in neighbours[s] if median[r] > max(median[b], lev[s])]
+        if below and above:
+            a, c = min(below, key=median.get), max(above, key=median.get)
+            goes_to[s] = a if lev[s] < 0.5 * (median[a] + median[c]) else c
+    same = pairs[lab[pairs[:, 0]] == lab[pairs[:, 1]]]
+    runs = coo_matrix((np.ones(len(same)), (same[:, 0], same[:, 1])), shape=(lab.size, lab.size))
+    _, run_of = connected_components(runs, directed=False)
+    out = lab.copy()
+    for run in np.unique(run_of[goes_to >= 0]).tolist():
+        members = np.flatnonzero(run_of == run)
+        own_body = inner & (lab == lab[members[0]])
+        if np.all(goes_to[members] >= 0) and not inner[members].any() and own_body.any():
+            out[members] = goes_to[members]
     return out
 
 
