@@ -17,6 +17,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from .core.calfile import believed_cell
+from .core.config import load_cell
 from .core.errors import InputError
 from .core.inputfiles import MAX_MESH_BYTES, check_input_file, read_input_bytes
 
@@ -116,10 +118,6 @@ def calibration_entry(cell_path: str | os.PathLike[str],
     stale or unreadable file; a miscalibrated simulated cell without one). Never raises."""
     entry = _optional_file(calibration_path)
     try:
-        from elastoprobe.controller.core.calfile import believed_cell
-
-        from .core.config import load_cell
-
         spec, _ = load_cell(cell_path)
         _, state = believed_cell(spec, cell_path)
     except Exception as exc:   # noqa: BLE001 - provenance must not stop a session

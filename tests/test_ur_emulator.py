@@ -16,6 +16,8 @@ import time
 import numpy as np
 import pytest
 
+from elastoprobe.controller.core import kinematics as kin
+from elastoprobe.controller.core.geometry import Pose
 from elastoprobe.sim.servers.ur_backend import KinematicBackend, trapezoid_position
 from elastoprobe.sim.servers.ur_emulator import Cmd, UREmulator
 from elastoprobe.sim.servers.ur_rtde_protocol import HEADER, frame
@@ -328,8 +330,6 @@ def test_poses_are_the_active_tcp_s_and_a_new_script_starts_with_the_installatio
     """As on a real UR: actual_TCP_pose = flange pose ∘ TCP offset, a moveL target is where the
     TCP goes, and setTcp lasts until the program ends (a re-uploaded script starts with the
     installation's TCP, here the flange's)."""
-    from elastoprobe.controller.core.geometry import Pose
-
     emulator = emulator_at(29)
     out = _run_client(_TCP_CLIENT, emulator.host)
     flange = Pose.from_ur(START_POSE)                      # the kinematic stand-in's poses are the flange's
@@ -353,12 +353,8 @@ def test_poses_are_the_active_tcp_s_and_a_new_script_starts_with_the_installatio
 
 
 def test_kinematic_backend_joint_move_and_joints_follow_the_pose() -> None:
-    kin = pytest.importorskip("elastoprobe.controller.core.kinematics")
-    from elastoprobe.controller.core.geometry import Pose
     model = kin.ur5e()
     arm = KinematicBackend(START_POSE, t0_s=0.0)
-    if not arm.has_kinematics:
-        pytest.skip("controller.kinematics has a different API than the backend expects")
     q0 = arm.joints_rad().copy()
     assert Pose.from_ur(START_POSE).distance_to(kin.forward(model, q0))[0] < 1e-6
     q1 = q0 + np.array([0.2, -0.1, 0.1, 0.0, 0.1, 0.0])

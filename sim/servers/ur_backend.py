@@ -16,11 +16,12 @@ controller reports and takes TCP poses for its active TCP offset.
 from __future__ import annotations
 
 import math
-from typing import Callable, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from elastoprobe.controller.core.geometry import matrix_to_rotvec, rotvec_to_matrix
+from elastoprobe.controller.core import kinematics as kin
+from elastoprobe.controller.core.geometry import Pose, matrix_to_rotvec, rotvec_to_matrix
 
 
 @runtime_checkable
@@ -118,41 +119,25 @@ def trapezoid_position(length: float, speed: float, accel: float, tau_s: float) 
     return length - 0.5 * a * td * td, a * td, total
 
 
-def _load_kinematics() -> tuple[Callable[[np.ndarray], np.ndarray] | None,
-                                Callable[[np.ndarray, np.ndarray], np.ndarray | None] | None]:
-    """(forward, inverse) in ur units from elastoprobe.controller.core.kinematics, if present.
+_UR5E = kin.ur5e()
 
-    forward(q_rad) -> pose_ur; inverse(pose_ur, seed_q_rad) -> q_rad or None.
-    """
-    try:
-        from elastoprobe.controller.core import kinematics as kin  # written concurrently by another engineer
-        from elastoprobe.controller.core.geometry import Pose
-        model = kin.ur5e()
-    except Exception:  # noqa: BLE001 — absent or not ready: work with poses only
-        return None, None
 
-    def forward(q_rad: np.ndarray) -> np.ndarray:
-        pose = kin.forward(model, np.asarray(q_rad, dtype=float))
-        return np.asarray(pose.to_ur() if isinstance(pose, Pose) else pose, dtype=float)
+def _forward_ur(q_rad: np.ndarray) -> np.ndarray:
+    """The flange pose [m, rad] (ur units) of a UR5e at joints ``q_rad`` (rad)."""
+    return np.asarray(kin.forward(_UR5E, np.asarray(q_rad, dtype=float)).to_ur(), dtype=float)
 
-    def inverse(pose_ur: np.ndarray, seed: np.ndarray) -> np.ndarray | None:
-        try:
-            q = kin.inverse(model, Pose.from_ur(pose_ur), np.asarray(seed, dtype=float))
-        except Exception:  # noqa: BLE001 — unreachable pose: keep the last joints
-            return None
-        return None if q is None else np.asarray(q, dtype=float)
 
-    try:
-        forward(np.zeros(6))
-    except Exception:  # noqa: BLE001 — API differs from what we expect: poses only
-        return None, None
-    return forward, inverse
+def _inverse_ur(pose_ur: np.ndarray, seed_q_rad: np.ndarray) -> np.ndarray | None:
+    """Joints (rad) putting the flange at ``pose_ur`` [m, rad], nearest ``seed_q_rad``; None
+    out of reach (the backend then keeps the last joints)."""
+    q = kin.inverse(_UR5E, Pose.from_ur(pose_ur), np.asarray(seed_q_rad, dtype=float))
+    return None if q is None else np.asarray(q, dtype=float)
 
 
 class KinematicBackend:
     """A real-time TCP mover without dynamics or contact: trapezoidal straight-line moves,
-    speedL with an acceleration limit, stops at a deceleration. Joint angles come from
-    ``elastoprobe.controller.core.kinematics`` when it is available (else the last seed).
+    speedL with an acceleration limit, stops at a deceleration. Joint angles are a UR5e's
+    (``elastoprobe.controller.core.kinematics``), following the pose.
 
     ``initial_pose_ur``: start pose [m, rad]. ``t0_s``: the time of that state.
     """
@@ -170,7 +155,6 @@ class KinematicBackend:
         self._target_vel = np.zeros(6)
         self._accel = 1.0
         self._decel = 1.0
-        self._forward, self._inverse = _load_kinematics()
         self._q = np.zeros(6) if initial_q_rad is None else np.asarray(initial_q_rad, dtype=float)
         self._q_valid_t_s = -1.0
         self.force_mode_active = False
@@ -178,10 +162,6 @@ class KinematicBackend:
         self.commands: list[tuple[str, float]] = []   # (kind, t_s), for tests and diagnostics
 
     # -- ArmBackend ---------------------------------------------------------------------
-    @property
-    def has_kinematics(self) -> bool:
-        return self._forward is not None
-
     def move_linear(self, pose_ur: np.ndarray, speed_m_s: float, accel_m_s2: float) -> None:
         goal = np.asarray(pose_ur, dtype=float)
         r_goal = rotvec_to_matrix(goal[3:6])
@@ -194,8 +174,6 @@ class KinematicBackend:
         self.commands.append(("move_linear", self._t_s))
 
     def move_joint(self, q_rad: np.ndarray, speed_rad_s: float, accel_rad_s2: float) -> None:
-        if self._forward is None:
-            raise NotImplementedError("moveJ needs elastoprobe.controller.core.kinematics")
         q0 = self.joints_rad().copy()
         q1 = np.asarray(q_rad, dtype=float)
         lead = float(np.max(np.abs(q1 - q0)))
@@ -229,8 +207,8 @@ class KinematicBackend:
         return np.concatenate([self._lin_vel, self._ang_vel])
 
     def joints_rad(self) -> np.ndarray:
-        if self._inverse is not None and self._q_valid_t_s != self._t_s:
-            q = self._inverse(self.tcp_pose_ur(), self._q)
+        if self._q_valid_t_s != self._t_s:
+            q = _inverse_ur(self.tcp_pose_ur(), self._q)
             if q is not None:
                 self._q = q
             self._q_valid_t_s = self._t_s
@@ -296,8 +274,7 @@ class KinematicBackend:
                                          self._t_s - float(m["t0"]))  # type: ignore[arg-type]
         q = m["q0"] + (s / length) * (m["q1"] - m["q0"])  # type: ignore[operator]
         old = self.tcp_pose_ur()
-        assert self._forward is not None
-        pose = self._forward(q)
+        pose = _forward_ur(q)
         self._q = np.asarray(q, dtype=float)
         self._q_valid_t_s = self._t_s
         self._pos_m = pose[:3].copy()
