@@ -241,13 +241,15 @@ def test_a_path_that_starts_inside_a_keep_outs_clearance_may_leave_it_never_come
     checker = SceneChecker([probe()], None, [column], WORKSPACE, clearance_mm=2.0)
     here = Pose(np.array([125.5, 0.0, 300.0]), DOWN)
     assert [c.obstacle for c in checker.check_pose(here)] == ["robot_column"]
-    assert checker.check_path(here, Pose(np.array([160.0, 0.0, 300.0]), DOWN)) == []      # away
-    assert checker.check_path(here, Pose(np.array([125.5, 0.0, 400.0]), DOWN)) == []      # up along the face
-    assert [c.obstacle for c in checker.check_path(here, Pose(np.array([124.5, 0.0, 320.0]), DOWN))] \
+    away, up = Pose(np.array([160.0, 0.0, 300.0]), DOWN), Pose(np.array([125.5, 0.0, 400.0]), DOWN)
+    assert checker.check_path(here, away, leaving=True) == []
+    assert checker.check_path(here, up, leaving=True) == []                              # along the face
+    assert [c.obstacle for c in checker.check_path(here, Pose(np.array([124.5, 0.0, 320.0]), DOWN), leaving=True)] \
         == ["robot_column"]                                                               # closer
-    # Leaving and coming back into the margin farther along is refused where it comes back.
-    back = checker.check_path(here, Pose(np.array([124.0, 0.0, 600.0]), DOWN))
+    # Into the margin and out again farther along: refused where it comes closer.
+    back = checker.check_path(here, Pose(np.array([124.0, 0.0, 600.0]), DOWN), leaving=True)
     assert back and back[0].at_fraction > 0.0
-    # From outside the clearance the rule is the clearance, as before.
-    assert [c.obstacle for c in checker.check_path(Pose(np.array([160.0, 0.0, 300.0]), DOWN), here)] \
-        == ["robot_column"]
+    # Planning from a pose the arm is not at keeps the clearance (the arm could not get there),
+    # and from outside the clearance the rule is the clearance, as before.
+    assert [c.obstacle for c in checker.check_path(here, away)] == ["robot_column"]
+    assert [c.obstacle for c in checker.check_path(away, here, leaving=True)] == ["robot_column"]

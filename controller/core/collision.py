@@ -21,8 +21,8 @@ How it is exact enough and fast:
 - Along a path, poses are sampled so that no point of any shape moves more than
   ``step_mm`` between samples; with ``step_mm <= 2 * clearance_mm`` a real intrusion
   between two samples is still within the clearance at one of them.
-- A path that starts inside a keep-out box's clearance may leave it: it is refused only
-  where it comes closer to that box than it started. The clearance is a
+- A move from where the arm is that starts inside a keep-out box's clearance may leave
+  it: it is refused only where it comes closer to that box than it started. The clearance is a
   margin, and an arm already in it (a force loop that pushed the tool sideways, a fault's
   unvalidated retract) must be able to move away; refusing every path from there left
   generated composite 1211's arm where it was for the rest of the night (1530 steps
@@ -304,11 +304,15 @@ class SceneChecker:
         """Everything the tool at ``tcp_pose`` (base <- tcp) would hit; [] when clear."""
         return self._check(tcp_pose.position_mm[None], tcp_pose.rotation[None], np.zeros(1), ignore_tip_mm)
 
-    def check_path(self, start: Pose, end: Pose, step_mm: float = 2.0, ignore_tip_mm: float = 0.0) -> list[Collision]:
+    def check_path(self, start: Pose, end: Pose, step_mm: float = 2.0, ignore_tip_mm: float = 0.0,
+                   leaving: bool = False) -> list[Collision]:
         """Everything the tool hits along the straight move start -> end (positions
         linear, rotation geodesic, as :func:`geometry.interpolate_pose`), the first
         occurrence per (shape, obstacle), ordered along the path; [] when clear.
-        Poses are sampled so no point of the tool moves more than ``step_mm`` between them."""
+        Poses are sampled so no point of the tool moves more than ``step_mm`` between them.
+        ``leaving``: ``start`` is where the arm is, and a start inside a keep-out's clearance
+        may be left (see the module docstring); planning from poses the arm is not at
+        leaves it False, so no plan starts inside a margin it could not get into."""
         if step_mm <= 0:
             raise ValueError("step_mm must be positive")
         rel = matrix_to_rotvec(start.rotation.T @ end.rotation)
@@ -318,7 +322,7 @@ class SceneChecker:
         fractions = np.linspace(0.0, 1.0, n + 1)
         positions = start.position_mm + fractions[:, None] * (end.position_mm - start.position_mm)
         rotations = start.rotation @ _axis_angle_matrices(rel, fractions)
-        return self._check(positions, rotations, fractions, ignore_tip_mm, leaving=True)
+        return self._check(positions, rotations, fractions, ignore_tip_mm, leaving)
 
     # -- internals ------------------------------------------------------------------------
     def _check(self, positions: np.ndarray, rotations: np.ndarray, fractions: np.ndarray,
