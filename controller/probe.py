@@ -20,6 +20,11 @@ from .machine import SessionMachine
 from .placement import PlacementMonitor
 from .toolhead import MotionSettings, MotionValidator, ProbeFault, Toolhead
 
+# The least a refused unload backs out (mm), the tip's lowest point off the nominal surface:
+# the extra 5 mm the full unload goes past the standoff, so a slowly recovering dent
+# (creep) does not meet the tip on the way up.
+RETRACT_CLEAR_MM = 5.0
+
 __all__ = ["ForceLevel", "MotionValidator", "ProbeExecutor", "ProbeFault", "ProbeSettings", "ProbeTarget",
            "StepData", "regulation_record", "standoff_pose"]
 
@@ -215,8 +220,13 @@ class ProbeExecutor:
                 scan_pose=poses, scan_force_n=forces, reference_xz_mm=_stack_scans(ref_scans),
                 reference_pose=ref_poses, robot_time_s=round(self.cell.clock.now_s() - step_start_s, 6)))
         self.machine.fire("unload")
-        # Unload along the normal first (backing out along -d at 10 deg would drag the tip).
-        head.retract(n, s.standoff_mm + 5.0, s.contact_speed_mm_s * 2.0)
+        # Unload along the normal first (backing out along -d at 10 deg would drag the tip);
+        # where the limits refuse the whole way, as far as they allow once the tip is
+        # RETRACT_CLEAR_MM off the nominal surface.
+        point = self.cell.base_to_object.apply(target.point_mm)
+        depth_mm = float((point - head.pose().position_mm) @ n) + s.tip_radius_mm
+        head.retract(n, s.standoff_mm + 5.0, s.contact_speed_mm_s * 2.0,
+                     min_distance_mm=max(depth_mm, 0.0) + RETRACT_CLEAR_MM)
         self.contact_normal_base = self.contact_point_base_mm = None
         self.machine.fire("retract")
         head.lift_to_travel()

@@ -167,16 +167,38 @@ class Toolhead:
         assert refused is not None
         raise refused
 
-    def retract(self, direction: np.ndarray, distance_mm: float, speed_mm_s: float | None = None) -> None:
+    def retract(self, direction: np.ndarray, distance_mm: float, speed_mm_s: float | None = None,
+                min_distance_mm: float | None = None) -> None:
         """Back out of a contact: a validated straight move of ``distance_mm`` along the unit
         vector ``direction`` (base frame; the tip may touch on the way), at ``speed_mm_s``
-        (default twice the contact speed). Unloads a regulated force before anything else."""
+        (default twice the contact speed). Unloads a regulated force before anything else.
+
+        With ``min_distance_mm``, a refused move is tried shorter (halved, down to that
+        distance) before MotionRefused: backing out along a tilted normal beyond the
+        approach's own checked path can lead the tool into a keep-out's margin (generated
+        composite 1211: the flange 1.8 mm from the robot column, 5 mm past the standoff),
+        and the fault's unvalidated retract then takes it there anyway."""
         self.sync_validator()
         e = np.asarray(direction, dtype=float)
         here = self.pose()
-        away = Pose(here.position_mm + e * float(distance_mm), here.rotation)
-        self.validator.validate_path(here, away, contact_allowed=True)
-        self._send_move(away, speed_mm_s or self.s.contact_speed_mm_s * 2.0)
+        tries = [float(distance_mm)]
+        if min_distance_mm is not None:
+            while tries[-1] / 2.0 > min_distance_mm:
+                tries.append(tries[-1] / 2.0)
+            if min_distance_mm < tries[-1]:
+                tries.append(float(min_distance_mm))
+        refused: MotionRefused | None = None
+        for length_mm in tries:
+            away = Pose(here.position_mm + e * length_mm, here.rotation)
+            try:
+                self.validator.validate_path(here, away, contact_allowed=True)
+            except MotionRefused as exc:
+                refused = refused or exc
+                continue
+            self._send_move(away, speed_mm_s or self.s.contact_speed_mm_s * 2.0)
+            return
+        assert refused is not None
+        raise refused
 
     def lift_to_travel(self) -> None:
         """Straight up to travel height if the TCP is below it (validated)."""

@@ -231,3 +231,25 @@ def test_sim_cell_shapes_and_boxes():
     # At 10 degrees on a flat face the probe body lies on the surface: refused, honestly.
     low = probe_tcp_pose(target, n, t, 10.0, offset_mm=0.0)
     assert any(c.shape == "probe" for c in checker.check_pose(low, ignore_tip_mm=20.0))
+
+
+def test_a_path_that_starts_inside_a_keep_outs_clearance_may_leave_it_never_come_closer():
+    """The probe side 1.5 mm from the column (inside the 2 mm clearance, not in the box), as a
+    force loop or a fault's retract can leave it: moving away or straight up (along the
+    face) is accepted, moving closer is refused, and the pose itself still is."""
+    column = Box("robot_column", np.array([-120.0, -120.0, -10.0]), np.array([120.0, 120.0, 700.0]))
+    checker = SceneChecker([probe()], None, [column], WORKSPACE, clearance_mm=2.0)
+    here = Pose(np.array([125.5, 0.0, 300.0]), DOWN)
+    assert [c.obstacle for c in checker.check_pose(here)] == ["robot_column"]
+    away, up = Pose(np.array([160.0, 0.0, 300.0]), DOWN), Pose(np.array([125.5, 0.0, 400.0]), DOWN)
+    assert checker.check_path(here, away, leaving=True) == []
+    assert checker.check_path(here, up, leaving=True) == []                              # along the face
+    assert [c.obstacle for c in checker.check_path(here, Pose(np.array([124.5, 0.0, 320.0]), DOWN), leaving=True)] \
+        == ["robot_column"]                                                               # closer
+    # Into the margin and out again farther along: refused where it comes closer.
+    back = checker.check_path(here, Pose(np.array([124.0, 0.0, 600.0]), DOWN), leaving=True)
+    assert back and back[0].at_fraction > 0.0
+    # Planning from a pose the arm is not at keeps the clearance (the arm could not get there),
+    # and from outside the clearance the rule is the clearance, as before.
+    assert [c.obstacle for c in checker.check_path(here, away)] == ["robot_column"]
+    assert [c.obstacle for c in checker.check_path(away, here, leaving=True)] == ["robot_column"]

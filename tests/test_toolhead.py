@@ -77,6 +77,31 @@ def test_contact_regulate_and_retract() -> None:
     assert head.pose().position_mm[2] == pytest.approx(40.0, abs=1e-6)
 
 
+def test_a_refused_unload_backs_out_as_far_as_the_limits_allow() -> None:
+    """Unloading along a tilted normal whose full length ends beyond a fence (a keep-out's
+    margin past the approach's checked path) backs out halved, not refused; with no length
+    clear down to the least asked for, it is refused with the arm where it was."""
+    head, fence = head_over(0.0)
+    assert head.seek_contact(DOWN, 20.0)
+    head.regulate_force(DOWN, 2.0, 10.0)
+    head.hold(0.2)
+    normal = np.array([0.3, 0.0, 1.0]) / np.hypot(0.3, 1.0)
+    fence.max_x_mm = 0.3 / np.hypot(0.3, 1.0) * 12.0            # 20 mm refused, 10 mm clear
+    head.retract(normal, 20.0, min_distance_mm=5.0)
+    head.hold(0.1)
+    moved = head.pose().position_mm - np.array([0.0, 0.0, head.pose().position_mm[2] - 10.0 * normal[2]])
+    assert head.pose().position_mm[0] == pytest.approx(10.0 * normal[0], abs=0.05)
+    assert np.linalg.norm(head.recorder.wrench().force_n[-1]) < 1e-9 and moved[2] > 0.0
+    head2, fence2 = head_over(0.0)
+    assert head2.seek_contact(DOWN, 20.0)
+    fence2.max_x_mm = 0.3 / np.hypot(0.3, 1.0) * 4.0            # not even 5 mm is clear
+    before = head2.pose().position_mm.copy()
+    with pytest.raises(MotionRefused):
+        head2.retract(normal, 20.0, min_distance_mm=5.0)
+    assert [round(float(c[1].position_mm[0] / normal[0]), 6) for c in fence2.checked[-3:]] == [20.0, 10.0, 5.0]
+    assert np.allclose(head2.pose().position_mm, before, atol=1e-6)
+
+
 def test_a_search_that_touches_nothing_says_so() -> None:
     head, _ = head_over(-100.0)
     assert not head.seek_contact(DOWN, 10.0)

@@ -21,6 +21,12 @@ How it is exact enough and fast:
 - Along a path, poses are sampled so that no point of any shape moves more than
   ``step_mm`` between samples; with ``step_mm <= 2 * clearance_mm`` a real intrusion
   between two samples is still within the clearance at one of them.
+- A move from where the arm is that starts inside a keep-out box's clearance may leave
+  it: it is refused only where it comes closer to that box than it started. The clearance is a
+  margin, and an arm already in it (a force loop that pushed the tool sideways, a fault's
+  unvalidated retract) must be able to move away; refusing every path from there left
+  generated composite 1211's arm where it was for the rest of the night (1530 steps
+  skipped).
 """
 from __future__ import annotations
 
@@ -32,6 +38,10 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from .geometry import Pose, matrix_to_rotvec
+
+# How much closer than its start a path leaving a keep-out's clearance may come (mm):
+# rounding, not an allowance (a straight move along a box's face keeps its gap exactly).
+LEAVING_TOLERANCE_MM = 1e-6
 
 
 # ---------------------------------------------------------------------------------------
@@ -294,11 +304,15 @@ class SceneChecker:
         """Everything the tool at ``tcp_pose`` (base <- tcp) would hit; [] when clear."""
         return self._check(tcp_pose.position_mm[None], tcp_pose.rotation[None], np.zeros(1), ignore_tip_mm)
 
-    def check_path(self, start: Pose, end: Pose, step_mm: float = 2.0, ignore_tip_mm: float = 0.0) -> list[Collision]:
+    def check_path(self, start: Pose, end: Pose, step_mm: float = 2.0, ignore_tip_mm: float = 0.0,
+                   leaving: bool = False) -> list[Collision]:
         """Everything the tool hits along the straight move start -> end (positions
         linear, rotation geodesic, as :func:`geometry.interpolate_pose`), the first
         occurrence per (shape, obstacle), ordered along the path; [] when clear.
-        Poses are sampled so no point of the tool moves more than ``step_mm`` between them."""
+        Poses are sampled so no point of the tool moves more than ``step_mm`` between them.
+        ``leaving``: ``start`` is where the arm is, and a start inside a keep-out's clearance
+        may be left (see the module docstring); planning from poses the arm is not at
+        leaves it False, so no plan starts inside a margin it could not get into."""
         if step_mm <= 0:
             raise ValueError("step_mm must be positive")
         rel = matrix_to_rotvec(start.rotation.T @ end.rotation)
@@ -308,11 +322,11 @@ class SceneChecker:
         fractions = np.linspace(0.0, 1.0, n + 1)
         positions = start.position_mm + fractions[:, None] * (end.position_mm - start.position_mm)
         rotations = start.rotation @ _axis_angle_matrices(rel, fractions)
-        return self._check(positions, rotations, fractions, ignore_tip_mm)
+        return self._check(positions, rotations, fractions, ignore_tip_mm, leaving)
 
     # -- internals ------------------------------------------------------------------------
     def _check(self, positions: np.ndarray, rotations: np.ndarray, fractions: np.ndarray,
-               ignore_tip_mm: float) -> list[Collision]:
+               ignore_tip_mm: float, leaving: bool = False) -> list[Collision]:
         found: dict[tuple[str, str], Collision] = {}
 
         def report(shape: str, obstacle: str, k: int, distance_mm: float, message: str) -> None:
@@ -320,7 +334,7 @@ class SceneChecker:
             if key not in found or fractions[k] < found[key].at_fraction:
                 found[key] = Collision(shape, obstacle, float(fractions[k]), float(distance_mm), message)
 
-        self._check_tcp(positions, rotations, ignore_tip_mm, report)
+        self._check_tcp(positions, rotations, ignore_tip_mm, report, leaving)
         for prep in self._shapes:
             rot = rotations @ prep.rot_local                                 # (P, 3, 3) base <- shape
             centre = positions + rotations @ prep.centre_local              # (P, 3)
@@ -328,7 +342,7 @@ class SceneChecker:
             lo, hi = centre - half_ext, centre + half_ext
             self._check_workspace(prep, lo, hi, report)
             for box in self.keep_out:
-                self._check_keep_out(prep, box, rot, centre, lo, hi, report)
+                self._check_keep_out(prep, box, rot, centre, lo, hi, report, leaving)
             if self._tree is not None:
                 self._check_object(prep, rot, centre, lo, hi, positions, rotations, ignore_tip_mm, report)
         return sorted(found.values(), key=lambda c: (c.at_fraction, c.shape, c.obstacle))
@@ -360,7 +374,17 @@ class SceneChecker:
         rows = np.arange(len(points))
         return dist[:, 0], side[rows, pick]
 
-    def _check_tcp(self, positions, rotations, ignore_tip_mm, report) -> None:
+    def _keep_out_limit_mm(self, start_gap_mm: float, leaving: bool) -> float:
+        """The smallest gap (mm) to a keep-out box a path may come to: the clearance; for a
+        path (``leaving``) that starts inside the clearance, the gap it starts with (it may
+        move away or along, never closer). The gap may be below zero: a shape's sampled
+        distance is conservative by its surface cover, and wherever the arm is, it got there,
+        so moving away from it is the one safe direction."""
+        if leaving and start_gap_mm < self.clearance_mm:
+            return start_gap_mm - LEAVING_TOLERANCE_MM
+        return self.clearance_mm
+
+    def _check_tcp(self, positions, rotations, ignore_tip_mm, report, leaving: bool = False) -> None:
         ws = self.workspace.signed_distance(positions)
         out = np.nonzero(ws > 0)[0]
         if out.size:
@@ -369,7 +393,7 @@ class SceneChecker:
                    f"TCP {np.round(positions[k], 1).tolist()} mm is {ws[k]:.1f} mm outside the workspace")
         for box in self.keep_out:
             d = box.signed_distance(positions)
-            bad = np.nonzero(d < self.clearance_mm)[0]
+            bad = np.nonzero(d < self._keep_out_limit_mm(float(d[0]), leaving))[0]
             if bad.size:
                 k = int(bad[0])
                 report("tcp", box.name, k, d[k], f"TCP is {d[k]:.1f} mm from keep-out box {box.name!r} "
@@ -393,16 +417,25 @@ class SceneChecker:
             report(prep.shape.name, "workspace", k, -excess[k],
                    f"{prep.shape.name} sticks {excess[k]:.1f} mm out of the workspace")
 
-    def _check_keep_out(self, prep, box: Box, rot, centre, lo, hi, report) -> None:
+    def _check_keep_out(self, prep, box: Box, rot, centre, lo, hi, report, leaving: bool = False) -> None:
         c = self.clearance_mm
         near = np.nonzero(np.all(lo <= box.max_mm + c, axis=1) & np.all(hi >= box.min_mm - c, axis=1))[0]
-        for k in near:
+
+        def gap(k: int) -> tuple[float, float, bool]:
             pts = prep.surface_local @ rot[k].T + centre[k]
             d_min = float(box.signed_distance(pts).min())
             # A box smaller than the shape can sit wholly inside it: test its centre too.
             box_centre_local = rot[k].T @ ((box.min_mm + box.max_mm) / 2.0 - centre[k])
             inside = prep.shape.signed_distance_local(box_centre_local[None])[0] <= 0
-            if d_min - prep.surface_cover_mm < c or inside:
+            return d_min, d_min - prep.surface_cover_mm, bool(inside)
+
+        limit = c
+        if near.size and near[0] == 0:
+            _, start_gap, start_inside = gap(0)
+            limit = c if start_inside else self._keep_out_limit_mm(start_gap, leaving)
+        for k in near:
+            d_min, gap_k, inside = gap(int(k))
+            if gap_k < limit or inside:
                 report(prep.shape.name, box.name, int(k), min(d_min, 0.0) if inside else d_min,
                        f"{prep.shape.name} comes {d_min:.1f} mm from keep-out box {box.name!r} "
                        f"(clearance {c} mm)")

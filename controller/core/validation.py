@@ -38,7 +38,7 @@ class PathValidator:
         if joints is None:
             raise MotionRefused(f"no joint path for the straight move to {np.round(end.position_mm, 1).tolist()} mm "
                                 f"(unreachable, outside the joint limits, or through a singularity)")
-        collision = self.collision(start, end, contact_allowed)
+        collision = self.collision(start, end, contact_allowed, leaving=True)
         if collision is not None:
             raise MotionRefused(f"collision: {collision}")
         self.seed_joints = np.asarray(joints[-1], dtype=float)
@@ -55,14 +55,17 @@ class PathValidator:
                 raise MotionRefused(f"the move's {what} {np.round(pose.position_mm, 1).tolist()} mm is "
                                     f"{outside:.0f} mm outside the workspace")
 
-    def collision(self, start: Pose, end: Pose, contact_allowed: bool = False) -> str | None:
+    def collision(self, start: Pose, end: Pose, contact_allowed: bool = False, leaving: bool = False) -> str | None:
         """The first collision along the straight TCP path (a message), None when clear.
         Geometry only: no inverse kinematics, and the validator's state is unchanged, so
-        planning can ask about moves long before they are made."""
+        planning can ask about moves long before they are made. ``leaving``: a move about to
+        be made from where the arm is or will be (validate_path), which may leave a
+        keep-out's clearance it starts in (core/collision.py)."""
         if self.checker is None:
             return None
         allowance = self.contact_allowance_mm if contact_allowed else 0.0
-        hits = self.checker.check_path(start, end, ignore_tip_mm=allowance)   # type: ignore[attr-defined]
+        hits = self.checker.check_path(start, end, ignore_tip_mm=allowance,   # type: ignore[attr-defined]
+                                       leaving=leaving)
         return hits[0].message if hits else None
 
     def reachable_at_all_angles(self, poses: list[Pose]) -> bool:
