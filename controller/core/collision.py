@@ -22,11 +22,11 @@ How it is exact enough and fast:
   ``step_mm`` between samples; with ``step_mm <= 2 * clearance_mm`` a real intrusion
   between two samples is still within the clearance at one of them.
 - A move from where the arm is that starts inside a keep-out box's clearance may leave
-  it: it is refused only where it comes closer to that box than it started. The clearance is a
-  margin, and an arm already in it (a force loop that pushed the tool sideways, a fault's
-  unvalidated retract) must be able to move away; refusing every path from there left
-  generated composite 1211's arm where it was for the rest of the night (1530 steps
-  skipped).
+  it: it is refused only where it comes closer to that box than it started. The
+  clearance is a margin, and an arm already in it (a force loop that pushed the tool
+  sideways, a fault's unvalidated retract) must be able to move away; refusing every
+  path from there left generated composite 1211's arm where it was for the rest of the
+  night (1530 steps skipped).
 """
 from __future__ import annotations
 
