@@ -292,9 +292,8 @@ def test_a_strip_of_the_third_material_wide_enough_for_an_interior_seed_stays():
     mapped = sm.labels_from_seeds(g, seeds, labels, seed_levels=levels)
     strip = (np.abs(pts[:, 0] - 72.0) <= 2.0) & (pts[:, 1] > 10.0) & (pts[:, 1] < 70.0)
     assert np.all(mapped[strip] == 1)
-    levels_only = sm.transition_bands(levels, labels, sm.seed_neighbours(g, sm.cells(g, seeds)),
-                                      sm.interior_seeds(labels, sm.seed_neighbours(g, sm.cells(g, seeds))))
-    assert np.array_equal(levels_only, labels)
+    pairs = sm.seed_neighbours(g, sm.cells(g, seeds))
+    assert np.array_equal(sm.transition_bands(levels, labels, pairs, sm.interior_seeds(labels, pairs)), labels)
 
 
 def test_the_seam_fit_interpolates_and_never_extrapolates():
