@@ -789,14 +789,18 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
     return int(rec.outputs["n_new"]) > 0
 
 
+def _last_round(journal: Journal, name: str) -> int:
+    """The highest round of phase ``name`` the journal holds (0 when it holds none)."""
+    r = 0
+    while journal.phase(name, r + 1) is not None:
+        r += 1
+    return r
+
+
 def _region_features(ctx: PhaseContext, ids: list[int]) -> tuple[np.ndarray, list[str]] | None:
     """Survey features (len(ids), D) and their names of labelled targets, from the latest
     regions round (None when there is none, or it did not label every one of ``ids``)."""
-    j = ctx.journal
-    r = 0
-    while j.phase("regions", r + 1) is not None:
-        r += 1
-    rec = j.phase("regions", r)
+    rec = ctx.journal.phase("regions", _last_round(ctx.journal, "regions"))
     if rec is None:
         return None
     row = {int(t): k for k, t in enumerate(rec.arrays["labelled_targets"])}
@@ -904,9 +908,7 @@ def run_all(ctx: PhaseContext) -> Plan:
 def _wrap_up_after_budget(ctx: PhaseContext) -> Plan:
     """With the budget spent, model what was measured: regions and models from the data at hand."""
     j = ctx.journal
-    r = 0
-    while j.phase("regions", r + 1) is not None:
-        r += 1
+    r = _last_round(j, "regions")
     if j.phase("regions", r) is None:
         phase_regions(ctx, 0)
     else:

@@ -182,10 +182,11 @@ class ProbeExecutor:
         standoff, _ = self.contact_search_path(target, angle_deg)
         d = standoff.rotation[:, 2]
         n = self.cell.base_to_object.apply_vector(target.normal)
+        point = self.cell.base_to_object.apply(target.point_mm)
 
         self.machine.fire("go_to_target")
         head.travel_to(standoff)
-        self.contact_normal_base, self.contact_point_base_mm = n, self.cell.base_to_object.apply(target.point_mm)
+        self.contact_normal_base, self.contact_point_base_mm = n, point
         at_standoff()
         self.machine.fire("at_standoff")
         head.tare()
@@ -223,7 +224,6 @@ class ProbeExecutor:
         # Unload along the normal first (backing out along -d at 10 deg would drag the tip);
         # where the limits refuse the whole way, as far as they allow once the tip is
         # RETRACT_CLEAR_MM off the nominal surface.
-        point = self.cell.base_to_object.apply(target.point_mm)
         depth_mm = float((point - head.pose().position_mm) @ n) + s.tip_radius_mm
         head.retract(n, s.standoff_mm + 5.0, s.contact_speed_mm_s * 2.0,
                      min_distance_mm=max(depth_mm, 0.0) + RETRACT_CLEAR_MM)

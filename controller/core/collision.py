@@ -430,11 +430,10 @@ class SceneChecker:
             return d_min, d_min - prep.surface_cover_mm, bool(inside)
 
         limit = c
-        if near.size and near[0] == 0:
-            _, start_gap, start_inside = gap(0)
-            limit = c if start_inside else self._keep_out_limit_mm(start_gap, leaving)
         for k in near:
             d_min, gap_k, inside = gap(int(k))
+            if k == 0 and not inside:           # the start: a path may leave the clearance it is in
+                limit = self._keep_out_limit_mm(gap_k, leaving)
             if gap_k < limit or inside:
                 report(prep.shape.name, box.name, int(k), min(d_min, 0.0) if inside else d_min,
                        f"{prep.shape.name} comes {d_min:.1f} mm from keep-out box {box.name!r} "

@@ -296,15 +296,15 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
             return labels_from_seeds(graph, np.asarray(seeds_mm, dtype=float).reshape(-1, 3)[keep], lab[keep],
                                      fit_radius_mm, min_fit_points,
                                      None if seed_levels is None else np.asarray(seed_levels).reshape(-1)[keep])
+    pairs = seed_neighbours(graph, c) if seed_levels is not None and np.unique(lab).size > 1 else []
     if seed_levels is not None and np.unique(lab).size > 2:
-        pairs = seed_neighbours(graph, c)
         lab = transition_bands(np.asarray(seed_levels, dtype=float).reshape(-1), lab, pairs,
                                interior_seeds(lab, pairs))
     reached = c.source >= 0
     out[reached] = lab[c.source[reached]]
     if seed_levels is not None and np.unique(lab).size > 1:
         out = _split_between(graph, seeds_mm, lab, np.asarray(seed_levels, dtype=float).reshape(-1), out, reached,
-                             interior_seeds(lab, seed_neighbours(graph, c)))
+                             interior_seeds(lab, pairs))
     # Fold points: the label of the face whose plane they lie on.
     fold = np.flatnonzero(graph.concave & ~reached)
     if fold.size and reached.any():
@@ -359,11 +359,7 @@ def transition_bands(levels: np.ndarray, seed_labels: np.ndarray, neighbour_pair
     regions = np.unique(lab)
     if regions.size < 3:
         return lab
-    median = {}
-    for r in regions.tolist():
-        members = lab == r
-        read = members & inner if np.count_nonzero(members & inner) >= MIN_INTERIOR_SEEDS else members
-        median[r] = float(np.median(lev[read]))
+    median = {int(r): float(np.median(v)) for r, v in zip(regions, _levels_read(lev, lab, inner, regions))}
     pairs = np.asarray(neighbour_pairs, dtype=np.int64).reshape(-1, 2)
     pairs = pairs[pairs[:, 0] != pairs[:, 1]]
     neighbours: list[set[int]] = [set() for _ in range(lab.size)]
@@ -453,11 +449,7 @@ def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.
     k_of = {int(r): k for k, r in enumerate(regions)}
     inner = np.zeros(lab.size, dtype=bool) if interior is None else np.asarray(interior, dtype=bool).reshape(-1)
 
-    def read_on(region: int) -> np.ndarray:
-        members = lab == region
-        return members & inner if np.count_nonzero(members & inner) >= MIN_INTERIOR_SEEDS else members
-
-    per = [lev[read_on(r)] for r in regions]
+    per = _levels_read(lev, lab, inner, regions)
     median = np.array([np.median(v) for v in per])
     sigma = np.array([1.4826 * np.median(np.abs(v - np.median(v))) for v in per])
     low, high = median - edge_sigmas * sigma, median + edge_sigmas * sigma
@@ -472,6 +464,18 @@ def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.
     s_a = np.where(usable, np.clip((lev[a] - edge_a) / safe, 0.0, SEAM_SIDE), 0.0)
     s_b = np.where(usable, np.clip((lev[b] - edge_a) / safe, 1.0 - SEAM_SIDE, 1.0), 1.0)
     return s_a, s_b, usable
+
+
+def _levels_read(levels: np.ndarray, labels: np.ndarray, interior: np.ndarray, regions: np.ndarray
+                 ) -> list[np.ndarray]:
+    """Each region's seed levels that its level is read on: its interior seeds when it has
+    ``MIN_INTERIOR_SEEDS`` of them, else all its seeds."""
+    out = []
+    for r in regions:
+        members = labels == r
+        own = members & interior
+        out.append(levels[own if np.count_nonzero(own) >= MIN_INTERIOR_SEEDS else members])
+    return out
 
 
 def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.ndarray, seed_levels: np.ndarray,
