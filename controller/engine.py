@@ -252,6 +252,8 @@ class Engine:
                                  should_stop=lambda: self.flags.stop_now, placement=placement)
         executor.on_placement = self._on_placement
         executor.on_regulated = lambda record: self._log("force_regulated", **record)
+        executor.on_unload_shortened = lambda record: self._log("unload_shortened", step=self._current_step,
+                                                                **record)
         return executor
 
     def _on_placement(self, what: str, estimate: dict[str, Any]) -> None:

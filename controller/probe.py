@@ -133,6 +133,9 @@ class ProbeExecutor:
         self.on_placement: Callable[[str, dict], None] = lambda what, est: None
         # How each force level was reached (regulation_record): for the session's log.
         self.on_regulated: Callable[[dict], None] = lambda record: None
+        # An unload the limits cut short (asked_mm, moved_mm, refused): the arm stopped short of
+        # where a user would expect it, so the session's log says so and why.
+        self.on_unload_shortened: Callable[[dict], None] = lambda record: None
         # The surface normal and point (base frame) of the probe in flight, from its approach
         # until its unload ends: a fault's retract backs out along it (see safe_retract).
         self.contact_normal_base: np.ndarray | None = None
@@ -225,8 +228,11 @@ class ProbeExecutor:
         # where the limits refuse the whole way, as far as they allow once the tip is
         # RETRACT_CLEAR_MM off the nominal surface.
         depth_mm = float((point - head.pose().position_mm) @ n) + s.tip_radius_mm
-        head.retract(n, s.standoff_mm + 5.0, s.contact_speed_mm_s * 2.0,
-                     min_distance_mm=max(depth_mm, 0.0) + RETRACT_CLEAR_MM)
+        unload = head.retract(n, s.standoff_mm + 5.0, s.contact_speed_mm_s * 2.0,
+                              min_distance_mm=max(depth_mm, 0.0) + RETRACT_CLEAR_MM)
+        if unload.shortened:
+            self.on_unload_shortened({"asked_mm": round(unload.asked_mm, 3), "moved_mm": round(unload.moved_mm, 3),
+                                      "refused": unload.refused})
         self.contact_normal_base = self.contact_point_base_mm = None
         self.machine.fire("retract")
         head.lift_to_travel()

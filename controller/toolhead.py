@@ -69,6 +69,20 @@ class MotionSettings:
     scan_timeout_factor: float = 3.0
 
 
+@dataclass(frozen=True)
+class Retracted:
+    """What a retract did: ``asked_mm`` and ``moved_mm`` along its direction, and ``refused``,
+    the refusal of the first longer move tried ('' when it went the whole way)."""
+
+    asked_mm: float
+    moved_mm: float
+    refused: str = ""
+
+    @property
+    def shortened(self) -> bool:
+        return self.moved_mm < self.asked_mm
+
+
 @dataclass
 class Recorder:
     """F/T samples and arm poses logged while a wait loop runs (pose times in the cell clock's s)."""
@@ -168,7 +182,7 @@ class Toolhead:
         raise refused
 
     def retract(self, direction: np.ndarray, distance_mm: float, speed_mm_s: float | None = None,
-                min_distance_mm: float | None = None) -> None:
+                min_distance_mm: float | None = None) -> Retracted:
         """Back out of a contact: a validated straight move of ``distance_mm`` along the unit
         vector ``direction`` (base frame; the tip may touch on the way), at ``speed_mm_s``
         (default twice the contact speed). Unloads a regulated force before anything else.
@@ -177,7 +191,8 @@ class Toolhead:
         distance) before MotionRefused: backing out along a tilted normal beyond the
         approach's own checked path can lead the tool into a keep-out's margin (generated
         composite 1211: the flange 1.8 mm from the robot column, 5 mm past the standoff),
-        and the fault's unvalidated retract then takes it there anyway."""
+        and the fault's unvalidated retract then takes it there anyway. Returns how far it
+        went and, when that is short of ``distance_mm``, why the longer moves were refused."""
         self.sync_validator()
         e = np.asarray(direction, dtype=float)
         here = self.pose()
@@ -196,7 +211,7 @@ class Toolhead:
                 refused = refused or exc
                 continue
             self._send_move(away, speed_mm_s or self.s.contact_speed_mm_s * 2.0)
-            return
+            return Retracted(float(distance_mm), length_mm, "" if refused is None else str(refused))
         assert refused is not None
         raise refused
 

@@ -47,6 +47,47 @@ def test_probe_executor_runs_force_levels_on_the_sim():
     assert ex.contact_normal_base is None            # unloaded: no probe in flight
 
 
+class _Fence:
+    """Refuses every straight path that ends beyond x = ``max_x_mm`` (base frame)."""
+
+    def __init__(self, max_x_mm: float) -> None:
+        self.max_x_mm = max_x_mm
+
+    def validate_path(self, start: Pose, end: Pose, contact_allowed: bool = False) -> None:
+        if end.position_mm[0] > self.max_x_mm:
+            raise MotionRefused(f"beyond the fence at x = {self.max_x_mm} mm")
+
+
+def test_an_unload_the_limits_cut_short_is_reported_with_the_refusal():
+    """The unload backs out standoff + 5 mm along the normal; where the limits allow less, the
+    arm stops short and the executor says how far it went and why (the session logs it as
+    ``unload_shortened``). A whole unload reports nothing."""
+    normal = np.array([0.3, 0.0, 1.0]) / np.hypot(0.3, 1.0)
+    target = ProbeTarget(0, np.array([0.0, 0.0, 130.0]), normal, np.array([0.0, 1.0, 0.0]))
+    for fence_after_mm, expect_short in ((1e9, False), (12.0, True)):
+        cell = make_cell()
+        ex = _executor(cell)
+        shortened: list[dict] = []
+        ex.on_unload_shortened = shortened.append
+
+        def fence_once_loaded(step) -> None:
+            # Once the last level is scanned the fence closes in: 20 mm along the normal is
+            # beyond it, 10 mm is not (the approach itself was free).
+            x_mm = float(ex.toolhead.pose().position_mm[0])
+            ex.validator = _Fence(x_mm + normal[0] * fence_after_mm)
+
+        ex.probe(target, 90.0, [ForceLevel(1, 3.0)], fence_once_loaded)
+        assert cell.arm.trip() is None and cell.world.contact is None
+        if not expect_short:
+            assert shortened == []
+            continue
+        assert len(shortened) == 1
+        record = shortened[0]
+        assert record["asked_mm"] == pytest.approx(20.0)            # standoff 15 + 5
+        assert record["moved_mm"] == pytest.approx(10.0)             # halved once
+        assert "fence" in record["refused"]
+
+
 @pytest.mark.parametrize("angle_deg", [90.0, 170.0])
 def test_force_levels_on_hard_rubber_stay_near_their_targets(tmp_path: Path, angle_deg: float):
     """The ball made of the generated objects' stiffest rubber (60 MPa, ~100 N/mm under the

@@ -69,7 +69,7 @@ def test_contact_regulate_and_retract() -> None:
     head.hold(0.5)
     f = head.forces_at([head.cell.clock.now_s() - 0.1])[0]
     assert abs(f[2] - 5.0) < 0.25 and abs(f[0]) < 1e-9
-    head.retract(-DOWN, 10.0)
+    assert not head.retract(-DOWN, 10.0).shortened
     head.hold(0.1)
     assert head.pose().position_mm[2] > 7.0
     assert np.linalg.norm(head.recorder.wrench().force_n[-1]) < 1e-9
@@ -88,7 +88,8 @@ def test_a_refused_unload_backs_out_as_far_as_the_limits_allow() -> None:
     normal = np.array([0.3, 0.0, 1.0]) / np.hypot(0.3, 1.0)
     fence.max_x_mm = 0.3 / np.hypot(0.3, 1.0) * 12.0            # 20 mm refused, 10 mm clear
     start = head.pose().position_mm.copy()
-    head.retract(normal, 20.0, min_distance_mm=5.0)
+    went = head.retract(normal, 20.0, min_distance_mm=5.0)
+    assert went.shortened and went.moved_mm == 10.0 and "fence" in went.refused
     head.hold(0.1)
     assert np.allclose(head.pose().position_mm - start, 10.0 * normal, atol=0.05)
     assert np.linalg.norm(head.recorder.wrench().force_n[-1]) < 1e-9
