@@ -676,3 +676,28 @@ def test_recorded_seam_band_deeper_than_a_foam_read_far_out_is_absorbed():
     assert rm.n_regions == 3
     assert len(rm.stats["transition_band_points"]) >= 11
     _each_material_in_a_region_of_its_own(rm, truth, data["r3_seam"] > 3.0, purity=0.95)
+
+
+def test_one_blended_probe_from_the_other_previous_region_does_not_erase_a_pieces_origin():
+    """Two pieces that the previous round told apart, neither dent measured (both under five
+    far-field noises), stay apart even when one of them holds a single probe the previous
+    round had put in the other region: the piece still comes from the region most of its
+    probes came from."""
+    from elastoprobe.controller.learning.regions import _merge_by_contrast, _one_previous
+
+    rng = np.random.default_rng(3)
+    n = 10
+    depth = np.r_[0.010 + 0.001 * rng.standard_normal(n), 0.030 + 0.001 * rng.standard_normal(n)]
+    features = np.c_[depth, 2.0 * depth]                         # peaks at two survey forces (mm)
+    labels = np.r_[np.zeros(n, np.int64), np.ones(n, np.int64)]
+    far = np.c_[np.zeros(2 * n), np.full(2 * n, 0.02)]           # 0.02 mm noise: neither dent measured
+    previous = labels.copy()
+    previous[n - 1] = 1                                          # a blended probe from the other region
+    previous[0] = -1                                             # and one new probe
+    assert _one_previous(previous[:n]) == 0 and _one_previous(np.array([-1, -1])) == -1
+    assert _one_previous(np.array([0, 1, -1])) == -1            # no region holds more than half
+    kept, merges = _merge_by_contrast(features, labels, [0, 1], 2.5, 0.0, far, None, previous_labels=previous)
+    assert merges == 0 and len(np.unique(kept)) == 2
+    # Without a previous round the same two unmeasured pieces are one material to the survey.
+    joined, merges = _merge_by_contrast(features, labels, [0, 1], 2.5, 0.0, far, None)
+    assert merges == 1 and len(np.unique(joined)) == 1
