@@ -21,11 +21,11 @@ from .core.errors import InputError
 from .core.geometry import INTERIOR_ANGLES_DEG, scan_direction
 from .core.kinematics import inverse
 from .core.validation import arm_model_for
-from .journal import Journal
+from .journal import Journal, newest_phase
 from .learning import evaluate as ev
 from .learning.models import OutOfRange, RegionModel, ServedProfile
 from .learning.support import SUPPORT_NAMES
-from .predict import newest_phase, served_models
+from .predict import served_models
 from .probe import standoff_pose
 
 REACH_CELL_MM = 10.0

@@ -1514,3 +1514,12 @@ def _first_difference(old_text: str | None, new_data: bytes) -> str:
         if a != b:
             return f" (first difference at line {k + 1}: {a.strip()[:60]!r} -> {b.strip()[:60]!r})"
     return ""
+
+
+def newest_phase(j: Journal, name: str) -> tuple[int, PhaseRecord | None]:
+    """(round, record) of the newest committed round of phase ``name`` (rounds count up
+    from 0 without gaps); (-1, None) if there is none."""
+    r, rec = 0, None
+    while (nxt := j.phase(name, r)) is not None:
+        rec, r = nxt, r + 1
+    return r - 1, rec

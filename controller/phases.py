@@ -22,7 +22,7 @@ from .core.config import SessionInputs
 from .core.devices import Cell
 from .core.errors import BudgetSpent, SessionAborted
 from .core.geometry import INTERIOR_ANGLES_DEG, Pose, scan_direction
-from .journal import Journal, StepPlan
+from .journal import Journal, StepPlan, newest_phase
 from .learning import cloud as cl
 from .learning import contact as ct
 from .learning import densify as dn
@@ -789,18 +789,10 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
     return int(rec.outputs["n_new"]) > 0
 
 
-def _last_round(journal: Journal, name: str) -> int:
-    """The highest round of phase ``name`` the journal holds (0 when it holds none)."""
-    r = 0
-    while journal.phase(name, r + 1) is not None:
-        r += 1
-    return r
-
-
 def _region_features(ctx: PhaseContext, ids: list[int]) -> tuple[np.ndarray, list[str]] | None:
     """Survey features (len(ids), D) and their names of labelled targets, from the latest
     regions round (None when there is none, or it did not label every one of ``ids``)."""
-    rec = ctx.journal.phase("regions", _last_round(ctx.journal, "regions"))
+    _, rec = newest_phase(ctx.journal, "regions")
     if rec is None:
         return None
     row = {int(t): k for k, t in enumerate(rec.arrays["labelled_targets"])}
@@ -908,11 +900,8 @@ def run_all(ctx: PhaseContext) -> Plan:
 def _wrap_up_after_budget(ctx: PhaseContext) -> Plan:
     """With the budget spent, model what was measured: regions and models from the data at hand."""
     j = ctx.journal
-    r = _last_round(j, "regions")
-    if j.phase("regions", r) is None:
-        phase_regions(ctx, 0)
-    else:
-        phase_regions(ctx, r)
+    r = max(newest_phase(j, "regions")[0], 0)   # none yet: cluster the survey as round 0
+    phase_regions(ctx, r)
     m = r
     while j.phase("models", m) is not None:
         m += 1

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .core.errors import InputError
-from .journal import Journal, PhaseRecord
+from .journal import Journal, newest_phase
 from .learning.models import OutOfRange, RegionModel, ServedProfile
 
 RETRAINED_DIR = Path("models") / "retrained"
@@ -25,15 +25,6 @@ class ServedModels:
 
     files: dict[int, Path]
     source: str                  # "models round N" or "retrained by `elastoprobe train` (...)"
-
-
-def newest_phase(j: Journal, name: str) -> tuple[int, PhaseRecord | None]:
-    """(round, record) of the newest committed round of phase ``name`` (rounds count up
-    from 0 without gaps); (-1, None) if there is none."""
-    r, rec = 0, None
-    while (nxt := j.phase(name, r)) is not None:
-        rec, r = nxt, r + 1
-    return r - 1, rec
 
 
 def newest_models_round(j: Journal) -> tuple[int, dict | None]:

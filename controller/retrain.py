@@ -15,9 +15,9 @@ from typing import Any
 from .core.atomic import atomic_write_json
 from .core.config import load_session_inputs
 from .core.errors import InputError
-from .journal import Journal
+from .journal import Journal, newest_phase
 from .phases import collect_region_steps, fit_region, region_train_config, registered_placement, scan_geometry
-from .predict import MANIFEST, RETRAINED_DIR, newest_models_round, newest_phase
+from .predict import MANIFEST, RETRAINED_DIR, newest_models_round
 
 
 def retrain_session(session_dir: Path) -> list[str]:

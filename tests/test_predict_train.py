@@ -86,7 +86,7 @@ def test_train_reads_the_placement_and_the_rounds_the_journal_last_recorded() ->
     of a phase is the last of an unbroken count from 0."""
     from elastoprobe.controller.core.geometry import Pose
     from elastoprobe.controller.phases import registered_placement
-    from elastoprobe.controller.predict import newest_phase
+    from elastoprobe.controller.journal import newest_phase
 
     class Journal:
         def __init__(self, placements: list[list[float]], rounds: int) -> None:

@@ -14,7 +14,7 @@ from elastoprobe.controller.machine import SessionMachine
 from elastoprobe.controller.probe import ForceLevel, ProbeExecutor, ProbeSettings, ProbeTarget
 from elastoprobe.controller.toolhead import WRIST_TURN_LEG_RAD, MotionSettings, Toolhead
 
-from test_sim_helpers import ROOT, make_cell
+from test_sim_helpers import ROOT, Fence, make_cell
 
 
 class _NoValidation:
@@ -47,17 +47,6 @@ def test_probe_executor_runs_force_levels_on_the_sim():
     assert ex.contact_normal_base is None            # unloaded: no probe in flight
 
 
-class _Fence:
-    """Refuses every straight path that ends beyond x = ``max_x_mm`` (base frame)."""
-
-    def __init__(self, max_x_mm: float) -> None:
-        self.max_x_mm = max_x_mm
-
-    def validate_path(self, start: Pose, end: Pose, contact_allowed: bool = False) -> None:
-        if end.position_mm[0] > self.max_x_mm:
-            raise MotionRefused(f"beyond the fence at x = {self.max_x_mm} mm")
-
-
 def test_an_unload_the_limits_cut_short_is_reported_with_the_refusal():
     """The unload backs out standoff + 5 mm along the normal; where the limits allow less, the
     arm stops short and the executor says how far it went and why (the session logs it as
@@ -74,7 +63,7 @@ def test_an_unload_the_limits_cut_short_is_reported_with_the_refusal():
             # Once the last level is scanned the fence closes in: 20 mm along the normal is
             # beyond it, 10 mm is not (the approach itself was free).
             x_mm = float(ex.toolhead.pose().position_mm[0])
-            ex.validator = _Fence(x_mm + normal[0] * fence_after_mm)
+            ex.validator = Fence(x_mm + normal[0] * fence_after_mm)
 
         ex.probe(target, 90.0, [ForceLevel(1, 3.0)], fence_once_loaded)
         assert cell.arm.trip() is None and cell.world.contact is None

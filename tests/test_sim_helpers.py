@@ -10,12 +10,27 @@ import numpy as np
 
 from elastoprobe.controller.core.config import load_cell
 from elastoprobe.controller.core.devices import MotionState
+from elastoprobe.controller.core.errors import MotionRefused
 from elastoprobe.controller.core.geometry import Pose, probe_tcp_pose, scan_direction
 from elastoprobe.sim.cell import SimCell, params_from_cell
 from elastoprobe.sim.world import PagedNormal, keyed_rng
 
 ROOT = Path(__file__).resolve().parent.parent
 HOME_DEG = (180.0, -90.0, 90.0, -90.0, -90.0, 0.0)   # the base turned toward +x, where the objects sit
+
+
+class Fence:
+    """A path validator that refuses every straight path ending beyond x = ``max_x_mm``
+    (base frame), and records what it checked."""
+
+    def __init__(self, max_x_mm: float) -> None:
+        self.max_x_mm = max_x_mm
+        self.checked: list[tuple[Pose, Pose, bool]] = []
+
+    def validate_path(self, start: Pose, end: Pose, contact_allowed: bool = False) -> None:
+        self.checked.append((start, end, contact_allowed))
+        if end.position_mm[0] > self.max_x_mm:
+            raise MotionRefused(f"beyond the fence at x = {self.max_x_mm} mm")
 
 
 def make_cell(obj: str = "rubber_ball", seed: int = 1, base_x_mm: float = 450.0, start_s: float = 0.0,

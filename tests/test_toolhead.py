@@ -15,6 +15,8 @@ from elastoprobe.controller.core.safety import SafetyLimits
 from elastoprobe.controller.drivers.scripted import ScriptedArm
 from elastoprobe.controller.toolhead import MotionSettings, ProbeFault, Toolhead
 
+from test_sim_helpers import Fence
+
 LIMITS = SafetyLimits(max_force_n=45.0, max_torque_nm=4.0, max_lateral_force_n=45.0, max_force_rate_n_s=1500.0,
                       ft_stale_ms=30.0, ft_frozen_ms=60.0, slip_mm=6.0)
 DOWN = np.array([0.0, 0.0, -1.0])
@@ -36,26 +38,13 @@ class _Cell:
         self.ft = self.arm.ft
 
 
-class _Fence:
-    """Refuses every straight path that ends beyond x = ``max_x_mm``; records what it checked."""
-
-    def __init__(self, max_x_mm: float) -> None:
-        self.max_x_mm = max_x_mm
-        self.checked: list[tuple[Pose, Pose, bool]] = []
-
-    def validate_path(self, start: Pose, end: Pose, contact_allowed: bool = False) -> None:
-        self.checked.append((start, end, contact_allowed))
-        if end.position_mm[0] > self.max_x_mm:
-            raise MotionRefused(f"beyond the fence at x = {self.max_x_mm} mm")
-
-
-def head_over(surface_z_mm: float, stiffness_n_mm: float = 2.0, start_z_mm: float = 5.0) -> tuple[Toolhead, _Fence]:
+def head_over(surface_z_mm: float, stiffness_n_mm: float = 2.0, start_z_mm: float = 5.0) -> tuple[Toolhead, Fence]:
     def force_of(p: np.ndarray) -> np.ndarray:
         return np.array([0.0, 0.0, stiffness_n_mm * max(surface_z_mm - p[2], 0.0)])
 
     clock = VirtualClock()
     arm = ScriptedArm(clock, force_of, limits=LIMITS, start_mm=np.array([0.0, 0.0, start_z_mm]))
-    fence = _Fence(100.0)
+    fence = Fence(100.0)
     return Toolhead(_Cell(clock, arm), SETTINGS, fence, travel_z_mm=40.0), fence
 
 
@@ -143,7 +132,7 @@ def _pushed_sideways_through_the_limit() -> tuple[Toolhead, np.ndarray]:
 
     clock = VirtualClock()
     arm = ScriptedArm(clock, force_of, limits=LIMITS, start_mm=np.array([0.0, 0.0, 5.0]))
-    head = Toolhead(_Cell(clock, arm), SETTINGS, _Fence(100.0), travel_z_mm=40.0)
+    head = Toolhead(_Cell(clock, arm), SETTINGS, Fence(100.0), travel_z_mm=40.0)
     assert head.seek_contact(d, 20.0)
     with pytest.raises(ProbeFault):
         head.regulate_force(d, 60.0, 50.0)

@@ -553,10 +553,10 @@ def _one_previous(previous: np.ndarray) -> int:
     Why most, not all: one blended seam probe that the previous round put in the other
     region would otherwise erase a piece's origin, and with it the rule that keeps two
     regions of the previous round apart. On suite slab 1003 (seed 2, round 2 of a run with
-    the far-field spread of stop 35) the elastomer piece took in one hard-rubber probe that
-    read the elastomer's level, lost its origin, and the hard-rubber disc then joined it:
-    three regions of four. Screened on all 142 recorded regions rounds of 39 sessions, no
-    other round changes."""
+    the far-field spread of docs/generated_objects.md, "Stop 35") the elastomer piece took
+    in one hard-rubber probe that read the elastomer's level, lost its origin, and the
+    hard-rubber disc then joined it: three regions of four. Screened on all 142 recorded
+    regions rounds of 39 sessions, no other round changes."""
     known = previous[previous >= 0]
     if known.size == 0:
         return -1
