@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from .cellfactory import ground_truth_for
+from .core.config import load_session_inputs
 from .core.errors import InputError
 from .core.geometry import INTERIOR_ANGLES_DEG, scan_direction
 from .core.kinematics import inverse
@@ -32,8 +34,6 @@ REACH_CELL_MM = 10.0
 
 
 def _inputs_of(j: Journal) -> Any:
-    from .core.config import load_session_inputs
-
     prov = j.provenance()
     return load_session_inputs(prov["plan"]["path"], prov["cell"]["path"])
 
@@ -134,8 +134,6 @@ def serve_or_refuse(model: RegionModel, force_n: float, angle_deg: float, tally:
 
 
 def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int = 12345) -> dict[str, Any]:
-    from .cellfactory import ground_truth_for
-
     j = Journal.open_readonly(session_dir)
     try:
         inputs = _inputs_of(j)

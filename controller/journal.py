@@ -38,6 +38,7 @@ from .core.atomic import ensure_dir, json_default
 from .core.errors import DiskError, ElastoprobeError, InputError
 from .documents import Document
 from .locking import SESSION_LOCK_NAME, SessionLock
+from .provenance import sha256_file
 from .signals import deferred_interrupts
 from .testing import crash_point
 
@@ -1342,7 +1343,6 @@ class Journal:
     def record_model(self, region: int, member: int, path: str | os.PathLike[str],
                      metrics: Mapping[str, Any] | None = None, sha256: str | None = None) -> str:
         """Register a model file (written atomically before); returns its sha256."""
-        from .provenance import sha256_file
         digest = sha256 or sha256_file(path)
         with self.transaction() as c:
             c.execute("INSERT INTO models VALUES (?,?,?,?,?,?) ON CONFLICT(region, member) DO UPDATE SET "
@@ -1356,7 +1356,6 @@ class Journal:
                 for r in self._q("SELECT region, member, path, sha256, metrics FROM models ORDER BY region, member")]
 
     def record_artifact(self, name: str, path: str | os.PathLike[str], sha256: str | None = None) -> str:
-        from .provenance import sha256_file
         digest = sha256 or sha256_file(path)
         with self.transaction() as c:
             c.execute("INSERT INTO artifacts VALUES (?,?,?,?) ON CONFLICT(name) DO UPDATE SET path=excluded.path, "
@@ -1370,7 +1369,6 @@ class Journal:
 
     def verify_files(self) -> list[str]:
         """Models and artifacts whose file is missing or differs from its recorded hash."""
-        from .provenance import sha256_file
         problems = []
         for kind, rows in (("model", self.models()), ("artifact", self.artifacts())):
             for r in rows:

@@ -18,8 +18,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .core.geometry import Pose
+from .learning.cloud import register_mesh_to_cloud, sample_mesh
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -51,10 +53,6 @@ class PlacementMonitor:
 
     def __init__(self, mesh: object, threshold_mm: float, n_samples: int = 60_000, seed: int = 0,
                  min_points: int = 40, min_relief: float = 0.02, table_clearance_mm: float = 3.0) -> None:
-        from scipy.spatial import cKDTree
-
-        from .learning.cloud import sample_mesh
-
         self.threshold_mm = float(threshold_mm)
         self.min_points = min_points
         self.min_relief = min_relief
@@ -167,8 +165,6 @@ def reregister(mesh: object, cloud_base_mm: np.ndarray, believed: Pose, max_rms_
     ICP of the mesh to the cloud from the believed placement. Raises ValueError when the
     fit is poor or the change implausible (the caller pauses the session: a person must look).
     """
-    from .learning.cloud import register_mesh_to_cloud
-
     # The cloud is in the base frame, so the believed base <- object pose is the start.
     pose, rms = register_mesh_to_cloud(mesh, cloud_base_mm, init=believed, seed=seed)
     change = float(np.linalg.norm(pose.position_mm - believed.position_mm))

@@ -36,7 +36,9 @@ import numpy as np
 from .core.atomic import atomic_write_text, ensure_dir, readable_text
 from .coverage import cloud_summary, describe_cloud
 from .journal import FaultRecord, Journal, StepRecord
+from .learning.models import RegionModel
 from .learning.support import INFERRED, MEASURED, SUPPORT_NAMES, UNSUPPORTED
+from .machine import STATES
 from .predict import read_manifest
 
 MAX_CLOUD_POINTS = 6000          # points drawn of the cloud (subsampled, seeded)
@@ -151,8 +153,6 @@ def _load_profiles(j: Journal, steps: list[StepRecord], labels: dict[int, int]) 
 def _load_models(data: ReportData, j: Journal) -> None:
     """The region models ``predict`` serves: the latest models phase's, or those
     ``elastoprobe train`` refitted since (or, before any, the model table)."""
-    from .learning.models import RegionModel
-
     rounds = _rounds(data.phases, "models")
     entries: dict[int, str] = {}
     manifest = read_manifest(data.session_dir)
@@ -692,7 +692,6 @@ def fig_timeline(data: ReportData) -> Any:
     unit, scale = ("h", 3600.0) if end_s > 3 * 3600 else ("min", 60.0) if end_s > 600 else ("s", 1.0)
     t_abs = [(offsets[t["run_id"]] + float(t["t_robot_s"])) / scale for t in tr]
     end = end_s / scale
-    from .machine import STATES
     states = [s for s in STATES if any(s in (t["from_state"], t["to_state"]) for t in tr)]
     row = {s: k for k, s in enumerate(states)}
     fig = _figure(11, 0.3 * len(states) + 1.6)

@@ -34,6 +34,7 @@ from .journal import (JOURNAL_NAME, SCHEMA_VERSION, STEP_ARRAYS_REQUIRED, Journa
                       _array_digest, _phase_digest, refuse_nested_session,
                       _plan_from_row, _STEP_PLAN_COLS)
 from .locking import SessionLock, session_lock_holder
+from .provenance import sha256_file
 
 Row = tuple[Any, ...]
 
@@ -400,7 +401,6 @@ class _Filler:
     def _files(self, c: sqlite3.Connection) -> None:
         """The models directory whole (a model is several files, its journal row names one),
         then the rows of the recorded files that are intact."""
-        from .provenance import sha256_file
 
         models = self.src_dir / "models"
         if models.is_dir():

@@ -10,38 +10,26 @@ from pathlib import Path
 from elastoprobe.controller.cli import main
 from elastoprobe.controller.journal import Journal
 
-ROOT = Path(__file__).resolve().parent.parent
+from test_sim_helpers import composite_targets_plan
 
-PLAN = f"""
-name: clearance
-cell: {ROOT / 'config' / 'cells' / 'sim.yaml'}
-simulated_object: {ROOT / 'config' / 'objects' / 'composite.yaml'}
-seed: 1
-cloud: {{source: scan, sweep_spacing_mm: 6.0, sweep_height_mm: 40.0, max_points: 20000}}
-sampling:
-  units: 0
-  edge_clearance_mm: 15.0
-  max_tilt_deg: 50.0
-  reference_direction: [0.0, 1.0, 0.0]
-probing: {{scans_per_step: 5, settle_s: 0.5, standoff_mm: 15.0, force_rate_n_s: 20.0, force_tolerance_n: 0.5}}
-phases:
-  survey: {{angles_deg: [90], forces_n: [4.0, 12.0]}}
-  characterize: {{points_per_region: 1, angles_deg: [10, 90, 170], forces_n: [5.0]}}
-  densify: {{rounds: 0}}
-budget: {{max_steps: 40, max_robot_hours: 0.5}}
-targets:
+PLAN = composite_targets_plan(
+    "clearance",
+    characterize="{points_per_region: 1, angles_deg: [10, 90, 170], forces_n: [5.0]}",
+    densify="{rounds: 0}",
+    budget="{max_steps: 40, max_robot_hours: 0.5}",
+    targets="""\
   # The box top 18 mm from its south edge: clear along the normal; at 170 deg the tool
   # leans out over the edge and the F/T sensor meets the top.
-  - {{point_mm: [-31.3, -62.4, 140.0], normal: [0.0, 0.0, 1.0]}}
+  - {point_mm: [-31.3, -62.4, 140.0], normal: [0.0, 0.0, 1.0]}
   # The pillow 13 mm from the box's south wall: on the way down the scanner, which rides
   # beside the probe, comes within ~3 mm of the wall (the demo refused it at run time).
-  - {{point_mm: [-5.7, -93.1, 80.0], normal: [0.0, 0.0, 1.0]}}
-model: {{hidden_units: 45, ensemble: 2, max_epochs: 100, profile_span_mm: 80.0, profile_samples: 64}}
+  - {point_mm: [-5.7, -93.1, 80.0], normal: [0.0, 0.0, 1.0]}""",
+    tail="""\
 fault_policy:
-  default: {{action: retry, retries: 2}}
+  default: {action: retry, retries: 2}
   kinds:
-    no_contact: {{action: skip_target}}
-"""
+    no_contact: {action: skip_target}
+""")
 
 
 def test_colliding_targets_and_angles_are_left_out_of_the_plan_not_refused(tmp_path: Path) -> None:

@@ -7,32 +7,20 @@ from pathlib import Path
 from elastoprobe.controller.cli import main
 from elastoprobe.controller.journal import Journal
 
-ROOT = Path(__file__).resolve().parent.parent
+from test_sim_helpers import composite_targets_plan
 
-PLAN = f"""
-name: budget
-cell: {ROOT / 'config' / 'cells' / 'sim.yaml'}
-simulated_object: {ROOT / 'config' / 'objects' / 'composite.yaml'}
-seed: 1
-cloud: {{source: scan, sweep_spacing_mm: 6.0, sweep_height_mm: 40.0, max_points: 20000}}
-sampling:
-  units: 0
-  edge_clearance_mm: 15.0
-  max_tilt_deg: 50.0
-  reference_direction: [0.0, 1.0, 0.0]
-probing: {{scans_per_step: 5, settle_s: 0.5, standoff_mm: 15.0, force_rate_n_s: 20.0, force_tolerance_n: 0.5}}
-phases:
-  survey: {{angles_deg: [90], forces_n: [4.0, 12.0]}}
-  characterize: {{points_per_region: 1, angles_deg: [50, 90, 130], forces_n: [5.0]}}
-  densify: {{rounds: 1}}
-budget: {{max_steps: {{max_steps}}, max_robot_hours: 2.0}}
-targets:
-  - {{point_mm: [-20.0, -20.0, 140.0], normal: [0.0, 0.0, 1.0]}}   # the box top
-  - {{point_mm: [20.0, 30.0, 140.0], normal: [0.0, 0.0, 1.0]}}     # the box top
-  - {{point_mm: [150.0, 0.0, 80.0], normal: [0.0, 0.0, 1.0]}}      # the pillow
-  - {{point_mm: [-150.0, 40.0, 80.0], normal: [0.0, 0.0, 1.0]}}    # the pillow
-model: {{hidden_units: 45, ensemble: 2, max_epochs: 100, profile_span_mm: 80.0, profile_samples: 64}}
-"""
+
+def _plan(max_steps: int) -> str:
+    return composite_targets_plan(
+        "budget",
+        characterize="{points_per_region: 1, angles_deg: [50, 90, 130], forces_n: [5.0]}",
+        densify="{rounds: 1}",
+        budget=f"{{max_steps: {max_steps}, max_robot_hours: 2.0}}",
+        targets="""\
+  - {point_mm: [-20.0, -20.0, 140.0], normal: [0.0, 0.0, 1.0]}   # the box top
+  - {point_mm: [20.0, 30.0, 140.0], normal: [0.0, 0.0, 1.0]}     # the box top
+  - {point_mm: [150.0, 0.0, 80.0], normal: [0.0, 0.0, 1.0]}      # the pillow
+  - {point_mm: [-150.0, 40.0, 80.0], normal: [0.0, 0.0, 1.0]}    # the pillow""")
 
 
 def test_a_budget_spent_while_characterizing_still_ends_with_models_and_a_map(tmp_path: Path) -> None:
@@ -40,7 +28,7 @@ def test_a_budget_spent_while_characterizing_still_ends_with_models_and_a_map(tm
     session logs why, clusters what it has (regions round 0 again, from the journal),
     fits that round's models and writes the final map and report."""
     plan = tmp_path / "plan.yaml"
-    plan.write_text(PLAN.replace("{max_steps}", "6"))
+    plan.write_text(_plan(6))
     out = tmp_path / "session"
     assert main(["run", str(plan), "--seed", "1", "--out", str(out), "--quiet"]) == 0
     with Journal.open_readonly(out) as j:

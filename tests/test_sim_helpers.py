@@ -33,6 +33,35 @@ class Fence:
             raise MotionRefused(f"beyond the fence at x = {self.max_x_mm} mm")
 
 
+def composite_targets_plan(name: str, *, characterize: str, densify: str, budget: str, targets: str,
+                           tail: str = "") -> str:
+    """The text of a plan on the simulated cell (config/cells/sim.yaml) and the shipped
+    composite that presses exactly ``targets`` (YAML list items, one per line), surveyed at
+    90 deg with 4 and 12 N. ``characterize``, ``densify`` and ``budget``: YAML flow mappings;
+    ``tail``: more top-level keys."""
+    return f"""
+name: {name}
+cell: {ROOT / 'config' / 'cells' / 'sim.yaml'}
+simulated_object: {ROOT / 'config' / 'objects' / 'composite.yaml'}
+seed: 1
+cloud: {{source: scan, sweep_spacing_mm: 6.0, sweep_height_mm: 40.0, max_points: 20000}}
+sampling:
+  units: 0
+  edge_clearance_mm: 15.0
+  max_tilt_deg: 50.0
+  reference_direction: [0.0, 1.0, 0.0]
+probing: {{scans_per_step: 5, settle_s: 0.5, standoff_mm: 15.0, force_rate_n_s: 20.0, force_tolerance_n: 0.5}}
+phases:
+  survey: {{angles_deg: [90], forces_n: [4.0, 12.0]}}
+  characterize: {characterize}
+  densify: {densify}
+budget: {budget}
+targets:
+{targets}
+model: {{hidden_units: 45, ensemble: 2, max_epochs: 100, profile_span_mm: 80.0, profile_samples: 64}}
+{tail}"""
+
+
 def make_cell(obj: str = "rubber_ball", seed: int = 1, base_x_mm: float = 450.0, start_s: float = 0.0,
               scanner: dict | None = None, ft: dict | None = None, faults=None, object_path: Path | None = None,
               **overrides) -> SimCell:

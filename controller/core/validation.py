@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .collision import Box, SceneChecker, ToolShape
 from .config import CellSpec, SessionInputs, effective_motion_limits
 from .devices import Cell
 from .errors import MotionRefused
@@ -75,7 +76,6 @@ class PathValidator:
 
 def build_validator(inputs: SessionInputs, cell: Cell, object_mesh: object) -> PathValidator:
     """A validator for a cell: its kinematics, tool shapes, object mesh in the base frame, boxes."""
-    from .collision import Box, SceneChecker, ToolShape
 
     spec = inputs.cell
     shapes = [ToolShape(name=s.name, kind=s.kind, pose_in_tcp=s.pose.pose(), radius_mm=s.radius_mm,

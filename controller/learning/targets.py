@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 
 from ..core.geometry import scan_direction
 from . import survey_density
+from .cloud import local_plane
 
 
 @dataclass(frozen=True)
@@ -138,7 +139,6 @@ class _Surface:
         from a point whose cloud normal was right: the 90 deg probe was planned horizontal,
         the descent to it refused (probe within 1.4 mm of the object) and the session
         aborted for 3 of 7 seeds in process."""
-        from .cloud import local_plane
 
         centroid, _, vecs = local_plane(self.points, self.tree, i, self.rules.plane_k)
         n = vecs[:, 0]
