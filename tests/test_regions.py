@@ -701,3 +701,21 @@ def test_one_blended_probe_from_the_other_previous_region_does_not_erase_a_piece
     # Without a previous round the same two unmeasured pieces are one material to the survey.
     joined, merges = _merge_by_contrast(features, labels, [0, 1], 2.5, 0.0, far, None)
     assert merges == 1 and len(np.unique(joined)) == 1
+
+
+def test_recorded_seam_band_below_an_unmeasured_stiff_dent_is_absorbed():
+    """Recorded survey of unseen slab 1312 (gel 0, sponge 1, hard rubber 2; run seed 1),
+    round 0, 382 probes: seven hard-rubber probes within 2 mm of the gel's seam read
+    0.023-0.052 mm at 4.5 N, between the hard rubber's 0.021 and the gel's 0.34, in five
+    pieces. One piece's median at 1.5 N read 0.010 mm, under the hard rubber's 0.013 mm,
+    whose dent there is within its noise (5 x 0.0074 mm): it was no band, and the seven
+    stayed a fourth region of three materials in every round. Three regions, the seven
+    joined to their neighbours, each material's probes away from the seams in a region of
+    their own."""
+    data, names, noise = _recorded("slab_two_inclusions_1312.npz")
+    truth = data["truth"].astype(np.int64)
+    rm = cluster_regions(data["feats"], data["edges"].astype(np.int64), names, seed=int(data["seed"]),
+                         min_contrast=float(data["min_contrast"]), noise_mm=noise, far_field_mm=data["far"])
+    assert rm.n_regions == 3
+    assert len(rm.stats["transition_band_points"]) == 7
+    _each_material_in_a_region_of_its_own(rm, truth, data["seam"] > 3.0, purity=0.95)

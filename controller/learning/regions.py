@@ -28,7 +28,8 @@ slope), and the surface graph (neighbour pairs of the neural-gas units).
    (recorded in ``stats["islands"]``, so densification can look there again); and a
    region that is only the blend along the seams of others (each of its connected pieces
    sandwiched between two regions, smaller than both, its dent between theirs, or beyond
-   a neighbour's lower bound: :func:`_absorb_transition_bands`) is split
+   a neighbour's lower bound, or below a neighbour's dent that is within its noise:
+   :func:`_absorb_transition_bands`) is split
    between them (``stats["transition_band_points"]``).
 4. Region ids are sorted by the mean of one feature (default column 0, the peak depth
    at the smallest survey force: region 0 is the stiffest), so reruns on the same data
@@ -681,7 +682,8 @@ def _region_medians(columns: np.ndarray, labels: np.ndarray, k: int) -> np.ndarr
 
 
 def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray],
-                             depth_columns: list[int], seen_from_mm: np.ndarray | None = None
+                             depth_columns: list[int], seen_from_mm: np.ndarray | None = None,
+                             far_field_mm: np.ndarray | None = None, floor_mm: float = 0.0
                              ) -> tuple[np.ndarray, list[int]]:
     """Relabel a region that is only the blend between others into those others.
 
@@ -709,8 +711,18 @@ def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbour
     :func:`_merge_by_contrast`). On suite slab
     1002 (seed 2) 11 gel probes on the foam's seam read 0.55-1.1 mm at 2 N, between the gel's
     0.18 and the foam's 1.41, and 1.3-2.2 mm at 6 N beside the foam's 1.97 read 8 mm out (the
-    piece's from 3.6 mm): a fourth region of no material. Returns (labels, relabelled point
-    indices).
+    piece's from 3.6 mm): a fourth region of no material.
+
+    ``far_field_mm`` (N,2), ``floor_mm``: each region's peak noise (:func:`peak_noise_mm`).
+    At a force where the shallower region's dent is not measured (its median + ``floor_mm``
+    within ``MEASURED_DENT_NOISES`` noises, as in :func:`_merge_by_contrast`), a piece that
+    reads shallower still is within that region's noise there, which refutes nothing; it
+    must lie strictly between at some other force. On unseen slab 1312 (run seed 1) seven
+    hard-rubber probes within 2 mm of the gel's seam read 0.023-0.052 mm at 4.5 N, between
+    the hard rubber's 0.021 and the gel's 0.34, in five pieces; one piece's median at 1.5 N
+    read 0.010 mm, under the hard rubber's 0.013, whose dent there is within its noise (5 x
+    0.0074 mm): a fourth region of three materials in every round. Returns (labels,
+    relabelled point indices).
     """
     relabelled: list[int] = []
     if not depth_columns:
@@ -726,11 +738,16 @@ def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbour
         med = _region_medians(cols, labels, k)
         sizes = np.bincount(labels, minlength=k)
         read_at = _region_medians(seen_from[:, None], labels, k)[:, 0]
+        unmeasured = None
+        if far_field_mm is not None:
+            noise = np.array([peak_noise_mm(far_field_mm[labels == r], floor_mm) for r in range(k)])
+            with np.errstate(invalid="ignore"):
+                unmeasured = np.exp(med) + floor_mm <= MEASURED_DENT_NOISES * noise[:, None]   # (k,F)
         done = True
         for band in np.argsort(sizes, kind="stable"):
             pieces = _pieces(np.flatnonzero(labels == band), neighbours)
-            sides = [_sandwich(piece, int(band), labels, neighbours, cols, med, sizes, seen_from, read_at)
-                     for piece in pieces]
+            sides = [_sandwich(piece, int(band), labels, neighbours, cols, med, sizes, seen_from, read_at,
+                               unmeasured) for piece in pieces]
             pairs = [pair for pair in sides if pair is not None]
             if len(pairs) < len(pieces):
                 continue
@@ -765,12 +782,15 @@ def _pieces(members: np.ndarray, neighbours: list[np.ndarray]) -> list[np.ndarra
 
 def _sandwich(piece: np.ndarray, band: int, labels: np.ndarray, neighbours: list[np.ndarray],
               log_depth: np.ndarray, region_median: np.ndarray, sizes: np.ndarray,
-              seen_from_mm: np.ndarray, region_read_at_mm: np.ndarray) -> tuple[int, int] | None:
+              seen_from_mm: np.ndarray, region_read_at_mm: np.ndarray,
+              region_unmeasured: np.ndarray | None = None) -> tuple[int, int] | None:
     """The pair of regions (a, b) a piece of region ``band`` is the blend of, or None: every
     point of the piece borders both, both regions have more points than the piece, and at
     every force the piece's median log depth lies strictly between theirs, or beyond the
     deeper one's where that one's peaks were read farther out than the piece's by more than
-    :data:`NEAR_CONTACT_BAND_MM` (lower bounds); strictly between at one force at least."""
+    :data:`NEAR_CONTACT_BAND_MM` (lower bounds), or below the shallower one's where that one's
+    dent is not measured (``region_unmeasured`` (k,F), True there); strictly between at one
+    force at least."""
     touching = [set(int(v) for v in labels[neighbours[i]]) - {band} for i in piece]
     common = set.intersection(*touching) if touching else set()
     with np.errstate(all="ignore"), warnings.catch_warnings():
@@ -786,7 +806,11 @@ def _sandwich(piece: np.ndarray, band: int, labels: np.ndarray, neighbours: list
         with np.errstate(invalid="ignore"):
             lower_bound = region_read_at_mm[deeper] > piece_read_at + NEAR_CONTACT_BAND_MM
         beyond = (mid >= region_median[deeper, np.arange(mid.size)]) & lower_bound
-        return bool(np.any(between) and np.all(between | beyond))
+        shallower = np.where(region_median[a] >= region_median[b], b, a)          # per force
+        in_noise = np.zeros(mid.size, dtype=bool) if region_unmeasured is None \
+            else region_unmeasured[shallower, np.arange(mid.size)]
+        below = (mid <= region_median[shallower, np.arange(mid.size)]) & in_noise
+        return bool(np.any(between) and np.all(between | beyond | below))
 
     return next(((a, b) for a in sorted(common) for b in sorted(common)
                  if a < b and sizes[a] > piece.size and sizes[b] > piece.size and blend_of(a, b)), None)
@@ -898,7 +922,7 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
 
         labels, islands, kept = _remove_islands(labels, e, neighbours, min_island_points,
                                                 distinct if log_cols and min_contrast > 1.0 else None)
-        labels, bands = _absorb_transition_bands(x, labels, neighbours, depth_cols, seen_from)
+        labels, bands = _absorb_transition_bands(x, labels, neighbours, depth_cols, seen_from, far, floor_mm)
         labels, k = _compact(labels)
     else:
         islands, bands = [], []
