@@ -21,7 +21,7 @@ from .acquire import unseen_of_cloud
 from .core.config import SessionInputs
 from .core.devices import Cell
 from .core.errors import BudgetSpent, SessionAborted
-from .core.geometry import INTERIOR_ANGLES_DEG, Pose, scan_direction
+from .core.geometry import INTERIOR_ANGLES_DEG, Pose, follows_scan_rule, scan_direction
 from .journal import Journal, StepPlan, newest_phase
 from .learning import cloud as cl
 from .learning import contact as ct
@@ -553,6 +553,7 @@ def _characterize_choice(ctx: PhaseContext, labels: dict[int, int], n_regions: i
     angles = list(ctx.inputs.plan.phases.characterize.angles_deg)
     lo, hi = INTERIOR_ANGLES_DEG
     interior_angles = [a for a in angles if lo <= a <= hi]
+    reference = np.array(ctx.inputs.plan.sampling.reference_direction, dtype=float)
     clear_at: dict[int, list[float]] = {}
     already = {r.plan.target_index for r in j.steps(phase=CHARACTERIZE)}
     lab = np.array([labels[i] for i in ids])
@@ -564,7 +565,10 @@ def _characterize_choice(ctx: PhaseContext, labels: dict[int, int], n_regions: i
             continue
         members = np.flatnonzero(lab == region)
         others = np.flatnonzero(lab != region)
-        cand = [k for k in members if ids[k] not in already and not ctx.edge_flag.get(ids[k], False)]
+        # A target whose line was turned at a border is not characterized: its angles would
+        # be measured from another tangent than the region model's (docs/design.md §3).
+        cand = [k for k in members if ids[k] not in already and not ctx.edge_flag.get(ids[k], False)
+                and follows_scan_rule(ctx.targets[ids[k]].normal, ctx.targets[ids[k]].t, reference)]
         if not cand:
             continue
         # Interior first: far from every target of another region, then spread apart.
@@ -598,12 +602,14 @@ class ScanGeometry:
     tcp_to_scanner: Any
     base_to_object: Any
     tip_radius_mm: float
+    reference_dir: tuple[float, float, float]
 
 
 def scan_geometry(inputs: Any, tcp_to_scanner: Any, base_to_object: Any) -> ScanGeometry:
     """The scan geometry of a session's inputs with the scanner mount and the object's
     placement given (a live cell's, or the journal's word: :func:`registered_placement`)."""
-    return ScanGeometry(plan_grid(inputs), tcp_to_scanner, base_to_object, inputs.cell.tool.tip_radius_mm)
+    return ScanGeometry(plan_grid(inputs), tcp_to_scanner, base_to_object, inputs.cell.tool.tip_radius_mm,
+                        tuple(inputs.plan.sampling.reference_direction))
 
 
 def registered_placement(j: Any) -> Pose | None:
@@ -648,11 +654,16 @@ def collect_region_steps(j: Any, labels: dict[int, int], region: int, geometry: 
     before they were (an older journal) is measured again from its stored scans and
     poses, profile included. The reference surface is always taken from the stored
     reference scans (with ``geometry``'s placement of the object). A journal without
-    reference poses keeps its stored profiles and has no tip facts.
+    reference poses keeps its stored profiles and has no tip facts. Steps whose line was
+    turned at a border (docs/design.md §3) are left out: their angles are measured from
+    another tangent, and by a rim the dent is not the same along it as across it (a
+    plate's bowl, a layer's edge), so they feed the regions' features only.
     """
     rows: list[tuple[float, float, float, np.ndarray, int, float, float, np.ndarray]] = []
     for r in j.steps(statuses=["done"]):
         if labels.get(r.plan.target_index) != region:
+            continue
+        if not follows_scan_rule(np.asarray(r.plan.normal), np.asarray(r.plan.t), np.asarray(geometry.reference_dir)):
             continue
         res = j.step_result(r.step_id)
         target = ProbeTarget(r.plan.target_index, np.asarray(r.plan.point_mm), np.asarray(r.plan.normal),
