@@ -384,9 +384,9 @@ def _reachable(ctx: PhaseContext, pts: np.ndarray, nrm: np.ndarray, t_dirs: np.n
     the probe's tip. A target by the foot of a wall, where the scanner would meet the wall
     on the way down, is dropped here rather than refused at run time (a refused motion is a
     fault in the night's record and a wasted trip). A target whose t was turned off the
-    plan's rule at a border (:func:`_scan_frames_on_face`) and cannot be worked turned is
-    tried turned the other way along the border, then with the rule's t, before it is
-    dropped."""
+    plan's rule at a border (:func:`_scan_frames_on_face`) is never characterized, so it
+    needs IK at the survey angles only; one that cannot be worked turned is tried turned
+    the other way along the border, then with the rule's t, before it is dropped."""
     plan = ctx.inputs.plan
     survey = sorted(set(plan.phases.survey.angles_deg))
     angles = sorted(set(survey) | set(plan.phases.characterize.angles_deg))
@@ -398,14 +398,15 @@ def _reachable(ctx: PhaseContext, pts: np.ndarray, nrm: np.ndarray, t_dirs: np.n
     turn_refused = {"unreachable": 0, "collides": 0}
     for i in range(len(pts)):
         rule_t = canonical(scan_direction(nrm[i], ref), 9)
-        # A turned line may run either way along the border: on an isotropic material the
-        # profile at an angle along -t is the one along t, and the pose differs (the wrist
-        # turned half a turn), which one cell may reach and another not.
+        # A turned line may run either way along the border: its steps give the regions'
+        # survey features only (a dent's peak and width, the same read along -t), and the
+        # pose differs (the wrist turned half a turn), which a cell may reach or not.
         options = [chosen[i]] if np.allclose(chosen[i], rule_t) else [chosen[i], -chosen[i], rule_t]
         for k, t in enumerate(options):
             target = ProbeTarget(-1, pts[i], nrm[i], t)
+            needed = survey if k < len(options) - 1 else angles     # the last option is the rule's t
             if not validator.reachable_at_all_angles(   # type: ignore[attr-defined]
-                    [ctx.executor.contact_search_path(target, a)[0] for a in angles]):
+                    [ctx.executor.contact_search_path(target, a)[0] for a in needed]):
                 failed = "unreachable"
             elif len(_clear_angles(ctx, target, survey)) < len(survey):
                 failed = "collides"
@@ -424,7 +425,7 @@ def _reachable(ctx: PhaseContext, pts: np.ndarray, nrm: np.ndarray, t_dirs: np.n
     if turned or any(turn_refused.values()):
         ctx.log("scan_turned_at_border", what=what, targets=turned,
                 turn_refused_unreachable=turn_refused["unreachable"], turn_refused_collides=turn_refused["collides"])
-    return keep, chosen
+    return keep, canonical(chosen, 9)     # -t of a canonical t can hold negative zeros
 
 
 def _clear_angles(ctx: PhaseContext, target: ProbeTarget, angles: list[float]) -> list[float]:
