@@ -300,7 +300,7 @@ def border_scan_frames(cloud_mm: np.ndarray, points_mm: np.ndarray, normals: np.
     ``strip_mm``, the width over which the cloud is pooled (the resolution of the
     judgement). A line that holds the window keeps the rule: a turned line meets the
     surface's own shape instead (an undulating sheet's troughs, seen along the waves, lost
-    their dents at 7.5 N on 13 of 77 points of suite object 1008, where the rule's lines,
+    their dents at 7.5 N on 12 of 77 points of suite object 1008, where the rule's lines,
     leaving the face 14-31 mm out, saw them).
     """
     nrm = np.asarray(normals, dtype=float).reshape(-1, 3)
