@@ -24,8 +24,9 @@ the session's step measurement (profiles.step_scan_points, profiles.measure_step
 average, probed face, plausible depths, the tip's facts from the poses), the regions
 phase's reading of it (phases.survey_profile: a profile that did not see its dent is
 unseen) and its feature extraction (survey features on the dent window |x| <= 15 mm,
-clustering on the surface graph). The arm and F/T dynamics are not run (the
-force is exact).
+clustering on the surface graph). Every strategy's scan line turns at a border as the
+session's does (targets.scan_frames_on_face on the bench's surface). The arm and F/T
+dynamics are not run (the force is exact).
 
 Score, the same target for every strategy: the map over the bench's surface (a dense
 sample of the mesh seen from above, the stand-in for the scanned cloud) carried onto the
@@ -252,7 +253,17 @@ class SeedRun:
 
     # -- measurement, regions, score
     def survey(self, points: np.ndarray, normals: np.ndarray, t: np.ndarray) -> list:
-        return [self.prober.measure(p, n, tt) for p, n, tt in zip(points, normals, t)]
+        """Measured contacts; every strategy's line turns at a border as a session's does
+        (targets.scan_frames_on_face, judged on the bench's surface), so ``t`` is the rule's."""
+        from elastoprobe.controller.learning import targets as tg
+        from elastoprobe.controller.phases import FEATURE_HALF_WINDOW_MM
+
+        pts, nrm = np.asarray(points, float).reshape(-1, 3), np.asarray(normals, float).reshape(-1, 3)
+        if len(pts):
+            t = tg.scan_frames_on_face(self.surface.points_mm, pts, nrm, self.reference_dir,
+                                       self.prober.tip_radius_mm, self.prober.grid.span_mm / 2.0,
+                                       FEATURE_HALF_WINDOW_MM)
+        return [self.prober.measure(p, n, tt) for p, n, tt in zip(pts, nrm, t)]
 
     def noise(self, measured: list) -> float:
         """Standard error of averaged profiles from the scans themselves (as measured_noise_mm)."""

@@ -21,7 +21,7 @@ from .acquire import unseen_of_cloud
 from .core.config import SessionInputs
 from .core.devices import Cell
 from .core.errors import BudgetSpent, SessionAborted
-from .core.geometry import INTERIOR_ANGLES_DEG, Pose, scan_direction
+from .core.geometry import INTERIOR_ANGLES_DEG, Pose, follows_scan_rule, scan_direction
 from .journal import Journal, StepPlan, newest_phase
 from .learning import cloud as cl
 from .learning import contact as ct
@@ -317,8 +317,8 @@ def phase_sampling(ctx: PhaseContext) -> None:
             ng_qe: float | None = float(result.quantization_error)
             found = tg.make_targets(units, pts, nrm, curv, rules=rules,
                                     reference_dir=np.array(plan.sampling.reference_direction))
-            t_dirs = np.asarray(found.t).reshape(-1, 3)
             pts_t, nrm_t = np.asarray(found.points_mm).reshape(-1, 3), np.asarray(found.normals).reshape(-1, 3)
+            t_dirs = _scan_frames_on_face(ctx, pts_t, nrm_t)
             found_edge = np.asarray(found.edge_flag, bool).reshape(-1)
         else:
             # Explicit targets only: the same points whatever the cloud (config validation
@@ -334,7 +334,7 @@ def phase_sampling(ctx: PhaseContext) -> None:
             nrm_t = np.vstack([nrm_t, n])
             t_dirs = np.vstack([t_dirs, scan_direction(n, np.array(plan.sampling.reference_direction))])
         pts_t, nrm_t, t_dirs = canonical(pts_t, 6), canonical(nrm_t, 9), canonical(t_dirs, 9)
-        keep = _reachable(ctx, pts_t, nrm_t, t_dirs, "sampling")
+        keep, t_dirs = _reachable(ctx, pts_t, nrm_t, t_dirs, "sampling")
         pts_t, nrm_t, t_dirs = pts_t[keep], nrm_t[keep], t_dirs[keep]
         edge = np.zeros(len(pts_t), bool)
         edge[: int(np.sum(keep[:n_found]))] = found_edge[keep[:n_found]]
@@ -364,30 +364,68 @@ def _target_rules(ctx: PhaseContext) -> Any:
                              plan.sampling.min_feature_mm)
 
 
-def _reachable(ctx: PhaseContext, pts: np.ndarray, nrm: np.ndarray, t_dirs: np.ndarray, what: str) -> np.ndarray:
-    """Targets the probe can work at: the standoff pose has IK within the joint limits at
-    every planned angle, and the contact search at the survey angles touches the object
-    with nothing but the probe's tip. A target by the foot of a wall, where the scanner
-    would meet the wall on the way down, is dropped here rather than refused at run time
-    (a refused motion is a fault in the night's record and a wasted trip)."""
+def _scan_frames_on_face(ctx: PhaseContext, pts: np.ndarray, nrm: np.ndarray) -> np.ndarray:
+    """Scan directions (N,3) of new targets: the plan's reference direction on each tangent
+    plane, turned a quarter turn where that line would leave the face within the survey's
+    dent window and the turned one stays on it longer (targets.scan_frames_on_face)."""
+    plan = ctx.inputs.plan
+    assert ctx.cloud_mm is not None
+    return tg.scan_frames_on_face(ctx.cloud_mm, pts, nrm, np.array(plan.sampling.reference_direction),
+                                  float(ctx.inputs.cell.tool.tip_radius_mm), plan.model.profile_span_mm / 2.0,
+                                  FEATURE_HALF_WINDOW_MM)
+
+
+def _reachable(ctx: PhaseContext, pts: np.ndarray, nrm: np.ndarray, t_dirs: np.ndarray, what: str
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Targets the probe can work at, and their scan directions: (keep (N,), t (N,3)).
+
+    A target is kept when the standoff pose has IK within the joint limits at every planned
+    angle, and the contact search at the survey angles touches the object with nothing but
+    the probe's tip. A target by the foot of a wall, where the scanner would meet the wall
+    on the way down, is dropped here rather than refused at run time (a refused motion is a
+    fault in the night's record and a wasted trip). A target whose t was turned off the
+    plan's rule at a border (:func:`_scan_frames_on_face`) is never characterized, so it
+    needs IK at the survey angles only; one that cannot be worked turned is tried turned
+    the other way along the border, then with the rule's t, before it is dropped."""
     plan = ctx.inputs.plan
     survey = sorted(set(plan.phases.survey.angles_deg))
     angles = sorted(set(survey) | set(plan.phases.characterize.angles_deg))
     validator = ctx.executor.validator
+    ref = np.array(plan.sampling.reference_direction, dtype=float)
     keep = np.zeros(len(pts), bool)
-    unreachable = collides = 0
+    chosen = np.array(t_dirs, dtype=float).reshape(-1, 3)
+    unreachable = collides = turned = 0
+    turn_refused = {"unreachable": 0, "collides": 0}
     for i in range(len(pts)):
-        target = ProbeTarget(-1, pts[i], nrm[i], t_dirs[i])
-        if not validator.reachable_at_all_angles(   # type: ignore[attr-defined]
-                [ctx.executor.contact_search_path(target, a)[0] for a in angles]):
-            unreachable += 1
-        elif len(_clear_angles(ctx, target, survey)) < len(survey):
-            collides += 1
-        else:
-            keep[i] = True
+        rule_t = canonical(scan_direction(nrm[i], ref), 9)
+        # A turned line may run either way along the border: its steps give the regions'
+        # survey features only (a dent's peak and width, the same read along -t), and the
+        # pose differs (the wrist turned half a turn), which a cell may reach or not.
+        options = [chosen[i]] if np.allclose(chosen[i], rule_t) else [chosen[i], -chosen[i], rule_t]
+        for k, t in enumerate(options):
+            target = ProbeTarget(-1, pts[i], nrm[i], t)
+            needed = survey if k < len(options) - 1 else angles     # the last option is the rule's t
+            if not validator.reachable_at_all_angles(   # type: ignore[attr-defined]
+                    [ctx.executor.contact_search_path(target, a)[0] for a in needed]):
+                failed = "unreachable"
+            elif len(_clear_angles(ctx, target, survey)) < len(survey):
+                failed = "collides"
+            else:
+                keep[i], chosen[i] = True, t
+                break
+            if len(options) > 1 and k == 0:
+                turn_refused[failed] += 1
+        if not keep[i]:
+            unreachable += failed == "unreachable"
+            collides += failed == "collides"
+        elif not np.allclose(chosen[i], rule_t):
+            turned += 1
     if unreachable or collides:
         ctx.log("targets_dropped", what=what, unreachable=unreachable, contact_search_collides=collides)
-    return keep
+    if turned or any(turn_refused.values()):
+        ctx.log("scan_turned_at_border", what=what, targets=turned,
+                turn_refused_unreachable=turn_refused["unreachable"], turn_refused_collides=turn_refused["collides"])
+    return keep, canonical(chosen, 9)     # -t of a canonical t can hold negative zeros
 
 
 def _clear_angles(ctx: PhaseContext, target: ProbeTarget, angles: list[float]) -> list[float]:
@@ -516,6 +554,7 @@ def _characterize_choice(ctx: PhaseContext, labels: dict[int, int], n_regions: i
     angles = list(ctx.inputs.plan.phases.characterize.angles_deg)
     lo, hi = INTERIOR_ANGLES_DEG
     interior_angles = [a for a in angles if lo <= a <= hi]
+    reference = np.array(ctx.inputs.plan.sampling.reference_direction, dtype=float)
     clear_at: dict[int, list[float]] = {}
     already = {r.plan.target_index for r in j.steps(phase=CHARACTERIZE)}
     lab = np.array([labels[i] for i in ids])
@@ -527,7 +566,10 @@ def _characterize_choice(ctx: PhaseContext, labels: dict[int, int], n_regions: i
             continue
         members = np.flatnonzero(lab == region)
         others = np.flatnonzero(lab != region)
-        cand = [k for k in members if ids[k] not in already and not ctx.edge_flag.get(ids[k], False)]
+        # A target whose line was turned at a border is not characterized: its angles would
+        # be measured from another tangent than the region model's (docs/design.md §3).
+        cand = [k for k in members if ids[k] not in already and not ctx.edge_flag.get(ids[k], False)
+                and follows_scan_rule(ctx.targets[ids[k]].normal, ctx.targets[ids[k]].t, reference)]
         if not cand:
             continue
         # Interior first: far from every target of another region, then spread apart.
@@ -561,12 +603,14 @@ class ScanGeometry:
     tcp_to_scanner: Any
     base_to_object: Any
     tip_radius_mm: float
+    reference_dir: tuple[float, float, float]
 
 
 def scan_geometry(inputs: Any, tcp_to_scanner: Any, base_to_object: Any) -> ScanGeometry:
     """The scan geometry of a session's inputs with the scanner mount and the object's
     placement given (a live cell's, or the journal's word: :func:`registered_placement`)."""
-    return ScanGeometry(plan_grid(inputs), tcp_to_scanner, base_to_object, inputs.cell.tool.tip_radius_mm)
+    return ScanGeometry(plan_grid(inputs), tcp_to_scanner, base_to_object, inputs.cell.tool.tip_radius_mm,
+                        tuple(inputs.plan.sampling.reference_direction))
 
 
 def registered_placement(j: Any) -> Pose | None:
@@ -611,11 +655,16 @@ def collect_region_steps(j: Any, labels: dict[int, int], region: int, geometry: 
     before they were (an older journal) is measured again from its stored scans and
     poses, profile included. The reference surface is always taken from the stored
     reference scans (with ``geometry``'s placement of the object). A journal without
-    reference poses keeps its stored profiles and has no tip facts.
+    reference poses keeps its stored profiles and has no tip facts. Steps whose line was
+    turned at a border (docs/design.md §3) are left out: their angles are measured from
+    another tangent, and by a rim the dent is not the same along it as across it (a
+    plate's bowl, a layer's edge), so they feed the regions' features only.
     """
     rows: list[tuple[float, float, float, np.ndarray, int, float, float, np.ndarray]] = []
     for r in j.steps(statuses=["done"]):
         if labels.get(r.plan.target_index) != region:
+            continue
+        if not follows_scan_rule(np.asarray(r.plan.normal), np.asarray(r.plan.t), np.asarray(geometry.reference_dir)):
             continue
         res = j.step_result(r.step_id)
         target = ProbeTarget(r.plan.target_index, np.asarray(r.plan.point_mm), np.asarray(r.plan.normal),
@@ -767,9 +816,9 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
         new_pts = canonical(np.asarray(rnd.proposed_mm, dtype=float).reshape(-1, 3), 6)
         new_nrm = canonical(_cloud_normals_at(ctx, new_pts), 9)
         first = max(ctx.targets) + 1 if ctx.targets else 0
-        t_dirs = canonical(np.array([scan_direction(n, np.array(plan.sampling.reference_direction))
-                                     for n in new_nrm]), 9) if len(new_pts) else np.zeros((0, 3))
-        keep = _reachable(ctx, new_pts, new_nrm, t_dirs, f"densify[{round_}]") if len(new_pts) else np.zeros(0, bool)
+        t_dirs = canonical(_scan_frames_on_face(ctx, new_pts, new_nrm), 9) if len(new_pts) else np.zeros((0, 3))
+        keep, t_dirs = _reachable(ctx, new_pts, new_nrm, t_dirs, f"densify[{round_}]") if len(new_pts) \
+            else (np.zeros(0, bool), t_dirs)
         new_pts, new_nrm, t_dirs = new_pts[keep], new_nrm[keep], t_dirs[keep]
         idx = np.arange(first, first + len(new_pts))
         for k, i in enumerate(idx):

@@ -4,7 +4,9 @@ import pytest
 from scipy.spatial import cKDTree
 
 from elastoprobe.controller.learning.cloud import box_on_pillow_mesh, local_geometry, sample_mesh
-from elastoprobe.controller.learning.targets import TargetRules, make_targets, scan_frames, surface_graph
+from elastoprobe.controller.learning.profiles import MAX_FACE_SLOPE
+from elastoprobe.controller.learning.targets import (TargetRules, border_scan_frames, face_runs_mm, make_targets,
+                                                     scan_frames, surface_graph)
 
 from test_neural_gas import BOX_TOP, BOX_X, BOX_Y, PILLOW_A, PILLOW_B, PILLOW_H, box_edge_tree
 
@@ -129,3 +131,62 @@ def test_a_target_on_a_line_raster_gets_the_surface_normal_not_one_across_the_li
     assert inner.sum() >= 3
     cos = np.asarray(found.normals)[inner] @ normal
     assert np.min(cos) > np.cos(np.radians(5.0)), np.degrees(np.arccos(np.clip(cos, -1, 1)))
+
+
+# --------------------------------------------------------------------------- scan lines at a border
+# The judgement at the cells' scale (phases._scan_frames_on_face): 5 mm tip, profile span 80 mm.
+HALF_SPAN_MM, WINDOW_MM, STRIP_MM, BIN_MM, GAP_MM = 40.0, 15.0, 5.0, 1.0, 5.0
+
+
+def _frames(cloud, points, reference):
+    points = np.asarray(points, float)
+    up = np.tile([0.0, 0.0, 1.0], (len(points), 1))
+    return border_scan_frames(cloud, points, up, np.asarray(reference, float), HALF_SPAN_MM, WINDOW_MM, STRIP_MM,
+                              BIN_MM, MAX_FACE_SLOPE, GAP_MM)
+
+
+def test_a_scan_line_that_would_cross_a_rim_turns_along_it(scene):
+    """On the box top (x in +-75, y in +-50), a line along x from 10 mm inside the x-rim would
+    leave the face 10 mm out, inside the dent's window; along y it stays on for the
+    half-span: the line turns. Near the y-rim the rule's line already runs along it; in the
+    middle both stay on; 25 mm from the rim the rule's line holds the window and is kept; at
+    a corner neither gains more than the strip, so the rule holds."""
+    top = BOX_TOP
+    t = _frames(scene["pts"], [[0, 0, top], [65, 0, top], [-66, 5, top], [0, 42, top], [65, 42, top],
+                               [50, 0, top]], [1, 0, 0])
+    along_x = np.abs(t[:, 0]) > 0.999
+    along_y = np.abs(t[:, 1]) > 0.999
+    assert along_x[0] and along_y[1] and along_y[2] and along_x[3] and along_x[4] and along_x[5]
+    np.testing.assert_allclose(t @ [0.0, 0.0, 1.0], 0.0, atol=1e-9)
+
+
+def test_a_scan_line_at_the_foot_of_a_wall_turns_along_the_wall(scene):
+    """On the pillow 10 mm from the box's wall the line along x would climb the wall (a step
+    steeper than the measurement's face limit); along the wall it stays on the pillow."""
+    cloud = scene["pts"]
+    runs = face_runs_mm(cloud, np.array([[-85.0, 0.0, PILLOW_H]]), np.array([[0.0, 0.0, 1.0]]),
+                        np.array([[1.0, 0.0, 0.0]]), HALF_SPAN_MM, STRIP_MM, BIN_MM, MAX_FACE_SLOPE, GAP_MM)
+    assert 7.0 <= runs[0, 0] <= 11.0 and runs[0, 1] == HALF_SPAN_MM
+    t = _frames(cloud, [[-85.0, 0.0, PILLOW_H]], [1, 0, 0])
+    assert abs(t[0, 1]) > 0.999
+
+
+def test_a_face_run_ends_where_the_cloud_ends():
+    """A top whose wall the sweep did not see (a flat patch, lines 3 mm apart along x): the run
+    across the lines ends at the last line, the run along them at the patch's end; a hole
+    narrower than the gap allowance (one missing line) does not end it."""
+    xs, ys = np.arange(-100.0, 100.0, 0.3), np.arange(-80.0, 80.01, 3.0)
+    ys = ys[np.abs(ys - 10.0) > 1.0]                   # one sweep line missing (y = 10)
+    gx, gy = np.meshgrid(xs, ys)
+    cloud = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, 30.0)])
+    pts = np.array([[0.0, 0.0, 30.0], [0.0, 70.0, 30.0], [85.0, 0.0, 30.0]])
+    up = np.tile([0.0, 0.0, 1.0], (3, 1))
+    along_y = face_runs_mm(cloud, pts, up, np.tile([0.0, 1.0, 0.0], (3, 1)), HALF_SPAN_MM, STRIP_MM, BIN_MM,
+                           MAX_FACE_SLOPE, GAP_MM)
+    along_x = face_runs_mm(cloud, pts, up, np.tile([1.0, 0.0, 0.0], (3, 1)), HALF_SPAN_MM, STRIP_MM, BIN_MM,
+                           MAX_FACE_SLOPE, GAP_MM)
+    np.testing.assert_allclose(along_y[0], [HALF_SPAN_MM, HALF_SPAN_MM])
+    np.testing.assert_allclose(along_y[1], [9.0, HALF_SPAN_MM], atol=BIN_MM)
+    np.testing.assert_allclose(along_x[2], [14.7, HALF_SPAN_MM], atol=BIN_MM)
+    t = _frames(cloud, pts, [0, 1, 0])
+    assert abs(t[0, 1]) > 0.999 and abs(t[1, 0]) > 0.999 and abs(t[2, 1]) > 0.999

@@ -341,6 +341,9 @@ class SamplingSpec(Spec):
     geometry_weight: float = Field(1.0, ge=0, le=100)
     edge_clearance_mm: float = Field(15.0, ge=0, le=200)
     max_tilt_deg: float = Field(60.0, gt=0, le=90)
+    # Projected on each tangent plane, the scan direction t the angles are measured from; a
+    # survey line that would cross a border inside the dent's window turns a quarter turn
+    # (docs/design.md §3).
     reference_direction: Vec3 = (1.0, 0.0, 0.0)
     # The smallest inclusion (mm across) the survey must land on: the session raises
     # `units` until every disc this wide on the probe-able top holds a target

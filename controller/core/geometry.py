@@ -169,6 +169,12 @@ def scan_direction(normal: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return unit(t)
 
 
+def follows_scan_rule(normal: np.ndarray, t: np.ndarray, reference: np.ndarray) -> bool:
+    """Whether ``t`` is the fixed rule's scan direction at ``normal`` (not a line turned at a
+    border, docs/design.md §3): only such steps' angles mean what a region's model means."""
+    return float(np.dot(np.asarray(t, dtype=float), scan_direction(normal, reference))) > 0.5
+
+
 def push_direction(t: np.ndarray, n: np.ndarray, angle_deg: float) -> np.ndarray:
     """d = cos(a) t - sin(a) n: the direction the probe pushes (into the surface)."""
     a = np.radians(angle_deg)
