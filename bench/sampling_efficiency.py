@@ -247,6 +247,7 @@ class SeedRun:
         self.top_source, _ = ev.carried_sources(self.top.points_mm, self.top.normals, self.surface.points_mm,
                                                 self.surface.normals, self.top.spacing_mm)
         self._gp_candidates: Any = None
+        self._line_t: dict[tuple, np.ndarray] = {}     # scan direction per point (survey)
 
     def cell_truth(self) -> Any:
         return self.prober.cell.ground_truth()
@@ -259,11 +260,15 @@ class SeedRun:
         from elastoprobe.controller.phases import FEATURE_HALF_WINDOW_MM
 
         pts, nrm = np.asarray(points, float).reshape(-1, 3), np.asarray(normals, float).reshape(-1, 3)
-        if len(pts):
-            t = tg.scan_frames_on_face(self.surface.points_mm, pts, nrm, self.reference_dir,
-                                       self.prober.tip_radius_mm, self.prober.grid.span_mm / 2.0,
-                                       FEATURE_HALF_WINDOW_MM)
-        return [self.prober.measure(p, n, tt) for p, n, tt in zip(pts, nrm, t)]
+        # Strategies survey growing prefixes of the same points: judge each point's line once.
+        keys = [tuple(np.round(p, 4)) for p in pts]
+        new = [k for k, key in enumerate(keys) if key not in self._line_t]
+        if new:
+            turned = tg.scan_frames_on_face(self.surface.points_mm, pts[new], nrm[new], self.reference_dir,
+                                            self.prober.tip_radius_mm, self.prober.grid.span_mm / 2.0,
+                                            FEATURE_HALF_WINDOW_MM)
+            self._line_t.update({keys[k]: tt for k, tt in zip(new, turned)})
+        return [self.prober.measure(p, n, self._line_t[key]) for p, n, key in zip(pts, nrm, keys)]
 
     def noise(self, measured: list) -> float:
         """Standard error of averaged profiles from the scans themselves (as measured_noise_mm)."""
