@@ -5,8 +5,8 @@ from scipy.spatial import cKDTree
 
 from elastoprobe.controller.learning.cloud import box_on_pillow_mesh, local_geometry, sample_mesh
 from elastoprobe.controller.learning.profiles import MAX_FACE_SLOPE
-from elastoprobe.controller.learning.targets import (TargetRules, border_scan_frames, face_runs_mm, make_targets,
-                                                     probeable, scan_frames, surface_graph)
+from elastoprobe.controller.learning.targets import (TargetRules, _Surface, border_scan_frames, face_runs_mm,
+                                                     make_targets, probeable, scan_frames, surface_graph)
 
 from test_neural_gas import BOX_TOP, BOX_X, BOX_Y, PILLOW_A, PILLOW_B, PILLOW_H, box_edge_tree
 
@@ -234,3 +234,32 @@ def test_a_unit_at_the_foot_of_a_wall_moves_off_it():
     assert len(found) == 2
     assert -rules.tip_radius_mm - 1.0 <= found.points_mm[0, 0] <= -rules.tip_radius_mm + 0.01
     assert found.edge_flag.tolist() == [True, False]
+
+
+@pytest.mark.parametrize("tilt_deg", [30.0, 59.0])
+def test_the_tip_fits_on_a_tilted_face(tilt_deg):
+    """A plane tilted up to the tilt limit never rises into the ball resting on it."""
+    g = np.arange(-40.0, 40.0, 0.5)
+    gx, gy = np.meshgrid(g, g)
+    a = np.radians(tilt_deg)
+    cloud = np.column_stack([gx.ravel(), gy.ravel(), gx.ravel() * np.tan(a)])
+    cloud[:, 2] += np.random.default_rng(1).normal(0.0, 0.05, len(cloud))
+    normals = np.tile([-np.sin(a), 0.0, np.cos(a)], (len(cloud), 1))
+    surf = _Surface(cloud, normals, np.zeros(len(cloud)), TargetRules(tip_radius_mm=5.0), np.array([0.0, 0.0, 1.0]))
+    inner = np.flatnonzero(np.all(np.abs(cloud[:, :2]) < 25.0, axis=1))
+    assert surf.tip_fits(inner).all()
+
+
+@pytest.mark.parametrize("groove_radius_mm, fits", [(20.0, True), (6.0, True), (4.0, False)])
+def test_the_tip_fits_in_a_groove_only_if_the_groove_is_wider_than_the_tip(groove_radius_mm, fits):
+    """A round-bottomed groove along y: a 5 mm ball reaches the bottom of one whose radius is
+    larger than the ball's, and meets the flanks of a narrower one first."""
+    g = np.arange(-15.0, 15.0, 0.4)
+    gx, gy = np.meshgrid(g, g)
+    x, r = gx.ravel(), groove_radius_mm
+    z = np.where(np.abs(x) < r, r - np.sqrt(np.maximum(r * r - x * x, 0.0)), r)
+    cloud = np.column_stack([x, gy.ravel(), z])
+    normals = np.tile([0.0, 0.0, 1.0], (len(cloud), 1))
+    surf = _Surface(cloud, normals, np.zeros(len(cloud)), TargetRules(tip_radius_mm=5.0), np.array([0.0, 0.0, 1.0]))
+    bottom = np.flatnonzero((np.abs(x) < 0.2) & (np.abs(cloud[:, 1]) < 2.0))
+    assert surf.tip_fits(bottom).all() == fits and surf.tip_fits(bottom).any() == fits
