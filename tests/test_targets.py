@@ -194,9 +194,10 @@ def test_a_face_run_ends_where_the_cloud_ends():
 
 def _floor_and_plate(noise_mm: float, seed: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A floor (z = 0) with a 10 mm plate on it for x >= 0, sampled from above at 0.5 mm
-    with the plate's side unseen (a scanner above barely sees it), and a shallow hollow
-    (radius 60 mm, 2 mm deep: wider than any tip) in the floor at x = -60; flat normals and
-    zero curvature, so no sharp-edge test can stand in for the tip test."""
+    with the plate's side unseen (a scanner above barely sees it), and a shallow hollow in
+    the floor centred at x = -60 (40 mm across, 2 mm deep: the sag of a 100 mm sphere, wider
+    than any tip); flat normals and zero curvature, so no sharp-edge test can stand in for
+    the tip test."""
     g = np.arange(-120.0, 40.0, 0.5)
     gx, gy = np.meshgrid(g, np.arange(-30.0, 30.01, 0.5))
     x, y = gx.ravel(), gy.ravel()

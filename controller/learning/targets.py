@@ -34,7 +34,8 @@ TIP_INTRUDING_POINTS = 3
 class Targets:
     """Probe targets (T of them): points (T,3) mm on the surface, outward unit normals
     (T,3), scan directions t (T,3) in the tangent planes, ``edge_flag`` (T,) True where
-    the target was moved off a sharp edge, ``source_unit`` (T,) index of its unit."""
+    the target was moved off a sharp edge or a wall's foot, ``source_unit`` (T,) index of
+    its unit."""
 
     points_mm: np.ndarray
     normals: np.ndarray
