@@ -5,8 +5,8 @@ from scipy.spatial import cKDTree
 
 from elastoprobe.controller.learning.cloud import box_on_pillow_mesh, local_geometry, sample_mesh
 from elastoprobe.controller.learning.profiles import MAX_FACE_SLOPE
-from elastoprobe.controller.learning.targets import (TargetRules, border_scan_frames, face_runs_mm, make_targets,
-                                                     scan_frames, surface_graph)
+from elastoprobe.controller.learning.targets import (TargetRules, _Surface, border_scan_frames, face_runs_mm,
+                                                     make_targets, probeable, scan_frames, surface_graph)
 
 from test_neural_gas import BOX_TOP, BOX_X, BOX_Y, PILLOW_A, PILLOW_B, PILLOW_H, box_edge_tree
 
@@ -190,3 +190,77 @@ def test_a_face_run_ends_where_the_cloud_ends():
     np.testing.assert_allclose(along_x[2], [14.7, HALF_SPAN_MM], atol=BIN_MM)
     t = _frames(cloud, pts, [0, 1, 0])
     assert abs(t[0, 1]) > 0.999 and abs(t[1, 0]) > 0.999 and abs(t[2, 1]) > 0.999
+
+
+def _floor_and_plate(noise_mm: float, seed: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A floor (z = 0) with a 10 mm plate on it for x >= 0, sampled from above at 0.5 mm
+    with the plate's side unseen (a scanner above barely sees it), and a shallow hollow in
+    the floor centred at x = -60 (40 mm across, 2 mm deep: the sag of a 100 mm sphere, wider
+    than any tip); flat normals and zero curvature, so no sharp-edge test can stand in for
+    the tip test."""
+    g = np.arange(-120.0, 40.0, 0.5)
+    gx, gy = np.meshgrid(g, np.arange(-30.0, 30.01, 0.5))
+    x, y = gx.ravel(), gy.ravel()
+    rho2 = (x + 60.0) ** 2 + y ** 2
+    hollow = np.where(rho2 < 20.0 ** 2, -(400.0 - rho2) / 200.0, 0.0)     # sag of a 100 mm sphere, <= 2 mm
+    z = np.where(x >= 0.0, 10.0, hollow) + np.random.default_rng(seed).normal(0.0, noise_mm, x.size)
+    cloud = np.column_stack([x, y, z])
+    normals = np.tile([0.0, 0.0, 1.0], (len(cloud), 1))
+    return cloud, normals, np.zeros(len(cloud))
+
+
+@pytest.mark.parametrize("noise_mm", [0.0, 0.12])
+def test_the_tip_does_not_fit_at_the_foot_of_a_wall(noise_mm):
+    """Within one tip radius of the plate's foot the ball would meet the plate first: not
+    probe-able, although the plate's side is not in the cloud; beyond it, on the plate's top,
+    in the wide hollow and on the flat floor it fits. The noise is the library's noisiest
+    scanner (foam, 0.12 mm)."""
+    rules = TargetRules(tip_radius_mm=5.0, edge_clearance_radii=3.0, max_tilt_deg=60.0)
+    cloud, normals, curv = _floor_and_plate(noise_mm)
+    ok = probeable(cloud, normals, curv, rules)
+    inner = np.abs(cloud[:, 1]) < 20.0                  # away from the patch's open borders
+    foot = inner & (cloud[:, 0] < 0.0) & (cloud[:, 0] > -rules.tip_radius_mm + 0.25)
+    beside = inner & (cloud[:, 0] < -rules.tip_radius_mm - 0.25) & (cloud[:, 0] > -100.0)
+    top = inner & (cloud[:, 0] >= 0.0) & (cloud[:, 0] < 30.0)
+    assert not ok[foot].any()
+    assert ok[beside].mean() > 0.999 and ok[top].mean() > 0.999
+
+
+def test_a_unit_at_the_foot_of_a_wall_moves_off_it():
+    """The unit marks where to look: its target moves to the nearest point where the tip
+    fits, one tip radius out from the plate's side, and is flagged as moved."""
+    rules = TargetRules(tip_radius_mm=5.0, edge_clearance_radii=3.0, max_tilt_deg=60.0)
+    cloud, normals, curv = _floor_and_plate(0.05)
+    found = make_targets(np.array([[-2.0, 0.0, 0.0], [-40.0, 0.0, 0.0]]), cloud, normals, curv, rules)
+    assert len(found) == 2
+    assert -rules.tip_radius_mm - 1.0 <= found.points_mm[0, 0] <= -rules.tip_radius_mm + 0.01
+    assert found.edge_flag.tolist() == [True, False]
+
+
+@pytest.mark.parametrize("tilt_deg", [30.0, 59.0])
+def test_the_tip_fits_on_a_tilted_face(tilt_deg):
+    """A plane tilted up to the tilt limit never rises into the ball resting on it."""
+    g = np.arange(-40.0, 40.0, 0.5)
+    gx, gy = np.meshgrid(g, g)
+    a = np.radians(tilt_deg)
+    cloud = np.column_stack([gx.ravel(), gy.ravel(), gx.ravel() * np.tan(a)])
+    cloud[:, 2] += np.random.default_rng(1).normal(0.0, 0.05, len(cloud))
+    normals = np.tile([-np.sin(a), 0.0, np.cos(a)], (len(cloud), 1))
+    surf = _Surface(cloud, normals, np.zeros(len(cloud)), TargetRules(tip_radius_mm=5.0), np.array([0.0, 0.0, 1.0]))
+    inner = np.flatnonzero(np.all(np.abs(cloud[:, :2]) < 25.0, axis=1))
+    assert surf.tip_fits(inner).all()
+
+
+@pytest.mark.parametrize("groove_radius_mm, fits", [(20.0, True), (6.0, True), (4.0, False)])
+def test_the_tip_fits_in_a_groove_only_if_the_groove_is_wider_than_the_tip(groove_radius_mm, fits):
+    """A round-bottomed groove along y: a 5 mm ball reaches the bottom of one whose radius is
+    larger than the ball's, and meets the flanks of a narrower one first."""
+    g = np.arange(-15.0, 15.0, 0.4)
+    gx, gy = np.meshgrid(g, g)
+    x, r = gx.ravel(), groove_radius_mm
+    z = np.where(np.abs(x) < r, r - np.sqrt(np.maximum(r * r - x * x, 0.0)), r)
+    cloud = np.column_stack([x, gy.ravel(), z])
+    normals = np.tile([0.0, 0.0, 1.0], (len(cloud), 1))
+    surf = _Surface(cloud, normals, np.zeros(len(cloud)), TargetRules(tip_radius_mm=5.0), np.array([0.0, 0.0, 1.0]))
+    bottom = np.flatnonzero((np.abs(x) < 0.2) & (np.abs(cloud[:, 1]) < 2.0))
+    assert surf.tip_fits(bottom).all() == fits and surf.tip_fits(bottom).any() == fits

@@ -4,8 +4,10 @@ A unit is a point in space near the cloud. Its target is a point ON the surface 
 an outward normal and a scan direction t. Units on a sharp edge mark where to look,
 but the normal is undefined there and the tip would slip, so the target moves along
 the surface onto the face beside the edge, ``edge_clearance_radii`` tip radii from it.
-Targets on steep (tilted beyond ``max_tilt_deg`` from ``up``), sparse or open-border
-parts of the cloud are dropped.
+A unit where the tip does not fit (the foot of a wall: the ball would meet the wall
+before the point, see :meth:`_Surface.tip_fits`) moves the same way. Targets on steep
+(tilted beyond ``max_tilt_deg`` from ``up``), sparse or open-border parts of the cloud
+are dropped.
 
 Frames and units: everything in the cloud's frame (object frame), mm; normals and t
 are unit vectors; ``up`` is the direction the probe comes from (+z of the object
@@ -23,12 +25,17 @@ from . import survey_density
 from .cloud import local_plane
 from .profiles import MAX_FACE_SLOPE
 
+# Cloud points that must stand inside the tip's ball before it does not fit: a wall or a step
+# is a row of them, one scanner sample beyond its noise is not.
+TIP_INTRUDING_POINTS = 3
+
 
 @dataclass(frozen=True)
 class Targets:
     """Probe targets (T of them): points (T,3) mm on the surface, outward unit normals
     (T,3), scan directions t (T,3) in the tangent planes, ``edge_flag`` (T,) True where
-    the target was moved off a sharp edge, ``source_unit`` (T,) index of its unit."""
+    the target was moved off a sharp edge or a wall's foot, ``source_unit`` (T,) index of
+    its unit."""
 
     points_mm: np.ndarray
     normals: np.ndarray
@@ -52,7 +59,9 @@ class TargetRules:
     neighbourhood centroid lies more than this fraction of the radius away sits on an open
     border of the cloud; plane_k: neighbours of the local plane fit; max_shift_mm: how far
     an edge unit's target may move (default 2 x clearance); min_spacing_mm: targets closer
-    than this are merged (default 2 tip radii).
+    than this are merged (default 2 tip radii); tip_intrusion_mm: how far the cloud may rise
+    into the tip's ball resting on a target before the tip does not fit there (default a tenth
+    of the tip radius; see :meth:`_Surface.tip_fits`).
     """
 
     tip_radius_mm: float = 2.5
@@ -65,6 +74,7 @@ class TargetRules:
     plane_k: int = 16
     max_shift_mm: float | None = None
     min_spacing_mm: float | None = None
+    tip_intrusion_mm: float | None = None
 
     @property
     def clearance_mm(self) -> float:
@@ -77,6 +87,10 @@ class TargetRules:
     @property
     def spacing_mm(self) -> float:
         return 2.0 * self.tip_radius_mm if self.min_spacing_mm is None else self.min_spacing_mm
+
+    @property
+    def intrusion_mm(self) -> float:
+        return 0.1 * self.tip_radius_mm if self.tip_intrusion_mm is None else self.tip_intrusion_mm
 
 
 def rules_for_plan(tip_radius_mm: float, edge_clearance_mm: float, max_tilt_deg: float,
@@ -103,6 +117,7 @@ class _Surface:
         self.edge_tree = cKDTree(self.points[edge]) if edge.any() else None
         # The edge is known only to within the point spacing: keep that much more clearance.
         self.guard_mm = rules.clearance_mm + self._spacing_mm()
+        self._plan_tree: cKDTree | None = None   # the cloud seen from up, built on first use
 
     def _spacing_mm(self, n_probe: int = 20_000) -> float:
         """Median nearest-neighbour distance of the cloud (on a fixed subsample)."""
@@ -116,6 +131,46 @@ class _Surface:
             return np.zeros(len(idx), dtype=bool)
         dist, _ = self.edge_tree.query(self.points[idx], distance_upper_bound=self.guard_mm)
         return np.isfinite(dist)
+
+    def tip_fits(self, idx: np.ndarray, chunk: int = 20_000) -> np.ndarray:
+        """True where the tip, a ball of ``tip_radius_mm`` resting on cloud point i along its
+        normal, is clear of the rest of the cloud: fewer than ``TIP_INTRUDING_POINTS`` points
+        rise more than ``rules.intrusion_mm`` into it.
+
+        Seen from ``up`` the object is solid below every cloud point (a scanner above sees
+        no overhang), so the ball meets the object wherever a point within one tip radius of
+        its centre, across ``up``, stands higher than the ball's lower surface there. A
+        tangent plane never rises into the ball, nor does a hollow wider than the tip; the
+        foot of a wall does, and the cloud need not hold the wall itself (a scanner above
+        barely sees it): the top beside it stands just as high. The sharp-edge test misses
+        such a foot: its nearest points are all on the floor. On a generated gel pillow
+        with a 10.7 mm elastomer plate, 23 survey targets 3.4-5.0 mm from the plate's side
+        read the gel stiff and were mapped as plate.
+        """
+        idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+        out = np.ones(idx.size, dtype=bool)
+        if idx.size == 0:
+            return out
+        r = self.rules.tip_radius_mm
+        if self._plan_tree is None:
+            self._across = _across_basis(self.up)
+            self._plan_tree = cKDTree(self.points @ self._across.T)
+            self._height = self.points @ self.up
+        for lo in range(0, idx.size, chunk):
+            part = idx[lo:lo + chunk]
+            centre = self.points[part] + r * self.normals[part]
+            c_flat, c_up = centre @ self._across.T, centre @ self.up
+            near = self._plan_tree.query_ball_point(c_flat, r, return_sorted=False)
+            counts = np.fromiter((len(v) for v in near), dtype=np.int64, count=len(near))
+            if counts.sum() == 0:
+                continue
+            owner = np.repeat(np.arange(part.size), counts)
+            q = np.concatenate([np.asarray(v, dtype=np.int64) for v in near])
+            flat2 = np.sum((self._plan_tree.data[q] - c_flat[owner]) ** 2, axis=1)
+            lower = c_up[owner] - np.sqrt(np.maximum(r * r - flat2, 0.0))
+            into = np.bincount(owner[self._height[q] - lower > self.rules.intrusion_mm], minlength=part.size)
+            out[lo:lo + part.size] = into < TIP_INTRUDING_POINTS
+        return out
 
     def tilt_ok(self, idx: np.ndarray) -> np.ndarray:
         return self.normals[idx] @ self.up >= np.cos(np.radians(self.rules.max_tilt_deg))
@@ -151,8 +206,9 @@ class _Surface:
 def probeable(cloud_mm: np.ndarray, normals: np.ndarray, curvature: np.ndarray, rules: TargetRules = TargetRules(),
               up: "np.ndarray | tuple" = (0.0, 0.0, 1.0)) -> np.ndarray:
     """(P,) True for cloud points a target could sit on: tilted less than ``max_tilt_deg``,
-    clear of every sharp edge by the edge clearance (plus the point spacing), and with at
-    least ``min_neighbours`` cloud points within ``density_radius_mm``.
+    clear of every sharp edge by the edge clearance (plus the point spacing), with at
+    least ``min_neighbours`` cloud points within ``density_radius_mm``, and where the tip
+    fits (:meth:`_Surface.tip_fits`).
 
     The survey's neural gas is trained on these points only. Trained on the whole cloud,
     its units follow the walls, the rounded rims and the steep flanks of a dome, where no
@@ -165,6 +221,8 @@ def probeable(cloud_mm: np.ndarray, normals: np.ndarray, curvature: np.ndarray, 
     if ok.any():
         counts = surf.tree.query_ball_point(surf.points[ok], rules.density_radius_mm, return_length=True)
         ok[np.flatnonzero(ok)[np.asarray(counts) < rules.min_neighbours]] = False
+    if ok.any():
+        ok[np.flatnonzero(ok)[~surf.tip_fits(np.flatnonzero(ok))]] = False
     return ok
 
 
@@ -175,9 +233,10 @@ def make_targets(units_mm: np.ndarray, cloud_mm: np.ndarray, normals: np.ndarray
 
     Each unit goes to its nearest cloud point. If that point is within the edge
     clearance (plus the cloud's median point spacing, the uncertainty of where the
-    edge is) of a sharp edge, the target moves to the nearest cloud point (at most
-    ``rules.shift_mm`` away) that is clear of every edge, tilted less than
-    ``max_tilt_deg`` and supported — along the surface, onto the face beside the edge.
+    edge is) of a sharp edge, or the tip does not fit there, the target moves to the
+    nearest cloud point (at most ``rules.shift_mm`` away) that is clear of every edge,
+    tilted less than ``max_tilt_deg``, supported and where the tip fits — along the
+    surface, onto the face beside the edge or away from the wall.
     A unit whose point fails for any other reason is dropped. The target is the unit
     projected on the local plane fit there; t = ``reference_dir`` projected on its
     tangent plane. Targets closer than ``rules.spacing_mm`` are merged (units that were
@@ -186,7 +245,7 @@ def make_targets(units_mm: np.ndarray, cloud_mm: np.ndarray, normals: np.ndarray
     surf = _Surface(cloud_mm, normals, curvature, rules, np.asarray(up, dtype=float))
     units = np.asarray(units_mm, dtype=float)[:, :3]
     _, nearest = surf.tree.query(units, workers=-1)
-    on_edge = surf.near_edge(nearest)
+    on_edge = surf.near_edge(nearest) | ~surf.tip_fits(nearest)
     chosen: list[tuple[int, int, bool]] = []  # (unit, cloud point, moved)
     for u, (i, edge) in enumerate(zip(nearest, on_edge)):
         if edge:
@@ -213,16 +272,25 @@ def make_targets(units_mm: np.ndarray, cloud_mm: np.ndarray, normals: np.ndarray
 
 
 def _clear_point_nearby(surf: _Surface, unit_mm: np.ndarray) -> int | None:
-    """Nearest cloud point to the unit that is clear of edges, not too steep and supported."""
+    """Nearest cloud point to the unit that is clear of edges, not too steep, supported and
+    where the tip fits."""
     cand = np.asarray(surf.tree.query_ball_point(unit_mm, surf.rules.shift_mm), dtype=np.int64)
     if cand.size == 0:
         return None
     cand = cand[surf.tilt_ok(cand) & ~surf.near_edge(cand)]
     # Nearest first; the density test is the expensive one, run it only until one passes.
     for j in cand[np.argsort(np.linalg.norm(surf.points[cand] - unit_mm, axis=1))]:
-        if surf.supported(int(j)):
+        if surf.supported(int(j)) and surf.tip_fits(np.array([j]))[0]:
             return int(j)
     return None
+
+
+def _across_basis(up: np.ndarray) -> np.ndarray:
+    """(2,3) orthonormal directions across the unit vector ``up``."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(up, helper)
+    e1 /= np.linalg.norm(e1)
+    return np.vstack([e1, np.cross(up, e1)])
 
 
 def scan_frames(normals: np.ndarray, reference_dir: np.ndarray) -> np.ndarray:
