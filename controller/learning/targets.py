@@ -143,7 +143,7 @@ class _Surface:
         tangent plane never rises into the ball, nor does a hollow wider than the tip; the
         foot of a wall does, and the cloud need not hold the wall itself (a scanner above
         barely sees it): the top beside it stands just as high. The sharp-edge test misses
-        such a foot: its nearest points are all on the floor. On a generated gel pillow
+        such a foot: the floor's curvature beside it stays low. On a generated gel pillow
         with a 10.7 mm elastomer plate, 23 survey targets 3.4-5.0 mm from the plate's side
         read the gel stiff and were mapped as plate.
         """
