@@ -287,9 +287,7 @@ def _clear_point_nearby(surf: _Surface, unit_mm: np.ndarray) -> int | None:
 
 def _across_basis(up: np.ndarray) -> np.ndarray:
     """(2,3) orthonormal directions across the unit vector ``up``."""
-    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(up, helper)
-    e1 /= np.linalg.norm(e1)
+    e1 = scan_direction(up, np.array([1.0, 0.0, 0.0]))   # falls back to a stable perpendicular
     return np.vstack([e1, np.cross(up, e1)])
 
 
