@@ -328,7 +328,8 @@ class SeedRun:
         not_read = rg.dent_falls_with_force(feats, names, self.noise(measured))
         scores = self.score_surface_labels(sm.labels_from_seeds(self.graph, points[seen], labels,
                                                                 seed_levels=rg.mean_peak_mm(feats, names),
-                                                                dent_not_read=not_read))
+                                                                dent_not_read=not_read,
+                                                                seed_peaks_mm=rg.peaks_mm(feats, names)))
         scores["n_regions_found"] = int(rmap.n_regions)
         scores["unseen_targets"] = int(np.sum(~seen))
         return scores, seen, labels, edges

@@ -853,7 +853,9 @@ def _region_features(ctx: PhaseContext, ids: list[int]) -> tuple[np.ndarray, lis
 def _seam_evidence(ctx: PhaseContext, ids: list[int]) -> dict[str, np.ndarray | None]:
     """The final map's keyword arguments from the labelled targets' survey features (None
     each without a regions round): ``seed_levels``, each target's mean peak depth in mm
-    over the survey forces (regions.mean_peak_mm), and ``dent_not_read``, True where its
+    over the survey forces (regions.mean_peak_mm), ``seed_peaks_mm``, its peak depth at each
+    survey force (regions.peaks_mm: a target may stand across the seam from its label only
+    when every force says so), and ``dent_not_read``, True where its
     peak fell as the survey force rose (regions.dent_falls_with_force). That rule's noise is
     the scans' standard error: one set of reference scans serves every force level of a
     probe (probe.py), so its error, most of one peak's scatter among probes, is the same at
@@ -861,9 +863,10 @@ def _seam_evidence(ctx: PhaseContext, ids: list[int]) -> dict[str, np.ndarray | 
 
     found = _region_features(ctx, ids)
     if found is None:
-        return {"seed_levels": None, "dent_not_read": None}
+        return {"seed_levels": None, "dent_not_read": None, "seed_peaks_mm": None}
     return {"seed_levels": rg.mean_peak_mm(found[0], found[1]),
-            "dent_not_read": rg.dent_falls_with_force(found[0], found[1], measured_noise_mm(ctx))}
+            "dent_not_read": rg.dent_falls_with_force(found[0], found[1], measured_noise_mm(ctx)),
+            "seed_peaks_mm": rg.peaks_mm(found[0], found[1])}
 
 
 def _cloud_normals_at(ctx: PhaseContext, points_mm: np.ndarray) -> np.ndarray:

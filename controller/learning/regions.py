@@ -965,13 +965,18 @@ def log_peaks(features: np.ndarray, feature_names: list[str], noise_mm: float) -
     return np.log(peaks + floor), floor / (peaks + floor)
 
 
+def peaks_mm(features: np.ndarray, feature_names: list[str]) -> np.ndarray:
+    """(N,F) each point's peak depth (mm, negative readings as 0) at each survey force (the
+    features named ``peak...``)."""
+    return np.maximum(np.asarray(features, dtype=float)[:, _peak_columns(feature_names)], 0.0)
+
+
 def mean_peak_mm(features: np.ndarray, feature_names: list[str]) -> np.ndarray:
     """(N,) each point's peak depth (mm, negative readings as 0) averaged over the survey
-    forces (the features named ``peak...``): the level the final map draws seams through.
+    forces (:func:`peaks_mm`): the level the final map draws seams through.
     In mm and not in log: a tip straddling a seam dents as the weighted mean of the two
     materials' dents (surface_map.seam_fractions)."""
-    x = np.asarray(features, dtype=float)
-    return np.maximum(x[:, _peak_columns(feature_names)], 0.0).mean(axis=1)
+    return peaks_mm(features, feature_names).mean(axis=1)
 
 
 def dent_falls_with_force(features: np.ndarray, feature_names: list[str], noise_mm: float,

@@ -50,7 +50,7 @@ MIN_CHORD_MM = 1.5
 _BRIDGE_ANGLE_DEG = 30.0
 _MAX_BRIDGE_PASSES = 20
 _MIN_BRIDGE_POINTS = 10
-SEAM_SIDE = 0.45          # the most of the way to the other region a seed's level may count
+SEAM_SIDE = 0.45          # the most of the way to the other region a seed's level may count, its label standing
 MIN_INTERIOR_SEEDS = 3    # a region's level is read on its interior seeds from this many on
 SEAM_KERNEL = 0.75        # the seam's smoothing width (Gaussian sigma), in local seed spacings
 SPACING_K = 6             # seeds whose nearest-seed distances give the local spacing
@@ -267,7 +267,8 @@ def cells(graph: SurfaceGraph, seeds_mm: np.ndarray) -> Cells:
 def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.ndarray,
                       fit_radius_mm: float = 15.0, min_fit_points: int = 12,
                       seed_levels: np.ndarray | None = None,
-                      dent_not_read: np.ndarray | None = None) -> np.ndarray:
+                      dent_not_read: np.ndarray | None = None,
+                      seed_peaks_mm: np.ndarray | None = None) -> np.ndarray:
     """Region label (P,) of every cloud point (see the module docstring, steps 3 and 4).
 
     ``seed_levels`` (S,): each seed's dent on a scale where a seed pressing two materials
@@ -282,6 +283,11 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
     neighbours on the surface labels no area: it alone would draw an island of its region,
     and the seeds around it share its cell instead. Beside its own region it stays (it
     claims nothing its neighbours do not).
+    ``seed_peaks_mm`` (S,F): each seed's peak depth at each survey force (the session passes
+    regions.peaks_mm). With them, a seed beside another region (not interior) whose every
+    peak reads past the halfway to that region counts where its level puts it, across the
+    seam from its label if need be (:func:`reads_other_side`); without, every seed stays on
+    its own region's side.
     """
     lab = np.asarray(seed_labels, dtype=np.int64).reshape(-1)
     n = len(graph)
@@ -295,7 +301,8 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
             keep = ~drop
             return labels_from_seeds(graph, np.asarray(seeds_mm, dtype=float).reshape(-1, 3)[keep], lab[keep],
                                      fit_radius_mm, min_fit_points,
-                                     None if seed_levels is None else np.asarray(seed_levels).reshape(-1)[keep])
+                                     None if seed_levels is None else np.asarray(seed_levels).reshape(-1)[keep],
+                                     seed_peaks_mm=None if seed_peaks_mm is None else np.asarray(seed_peaks_mm)[keep])
     pairs = seed_neighbours(graph, c) if seed_levels is not None and np.unique(lab).size > 1 else []
     if seed_levels is not None and np.unique(lab).size > 2:
         lab = transition_bands(np.asarray(seed_levels, dtype=float).reshape(-1), lab, pairs,
@@ -304,7 +311,7 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
     out[reached] = lab[c.source[reached]]
     if seed_levels is not None and np.unique(lab).size > 1:
         out = _split_between(graph, seeds_mm, lab, np.asarray(seed_levels, dtype=float).reshape(-1), out, reached,
-                             interior_seeds(lab, pairs))
+                             interior_seeds(lab, pairs), seed_peaks_mm)
     # Fold points: the label of the face whose plane they lie on.
     fold = np.flatnonzero(graph.concave & ~reached)
     if fold.size and reached.any():
@@ -410,8 +417,36 @@ def interior_seeds(seed_labels: np.ndarray, neighbour_pairs: list[tuple[int, int
     return has & ~border
 
 
+def reads_other_side(peaks_mm: np.ndarray, seed_labels: np.ndarray, interior: np.ndarray | None,
+                     members: np.ndarray, other: int) -> np.ndarray:
+    """(M,) True for the seeds ``members`` (indices, all of one region A) whose peak depth at
+    every survey force (``peaks_mm`` (S,F)) lies past the halfway between A's and region
+    ``other``'s median peaks at that force (each region read on its interior seeds as in
+    :func:`seam_fractions`).
+
+    Such a seed's tip pressed more of the other material than of its own at every force:
+    the clustering put it with A (on all its features and its neighbours), but its whole
+    measurement says it stands across the seam. Every force, not the mean level: a seed
+    whose mean crosses because one force read deep or shallow by noise does not qualify
+    (hard rubber beside an elastomer 3x softer, whose peaks scatter by a third of the
+    difference: generated slab 1303)."""
+    pk = np.asarray(peaks_mm, dtype=float)
+    pk = pk.reshape(pk.shape[0], -1)
+    lab = np.asarray(seed_labels, dtype=np.int64).reshape(-1)
+    members = np.asarray(members, dtype=np.int64).reshape(-1)
+    if members.size == 0 or pk.shape[1] == 0:
+        return np.zeros(members.size, dtype=bool)
+    inner = np.zeros(lab.size, dtype=bool) if interior is None else np.asarray(interior, dtype=bool).reshape(-1)
+    rows_own, rows_other = _levels_read(pk, lab, inner, np.array([int(lab[members[0]]), int(other)]))
+    m_own, m_other = np.median(rows_own, axis=0), np.median(rows_other, axis=0)     # (F,)
+    toward = np.sign(m_other - m_own)
+    past = (pk[members] - 0.5 * (m_own + m_other)) * toward > 0.0
+    return np.all(past & (toward != 0.0), axis=1)
+
+
 def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.ndarray,
-                   interior: np.ndarray | None = None, edge_sigmas: float = SEAM_EDGE_SIGMAS
+                   interior: np.ndarray | None = None, edge_sigmas: float = SEAM_EDGE_SIGMAS,
+                   cross_a: np.ndarray | None = None, cross_b: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where seeds a (M,) and b (M,) (indices into ``levels``/``labels`` (N,)) stand on the way
     from a's region A to b's region B: (s_a (M,), s_b (M,), usable (M,) bool).
@@ -439,8 +474,12 @@ def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.
     its region (suite slab 1012's sponge disc: 16 of 30, whose levels reach the matrix's),
     and a range read on them overlaps the neighbour's, so no seam could be drawn through them.
     Not usable where the two ranges overlap (or a and b share a region). A seed stays on
-    its own region's side: s_a < 1/2 < s_b (its level is one measurement; its label was
-    decided with its neighbours).
+    its own region's side, s_a <= ``SEAM_SIDE`` < 1/2 < 1 - ``SEAM_SIDE`` <= s_b (its level
+    is one measurement; its label was decided with its neighbours), except the seeds that
+    ``cross_a`` (M,) / ``cross_b`` (M,) mark: they count where their levels put them. The
+    final map marks the seeds beside another region whose every survey peak reads past the
+    halfway (:func:`reads_other_side`); densification marks none (its false-position step
+    interpolates between the two ends of an edge).
     """
     lev = np.asarray(levels, dtype=float).reshape(-1)
     lab = np.asarray(labels, dtype=np.int64).reshape(-1)
@@ -461,8 +500,10 @@ def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.
     span = edge_b - edge_a
     usable = (span * (median[kb] - median[ka]) > 0.0) & (ka != kb)
     safe = np.where(usable, span, 1.0)
-    s_a = np.where(usable, np.clip((lev[a] - edge_a) / safe, 0.0, SEAM_SIDE), 0.0)
-    s_b = np.where(usable, np.clip((lev[b] - edge_a) / safe, 1.0 - SEAM_SIDE, 1.0), 1.0)
+    side_a = np.where(np.zeros(a.size, bool) if cross_a is None else np.asarray(cross_a, bool), 1.0, SEAM_SIDE)
+    side_b = np.where(np.zeros(b.size, bool) if cross_b is None else np.asarray(cross_b, bool), 1.0, SEAM_SIDE)
+    s_a = np.where(usable, np.clip((lev[a] - edge_a) / safe, 0.0, side_a), 0.0)
+    s_b = np.where(usable, np.clip((lev[b] - edge_a) / safe, 1.0 - side_b, 1.0), 1.0)
     return s_a, s_b, usable
 
 
@@ -479,7 +520,8 @@ def _levels_read(levels: np.ndarray, labels: np.ndarray, interior: np.ndarray, r
 
 
 def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.ndarray, seed_levels: np.ndarray,
-                   labels: np.ndarray, reached: np.ndarray, interior: np.ndarray | None = None) -> np.ndarray:
+                   labels: np.ndarray, reached: np.ndarray, interior: np.ndarray | None = None,
+                   seed_peaks_mm: np.ndarray | None = None) -> np.ndarray:
     """Draw the boundary between two regions where the seeds' levels, fitted locally over the
     surface, cross midway.
 
@@ -529,8 +571,17 @@ def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.nd
         of_a, of_b = np.flatnonzero(seed_labels == ra), np.flatnonzero(seed_labels == rb)
         # Each seed's place on the way from A to B (its partner in the pair only names the
         # other region).
-        s_a, _, usable = seam_fractions(seed_levels, seed_labels, of_a, np.full(of_a.size, of_b[0]), interior)
-        _, s_b, _ = seam_fractions(seed_levels, seed_labels, np.full(of_b.size, of_a[0]), of_b, interior)
+        cross_a = cross_b = None
+        if seed_peaks_mm is not None:
+            # Only beside another region: the seam passes there. Inside its region a seed
+            # reading another material is a misfit (densify probes around it), not a seam.
+            inner = np.zeros(seed_labels.size, bool) if interior is None else np.asarray(interior, bool)
+            cross_a = reads_other_side(seed_peaks_mm, seed_labels, interior, of_a, int(rb)) & ~inner[of_a]
+            cross_b = reads_other_side(seed_peaks_mm, seed_labels, interior, of_b, int(ra)) & ~inner[of_b]
+        s_a, _, usable = seam_fractions(seed_levels, seed_labels, of_a, np.full(of_a.size, of_b[0]), interior,
+                                        cross_a=cross_a)
+        _, s_b, _ = seam_fractions(seed_levels, seed_labels, np.full(of_b.size, of_a[0]), of_b, interior,
+                                    cross_b=cross_b)
         if not usable.any():
             continue                       # the two levels overlap: the plain midway split
         members = np.concatenate([of_a, of_b])
