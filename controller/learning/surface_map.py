@@ -500,8 +500,8 @@ def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.
     span = edge_b - edge_a
     usable = (span * (median[kb] - median[ka]) > 0.0) & (ka != kb)
     safe = np.where(usable, span, 1.0)
-    side_a = np.where(np.zeros(a.size, bool) if cross_a is None else np.asarray(cross_a, bool), 1.0, SEAM_SIDE)
-    side_b = np.where(np.zeros(b.size, bool) if cross_b is None else np.asarray(cross_b, bool), 1.0, SEAM_SIDE)
+    side_a = SEAM_SIDE if cross_a is None else np.where(np.asarray(cross_a, dtype=bool), 1.0, SEAM_SIDE)
+    side_b = SEAM_SIDE if cross_b is None else np.where(np.asarray(cross_b, dtype=bool), 1.0, SEAM_SIDE)
     s_a = np.where(usable, np.clip((lev[a] - edge_a) / safe, 0.0, side_a), 0.0)
     s_b = np.where(usable, np.clip((lev[b] - edge_a) / safe, 1.0 - side_b, 1.0), 1.0)
     return s_a, s_b, usable
@@ -558,6 +558,7 @@ def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.nd
     others[ka, np.arange(pts.size)] = np.inf
     kb = np.argmin(others, axis=0)
     seeds = np.asarray(seeds_mm, dtype=float).reshape(-1, 3)
+    inner = np.zeros(seed_labels.size, dtype=bool) if interior is None else np.asarray(interior, dtype=bool)
     tree = cKDTree(seeds)
     nearest_seed_mm = tree.query(seeds, k=2)[0][:, 1] if len(seeds) > 1 else np.zeros(1)
     _, around = tree.query(graph.points_mm[pts], k=min(SPACING_K, len(seeds)))
@@ -575,7 +576,6 @@ def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.nd
         if seed_peaks_mm is not None:
             # Only beside another region: the seam passes there. Inside its region a seed
             # reading another material is a misfit (densify probes around it), not a seam.
-            inner = np.zeros(seed_labels.size, bool) if interior is None else np.asarray(interior, bool)
             cross_a = reads_other_side(seed_peaks_mm, seed_labels, interior, of_a, int(rb)) & ~inner[of_a]
             cross_b = reads_other_side(seed_peaks_mm, seed_labels, interior, of_b, int(ra)) & ~inner[of_b]
         s_a, _, usable = seam_fractions(seed_levels, seed_labels, of_a, np.full(of_a.size, of_b[0]), interior,
