@@ -119,8 +119,6 @@ def _bridge_gaps(pts: np.ndarray, nrm: np.ndarray, i: np.ndarray, j: np.ndarray,
     (same test as targets.surface_graph: never a jump down a step). Repeated until no
     component can be joined (bounded passes).
     """
-    from scipy.sparse.csgraph import connected_components
-
     n = pts.shape[0]
     sin_max, cos_max = np.sin(np.radians(_BRIDGE_ANGLE_DEG)), np.cos(np.radians(_BRIDGE_ANGLE_DEG))
     for _ in range(_MAX_BRIDGE_PASSES):
