@@ -855,7 +855,8 @@ def _seam_evidence(ctx: PhaseContext, ids: list[int]) -> dict[str, np.ndarray | 
     each without a regions round): ``seed_levels``, each target's mean peak depth in mm
     over the survey forces (regions.mean_peak_mm), ``seed_peaks_mm``, its peak depth at each
     survey force (regions.peaks_mm: a target may stand across the seam from its label only
-    when every force says so), and ``dent_not_read``, True where its
+    when every force says so, and goes with its neighbours' region when the forces
+    disagree), and ``dent_not_read``, True where its
     peak fell as the survey force rose (regions.dent_falls_with_force). That rule's noise is
     the scans' standard error: one set of reference scans serves every force level of a
     probe (probe.py), so its error, most of one peak's scatter among probes, is the same at

@@ -220,6 +220,59 @@ def test_interior_seeds_reading_the_other_material_draw_no_island():
     assert np.all(mapped[pts[:, 0] <= 25.0] == 0)
 
 
+def _strip_with_a_stray_seed(stray_peaks_mm: list[float]):
+    """The strip of :func:`_strip_with_a_column_across` (its column read soft, on the soft
+    side) and one more seed at (41, 12), 9.5 mm into the stiff material, that the clustering
+    put with the soft strip, reading ``stray_peaks_mm`` at the two forces. Of its eight
+    surface neighbours six are stiff (the two soft ones are column seeds). Also: the cloud
+    points within 3 mm of it."""
+    pts, g, seeds, labels, peaks = _strip_with_a_column_across([1.0, 2.0])
+    seeds = np.vstack([seeds, [[41.0, 12.0, 0.0]]])
+    labels = np.concatenate([labels, [0]])
+    peaks = np.vstack([peaks, [stray_peaks_mm]])
+    near_stray = np.hypot(pts[:, 0] - 41.0, pts[:, 1] - 12.0) < 3.0
+    return pts, g, seeds, labels, peaks, near_stray
+
+
+def test_a_seed_whose_peaks_disagree_goes_with_its_neighbours():
+    """The stray seed reads the stiff material at the first force (0.1 mm) and the soft one at
+    the second (2.0 mm): one force says each. Most of its neighbours are stiff, so it is a
+    stiff seed one force read wrong. Held on its label it draws soft most of the 3 mm around
+    it (suite slab 1012 seed 2: a notch 4 mm deep into a hard-rubber ellipse); deferred, it
+    counts on the stiff side (its level still places it part way, so the seam may lean
+    toward it, no further than :data:`SEAM_SIDE` allows)."""
+    pts, g, seeds, labels, peaks, near_stray = _strip_with_a_stray_seed([0.1, 2.0])
+    pairs = sm.seed_neighbours(g, sm.cells(g, seeds))
+    deferred = sm.defer_to_neighbours(peaks, labels, pairs)
+    assert deferred[-1] == 1
+    assert np.array_equal(deferred[:-1], labels[:-1])
+    levels = peaks.mean(axis=1)
+    held = sm.labels_from_seeds(g, seeds, labels, seed_levels=levels)
+    mapped = sm.labels_from_seeds(g, seeds, labels, seed_levels=levels, seed_peaks_mm=peaks)
+    assert np.mean(held[near_stray] == 0) > 0.5
+    assert np.mean(mapped[near_stray] == 0) < 0.25
+
+
+def test_a_seed_whose_every_peak_reads_its_own_material_keeps_its_island():
+    """The stray seed reads the soft material at both forces: a small inclusion one probe
+    found, whatever its neighbours say. It keeps its label and its area."""
+    pts, g, seeds, labels, peaks, near_stray = _strip_with_a_stray_seed([1.0, 2.0])
+    pairs = sm.seed_neighbours(g, sm.cells(g, seeds))
+    assert np.array_equal(sm.defer_to_neighbours(peaks, labels, pairs), labels)
+    mapped = sm.labels_from_seeds(g, seeds, labels, seed_levels=peaks.mean(axis=1), seed_peaks_mm=peaks)
+    assert np.mean(mapped[near_stray] == 0) > 0.5
+
+
+def test_a_seam_seed_whose_peaks_disagree_keeps_its_label_among_split_neighbours():
+    """Seeds straddling the seam with one force read each way keep their labels when their
+    neighbours do not mostly hold the other region: the column of
+    :func:`_strip_with_a_column_across` reading 0.118 / 1.3 mm has soft and stiff
+    neighbours, and column neighbours of its own label."""
+    pts, g, seeds, labels, peaks = _strip_with_a_column_across([0.118, 1.3])
+    pairs = sm.seed_neighbours(g, sm.cells(g, seeds))
+    assert np.array_equal(sm.defer_to_neighbours(peaks, labels, pairs), labels)
+
+
 def test_shared_border_counts_the_edges_between_two_cells():
     """Three seeds in a row on a flat strip: neighbours share a border as wide as the strip,
     the outer two none."""
