@@ -38,7 +38,9 @@ Printed: ONE JSON object (``null``, never NaN or Infinity, where a figure was no
   why, regions found / true, ``region_map_error``, ``worst_region_iou``,
   ``per_region_iou``, boundary mean / p90 (mm, truth surface), coverage, probes, robot
   hours, the densify rounds' added points and reasons, wall seconds of the run and the
-  evaluation;
+  evaluation; ``ceiling``: the same error and IoUs for the best map the run's cloud can
+  carry (every cloud point labelled with its true region), so a small region's low IoU
+  reads as the map's loss or the scan's;
 - ``aggregate``: runs with regions_found == regions_true (count and fraction), median and
   worst region_map_error, lowest worst_region_iou, boundary mean / p90 (mean over runs and
   worst), coverage (mean and lowest), probes, robot hours and wall seconds (total and
@@ -278,8 +280,15 @@ def run_job(job: Job, plan: Path, reuse: bool, env: dict[str, str], t0: float) -
     result = json.loads(ev.stdout)
     rec.update({k: result.get(k) for k in RUN_KEYS}, status="done",
                uncovered_area_mm2=(result.get("truth_surface") or {}).get("uncovered_area_mm2"),
+               ceiling=_ceiling(result.get("map_ceiling") or {}),
                densify=densify_rounds(job.session))
     return _finish(rec, started, t0, run_s)
+
+
+def _ceiling(found: dict[str, Any]) -> dict[str, Any]:
+    """The best map the run's cloud can carry (``elastoprobe evaluate``'s ``map_ceiling``):
+    its error, worst IoU and per-region IoU, beside which the run's own say what the map lost."""
+    return {k: found.get(k) for k in ("region_map_error", "worst_region_iou", "per_region_iou")}
 
 
 def _finish(rec: dict[str, Any], started: float, t0: float, run_s: float | None) -> dict[str, Any]:

@@ -159,7 +159,9 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
     normals = cloud.arrays["normals"].astype(float)
     plan = inputs.plan
     pred = final.arrays["cloud_labels"]
-    region_map = _truth_surface_map(inputs, truth, pts, normals, pred)
+    top = scored_top_surface(inputs, truth)
+    region_map = _truth_surface_map(inputs, truth, pts, normals, pred, top)
+    ceiling = _truth_surface_map(inputs, truth, pts, normals, truth.region_of(pts), top)
     cloud_map = _cloud_map(truth, pts, normals, pred, plan.sampling.max_tilt_deg)
     target_labels = dict(zip(regions_rec.arrays["labelled_targets"].tolist(),
                              regions_rec.arrays["labels"].tolist())) if regions_rec is not None else {}
@@ -296,6 +298,13 @@ def evaluate_session(session_dir: Path, n_points_per_region: int = 6, seed: int 
         "regions_found": int(len(np.unique(pred))),
         "regions_true": int(len(truth.region_names())),
         **region_map,
+        # The best map this cloud can carry: every cloud point labelled with its true region,
+        # carried onto the truth surface as the session's map is. What the map loses is the
+        # difference; what the ceiling loses, the scan's gaps and spacing.
+        "map_ceiling": {"what": "every cloud point labelled with its true region, scored as the map is",
+                        **{k: v for k, v in ceiling.items()
+                           if k in ("region_map_error", "worst_region_iou", "per_region_iou",
+                                    "boundary_mm_mean", "boundary_mm_p90")}},
         "cloud": cloud_map,
         "profile_rmse_mm": {"held_out_angles": _num(rmse(ha_pred, ha_true, ha_roi)),
                             "held_out_forces": _num(rmse(hf_pred, hf_true, hf_roi)),
@@ -360,12 +369,13 @@ def scored_top_surface(inputs: Any, truth: Any) -> tuple[Any, float]:
 
 
 def _truth_surface_map(inputs: Any, truth: Any, cloud_mm: np.ndarray, cloud_normals: np.ndarray,
-                       cloud_labels: np.ndarray) -> dict[str, Any]:
+                       cloud_labels: np.ndarray, scored: tuple[Any, float] | None = None) -> dict[str, Any]:
     """The map scored on the object's true top (within the plan's tilt, inside the arm's reach),
     sampled at one point per mm^2 of projected area (sim/truth_surface.py); the cloud's labels
-    carried onto it by learning.evaluate.carry_labels (docs/generated_objects.md)."""
+    carried onto it by learning.evaluate.carry_labels (docs/generated_objects.md). ``scored``:
+    :func:`scored_top_surface`'s result, when the caller has it already."""
     max_tilt = inputs.plan.sampling.max_tilt_deg
-    top, out_of_reach = scored_top_surface(inputs, truth)
+    top, out_of_reach = scored if scored is not None else scored_top_surface(inputs, truth)
     s = ev.truth_surface_scores(top.points_mm, top.normals, top.labels, top.area_mm2, cloud_mm, cloud_normals,
                                 cloud_labels, top.spacing_mm, seam_distance_mm=truth.boundary_distance_mm)
     wrong = s["wrong"]

@@ -63,6 +63,11 @@ def test_quick_suite_maps_every_object_and_reports_truth_surface_figures(quick) 
         assert len(r["per_region_iou"]) == n_materials
         assert math.isclose(min(r["per_region_iou"].values()), r["worst_region_iou"], abs_tol=1e-6)
         assert 0.0 < r["coverage"] <= 1.0
+        # The ceiling: the same cloud, every point labelled with its true region.
+        assert sorted(r["ceiling"]["per_region_iou"]) == sorted(r["per_region_iou"])
+        assert 0.0 <= r["ceiling"]["region_map_error"] <= 1.0
+        assert math.isclose(min(r["ceiling"]["per_region_iou"].values()), r["ceiling"]["worst_region_iou"],
+                            abs_tol=1e-6)
         assert r["probes"] > 0 and r["robot_hours"] > 0
         assert len(r["densify"]) == 1 and r["densify"][0]["new_targets"] is not None   # the quick plan: 1 round
         if n_materials == 1:

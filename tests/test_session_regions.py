@@ -84,6 +84,13 @@ def _assert_evaluation_places_the_mislabelled(one_dir: Path, two_dir: Path) -> N
     # boundaries drawn across the scored top, where box and pillow never meet.
     assert one["worst_region_iou"] == 0.0 and one["per_region_iou"]["cardboard"] == 0.0
     assert two["region_map_error"] < one["region_map_error"] and 0.0 < two["coverage"] <= 1.0
+    # The ceiling is the cloud's, not the map's: both sessions scanned the same box on the
+    # same pillow, and labelled with the truth their clouds carry both materials.
+    for ev in (one, two):
+        ceiling = ev["map_ceiling"]
+        assert sorted(ceiling["per_region_iou"]) == ["cardboard", "foam"]
+        assert ceiling["worst_region_iou"] > 0.9 and ceiling["region_map_error"] < 0.05
+    assert one["map_ceiling"]["worst_region_iou"] > one["worst_region_iou"]
     _assert_region_figures_make_up_the_object_s(two)
 
 
