@@ -431,3 +431,24 @@ def test_the_seam_fit_interpolates_and_never_extrapolates():
     assert decided.all()
     assert 0.0 < value[0] < value[1] < 0.45
     assert np.all(value[2:] <= 0.45 + 1e-12)
+
+
+def test_a_seam_level_weighs_each_force_by_what_it_tells_apart():
+    """Two regions 1.0 mm apart at both forces; the first force's peaks scatter ten times as
+    much (0.2 against 0.02 mm robust spread). A seed reading A's level at the first force and
+    B's at the second lies, by the inverse-variance weights, almost at B (the plain mean puts
+    it halfway); with equal scatter at both forces, halfway again."""
+    rng = np.random.default_rng(5)
+    n = 41
+    a = np.column_stack([rng.normal(0.0, 0.2, n), rng.normal(0.0, 0.02, n)]) + [1.0, 1.0]
+    b = np.column_stack([rng.normal(0.0, 0.2, n), rng.normal(0.0, 0.02, n)]) + [2.0, 2.0]
+    peaks = np.vstack([a, b, [[1.0, 2.0]]])
+    labels = np.array([0] * n + [1] * n + [0])
+    inner = np.ones(labels.size, dtype=bool)
+    inner[-1] = False
+    level = sm._pair_levels(peaks, labels, inner, 0, 1)[-1]
+    assert peaks[-1].mean() == 1.5
+    assert 1.95 < level <= 2.0
+    even = peaks.copy()
+    even[:2 * n, 1] = even[:2 * n, 0]          # the same scatter at both forces
+    assert abs(sm._pair_levels(even, labels, inner, 0, 1)[-1] - 1.5) < 0.05

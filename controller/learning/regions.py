@@ -973,7 +973,9 @@ def peaks_mm(features: np.ndarray, feature_names: list[str]) -> np.ndarray:
 
 def mean_peak_mm(features: np.ndarray, feature_names: list[str]) -> np.ndarray:
     """(N,) each point's peak depth (mm, negative readings as 0) averaged over the survey
-    forces (:func:`peaks_mm`): the level the final map draws seams through.
+    forces (:func:`peaks_mm`): the level the final map draws seams through when it has no
+    peaks per force (with them it weighs the forces per pair of regions,
+    surface_map._pair_levels), and the three-region bands are read on.
     In mm and not in log: a tip straddling a seam dents as the weighted mean of the two
     materials' dents (surface_map.seam_fractions)."""
     return peaks_mm(features, feature_names).mean(axis=1)

@@ -590,6 +590,38 @@ def _at_region_level(values: np.ndarray, labels: np.ndarray, interior: np.ndarra
     return flat.reshape(vals.shape)
 
 
+def _pair_levels(peaks_mm: np.ndarray, labels: np.ndarray, interior: np.ndarray, a: int, b: int) -> np.ndarray:
+    """(S,) each seed's level (mm) for the seam between regions ``a`` and ``b``: its peaks at
+    the survey forces (``peaks_mm`` (S,F)) weighted by what each force tells the two apart.
+
+    At force f a seed's seam fraction is (peak - m_a) / (m_b - m_a) (m: the regions' median
+    peaks, read as :func:`_levels_read` reads them), with a variance of s_f^2 / d_f^2 (s_f^2:
+    the two regions' mean squared robust spread (1.4826 MAD) at that force; d_f = m_b - m_a).
+    The inverse-variance combination of the fractions weighs force f by d_f^2 / s_f^2, which
+    is the level that weighs each peak by |d_f| / s_f^2. The plain mean of the peaks weighs
+    each fraction by |d_f| alone: a force at which the two materials differ by a quarter of
+    another's difference in mm, with peaks as noisy, counted a quarter as much instead of a
+    sixteenth (suite slab 1012 seed 2's hard rubber beside the elastomer: 0.013 mm apart at
+    the low force, 0.049 at the high one). The spread is measured, not assumed: weighing by
+    d_f^2 alone (equal noise at every force) was tried and lost on 19 of 40 sessions
+    (docs/generated_objects.md, stop 40). Without a spread at some force (regions of one
+    seed), the plain mean."""
+    pk = np.asarray(peaks_mm, dtype=float)
+    pk = pk.reshape(pk.shape[0], -1)
+    rows_a, rows_b = _levels_read(pk, np.asarray(labels, dtype=np.int64), interior, np.array([a, b]))
+    spread_sq = 0.5 * (_robust_spread(rows_a) ** 2 + _robust_spread(rows_b) ** 2)      # (F,)
+    apart = np.abs(np.median(rows_b, axis=0) - np.median(rows_a, axis=0))
+    if not np.all(spread_sq > 0.0) or not np.any(apart > 0.0):
+        return pk.mean(axis=1)
+    weight = apart / spread_sq
+    return pk @ (weight / weight.sum())
+
+
+def _robust_spread(rows: np.ndarray) -> np.ndarray:
+    """(F,) 1.4826 x the median absolute deviation of each column of ``rows`` (N,F)."""
+    return 1.4826 * np.median(np.abs(rows - np.median(rows, axis=0)), axis=0)
+
+
 def _levels_read(levels: np.ndarray, labels: np.ndarray, interior: np.ndarray, regions: np.ndarray
                  ) -> list[np.ndarray]:
     """Each region's seed levels that its level is read on: its interior seeds when it has
@@ -661,9 +693,11 @@ def _split_between(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np.nd
             # reading another material is a misfit (densify probes around it), not a seam.
             cross_a = reads_other_side(seed_peaks_mm, seed_labels, interior, of_a, int(rb)) & ~inner[of_a]
             cross_b = reads_other_side(seed_peaks_mm, seed_labels, interior, of_b, int(ra)) & ~inner[of_b]
-        s_a, _, usable = seam_fractions(seed_levels, seed_labels, of_a, np.full(of_a.size, of_b[0]), interior,
+        pair_levels = seed_levels if seed_peaks_mm is None else _pair_levels(seed_peaks_mm, seed_labels, inner,
+                                                                           int(ra), int(rb))
+        s_a, _, usable = seam_fractions(pair_levels, seed_labels, of_a, np.full(of_a.size, of_b[0]), interior,
                                         cross_a=cross_a)
-        _, s_b, _ = seam_fractions(seed_levels, seed_labels, np.full(of_b.size, of_a[0]), of_b, interior,
+        _, s_b, _ = seam_fractions(pair_levels, seed_labels, np.full(of_b.size, of_a[0]), of_b, interior,
                                     cross_b=cross_b)
         if not usable.any():
             continue                       # the two levels overlap: the plain midway split
