@@ -287,7 +287,9 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
     seam from its label if need be (:func:`reads_other_side`); without, every seed stays on
     its own region's side. Also with them, a seed whose peaks read its own side at one force
     and the other's at another, three quarters of its neighbours in that other region,
-    goes to it (:func:`defer_to_neighbours`) and counts at that region's own level.
+    goes to it (:func:`defer_to_neighbours`) and counts at that region's own level; and
+    each seam's levels weigh the forces by what they tell its two regions apart
+    (:func:`_pair_levels`) instead of the plain mean ``seed_levels``.
     """
     lab = np.asarray(seed_labels, dtype=np.int64).reshape(-1)
     n = len(graph)
