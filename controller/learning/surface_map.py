@@ -306,24 +306,25 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
                                      None if seed_levels is None else np.asarray(seed_levels).reshape(-1)[keep],
                                      seed_peaks_mm=None if seed_peaks_mm is None else np.asarray(seed_peaks_mm)[keep])
     pairs = seed_neighbours(graph, c) if seed_levels is not None and np.unique(lab).size > 1 else []
+    moved = np.zeros(lab.size, dtype=bool)
     if seed_peaks_mm is not None and len(pairs):
         deferred = defer_to_neighbours(seed_peaks_mm, lab, pairs)
-        moved = deferred != lab
-        lab = deferred
-        if moved.any():
-            # Its measurement contradicts itself: it says nothing of where the seam is, and
-            # counts as its new region's own level (for the seam and the region's median).
-            inner = interior_seeds(lab, pairs)
-            seed_levels = None if seed_levels is None else _at_region_level(seed_levels, lab, inner, moved)
-            seed_peaks_mm = _at_region_level(seed_peaks_mm, lab, inner, moved)
+        moved, lab = deferred != lab, deferred
+    inner = interior_seeds(lab, pairs)
+    if moved.any():
+        # Its measurement contradicts itself: it says nothing of where the seam is, and
+        # counts as its new region's own level (for the seam and the region's median).
+        seed_levels = None if seed_levels is None else _at_region_level(seed_levels, lab, inner, moved)
+        seed_peaks_mm = _at_region_level(seed_peaks_mm, lab, inner, moved)
     if seed_levels is not None and np.unique(lab).size > 2:
-        lab = transition_bands(np.asarray(seed_levels, dtype=float).reshape(-1), lab, pairs,
-                               interior_seeds(lab, pairs))
+        banded = transition_bands(np.asarray(seed_levels, dtype=float).reshape(-1), lab, pairs, inner)
+        if not np.array_equal(banded, lab):
+            lab, inner = banded, interior_seeds(banded, pairs)
     reached = c.source >= 0
     out[reached] = lab[c.source[reached]]
     if seed_levels is not None and np.unique(lab).size > 1:
         out = _split_between(graph, seeds_mm, lab, np.asarray(seed_levels, dtype=float).reshape(-1), out, reached,
-                             interior_seeds(lab, pairs), seed_peaks_mm)
+                             inner, seed_peaks_mm)
     # Fold points: the label of the face whose plane they lie on.
     fold = np.flatnonzero(graph.concave & ~reached)
     if fold.size and reached.any():
@@ -559,7 +560,7 @@ def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.
 
     per = _levels_read(lev, lab, inner, regions)
     median = np.array([np.median(v) for v in per])
-    sigma = np.array([1.4826 * np.median(np.abs(v - np.median(v))) for v in per])
+    sigma = np.array([_robust_spread(v) for v in per])
     low, high = median - edge_sigmas * sigma, median + edge_sigmas * sigma
     ka = np.array([k_of[int(v)] for v in lab[a]], dtype=np.int64)
     kb = np.array([k_of[int(v)] for v in lab[b]], dtype=np.int64)
