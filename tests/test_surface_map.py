@@ -149,18 +149,27 @@ def test_a_small_region_mostly_seam_seeds_is_read_on_its_interior():
     assert np.all(refined[pts[:, 0] < 29.5] == 0) and np.all(refined[pts[:, 0] > 33.5] == 1)
 
 
-def _strip_with_a_column_across(column_peaks_mm: list[float]):
-    """A soft strip x < 31.5 mm (peaks 1.0 / 2.0 mm at two survey forces) beside a stiff
-    material (0.1 / 0.2 mm); seeds at x = 0, 10, 20 and 29 (soft; the last 2.5 mm inside
-    the seam) and 38 ... 98 (stiff), and a column at x = 34, 2.5 mm on the stiff side, that
-    the clustering put with the soft strip, reading ``column_peaks_mm`` at the two forces."""
+def _strip_with_a_column_across(column_peaks_mm: list[float], soft_mm: tuple[float, float] = (1.0, 2.0),
+                                stiff_mm: tuple[float, float] = (0.1, 0.2),
+                                scatter_mm: tuple[float, float] = (0.0, 0.0)):
+    """A soft strip x < 31.5 mm (peaks ``soft_mm``, 1.0 / 2.0 mm, at two survey forces) beside
+    a stiff material (``stiff_mm``, 0.1 / 0.2 mm); seeds at x = 0, 10, 20 and 29 (soft; the
+    last 2.5 mm inside the seam) and 38 ... 98 (stiff), and a column at x = 34, 2.5 mm on the
+    stiff side, that the clustering put with the soft strip, reading ``column_peaks_mm`` at
+    the two forces. Each region's peaks scatter by -1, 0, +1 times ``scatter_mm`` in turn
+    (a robust spread of 1.4826 x it)."""
     pts, nrm = plane(101, 25, 1.0)
     soft = [[x, y, 0.0] for x in (0.0, 10.0, 20.0, 29.0) for y in (0.0, 12.0, 24.0)]
     column = [[34.0, y, 0.0] for y in np.linspace(0.0, 24.0, 9)]
     stiff = [[x, y, 0.0] for x in np.arange(38.0, 99.0, 10.0) for y in (0.0, 12.0, 24.0)]
     seeds = np.array(soft + column + stiff)
     labels = np.array([0] * (len(soft) + len(column)) + [1] * len(stiff))
-    peaks = np.array([[1.0, 2.0]] * len(soft) + [column_peaks_mm] * len(column) + [[0.1, 0.2]] * len(stiff))
+
+    def scattered(level_mm: tuple[float, float], n: int) -> np.ndarray:
+        return np.asarray(level_mm) + np.outer(np.arange(n) % 3 - 1.0, scatter_mm)
+
+    peaks = np.vstack([scattered(soft_mm, len(soft)), np.tile(column_peaks_mm, (len(column), 1)),
+                       scattered(stiff_mm, len(stiff))])
     return pts, sm.build_graph(pts, nrm), seeds, labels, peaks
 
 
@@ -199,6 +208,42 @@ def test_a_seed_whose_mean_crosses_by_one_force_stays_on_its_side():
     levels = peaks.mean(axis=1)
     assert np.array_equal(sm.labels_from_seeds(g, seeds, labels, seed_levels=levels, seed_peaks_mm=peaks),
                           sm.labels_from_seeds(g, seeds, labels, seed_levels=levels))
+
+
+# Two forces that tell the materials apart unequally: at the first they differ by 2.5 mm
+# and scatter by 1.5 mm, at the second by 1.8 mm with a scatter of 0.07 mm.
+_UNEQUAL = dict(soft_mm=(3.0, 2.0), stiff_mm=(0.5, 0.2), scatter_mm=(1.0, 0.05))
+
+
+def test_a_seed_whose_telling_force_reads_the_other_material_counts_on_its_side():
+    """The column reads the soft level at the noisy first force (3.2 mm) and the stiff one at
+    the second (0.3 mm, 6 % of the way to the soft 2.0). Every force did not read past the
+    halfway, and neither did the plain mean (1.75 mm against a halfway of 1.43); weighed by
+    what each force tells apart, the second decides, and the seam falls between the column
+    and the soft seeds at x = 29, not beyond the column (suite slab 1012 seed 2: targets
+    1-2 mm inside a hard-rubber ellipse whose low force reads like the elastomer)."""
+    pts, g, seeds, labels, peaks = _strip_with_a_column_across([3.2, 0.3], **_UNEQUAL)
+    column = np.flatnonzero(seeds[:, 0] == 34.0)
+    interior = sm.interior_seeds(labels, sm.seed_neighbours(g, sm.cells(g, seeds)))
+    assert not np.all(sm._past_halfway(peaks, labels, interior, column, 1), axis=1).any()
+    assert sm.reads_other_side(peaks, labels, interior, column, 1).all()
+    levels = peaks.mean(axis=1)
+    mapped = sm.labels_from_seeds(g, seeds, labels, seed_levels=levels, seed_peaks_mm=peaks)
+    on_row = pts[:, 1] == 12.0
+    assert 30.0 <= pts[on_row & (mapped == 1), 0].min() <= 33.0
+    held = sm.labels_from_seeds(g, seeds, labels, seed_levels=levels)
+    assert pts[on_row & (held == 1), 0].min() > 34.0
+
+
+def test_a_seed_whose_plain_mean_crosses_by_a_noisy_force_stays_on_its_side():
+    """The column reads past the halfway at the noisy first force (0.4 mm, below the stiff
+    0.5) and the soft level at the telling second (1.9 mm). Its plain mean (1.15 mm) lies
+    past the plain halfway (1.43), its weighted level does not: it stays a soft seed."""
+    pts, g, seeds, labels, peaks = _strip_with_a_column_across([0.4, 1.9], **_UNEQUAL)
+    column = np.flatnonzero(seeds[:, 0] == 34.0)
+    interior = sm.interior_seeds(labels, sm.seed_neighbours(g, sm.cells(g, seeds)))
+    assert peaks[column[0]].mean() < 0.5 * (np.mean([3.0, 2.0]) + np.mean([0.5, 0.2]))
+    assert not sm.reads_other_side(peaks, labels, interior, column, 1).any()
 
 
 def test_interior_seeds_reading_the_other_material_draw_no_island():

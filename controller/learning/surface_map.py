@@ -282,14 +282,14 @@ def labels_from_seeds(graph: SurfaceGraph, seeds_mm: np.ndarray, seed_labels: np
     and the seeds around it share its cell instead. Beside its own region it stays (it
     claims nothing its neighbours do not).
     ``seed_peaks_mm`` (S,F): each seed's peak depth at each survey force (the session passes
-    regions.peaks_mm). With them, a seed beside another region (not interior) whose every
-    peak reads past the halfway to that region counts where its level puts it, across the
-    seam from its label if need be (:func:`reads_other_side`); without, every seed stays on
-    its own region's side. Also with them, a seed whose peaks read its own side at one force
-    and the other's at another, three quarters of its neighbours in that other region,
-    goes to it (:func:`defer_to_neighbours`) and counts at that region's own level; and
-    each seam's levels weigh the forces by what they tell its two regions apart
-    (:func:`_pair_levels`) instead of the plain mean ``seed_levels``.
+    regions.peaks_mm). With them, a seed beside another region (not interior) whose level,
+    the forces weighed as for that seam, reads past the halfway to that region counts where
+    it puts it, across the seam from its label if need be (:func:`reads_other_side`);
+    without, every seed stays on its own region's side. Also with them, a seed whose peaks
+    read its own side at one force and the other's at another, three quarters of its
+    neighbours in that other region, goes to it (:func:`defer_to_neighbours`) and counts at
+    that region's own level; and each seam's levels weigh the forces by what they tell its
+    two regions apart (:func:`_pair_levels`) instead of the plain mean ``seed_levels``.
     """
     lab = np.asarray(seed_labels, dtype=np.int64).reshape(-1)
     n = len(graph)
@@ -432,19 +432,36 @@ def interior_seeds(seed_labels: np.ndarray, neighbour_pairs: list[tuple[int, int
 
 def reads_other_side(peaks_mm: np.ndarray, seed_labels: np.ndarray, interior: np.ndarray | None,
                      members: np.ndarray, other: int) -> np.ndarray:
-    """(M,) True for the seeds ``members`` (indices, all of one region A) whose peak depth at
-    every survey force (``peaks_mm`` (S,F)) lies past the halfway between A's and region
-    ``other``'s median peaks at that force (each region read on its interior seeds as in
+    """(M,) True for the seeds ``members`` (indices, all of one region A) whose level on the
+    seam between A and region ``other`` (:func:`_pair_levels`: the peaks ``peaks_mm`` (S,F)
+    weighted by what each survey force tells the two apart) lies past the halfway between
+    the two regions' levels on that scale (each region read on its interior seeds as in
     :func:`seam_fractions`).
 
-    Such a seed's tip pressed more of the other material than of its own at every force:
-    the clustering put it with A (on all its features and its neighbours), but its whole
-    measurement says it stands across the seam. Every force, not the mean level: a seed
-    whose mean crosses because one force read deep or shallow by noise does not qualify
-    (hard rubber beside an elastomer 3x softer, whose peaks scatter by a third of the
-    difference: generated slab 1303)."""
-    past = _past_halfway(peaks_mm, seed_labels, interior, members, other)
-    return np.all(past, axis=1) & (past.shape[1] > 0)
+    Such a seed's tip pressed more of the other material than of its own: the clustering
+    put it with A (on all its features and its neighbours), but its measurement says it
+    stands across the seam. The weighted level, not the plain mean: a force at which the
+    two differ by little and whose peaks scatter (hard rubber beside an elastomer 3x softer
+    at the low force: generated slab 1303) is not evidence, and the weights count it as
+    little as it tells (docs/generated_objects.md, stop 41: with the plain mean a level
+    crossing by one noisy force moved matrix seeds onto a disc; holding every force to read
+    past the halfway kept seeds 1-2 mm inside suite slab 1012 seed 2's hard-rubber ellipse
+    on the elastomer's side by the low force's noise alone). Where the forces cannot be
+    weighed (a region without spread at some force), every force must read past the
+    halfway."""
+    pk = np.asarray(peaks_mm, dtype=float)
+    pk = pk.reshape(pk.shape[0], -1)
+    lab = np.asarray(seed_labels, dtype=np.int64).reshape(-1)
+    members = np.asarray(members, dtype=np.int64).reshape(-1)
+    if members.size == 0 or pk.shape[1] == 0:
+        return np.zeros(members.size, dtype=bool)
+    inner = np.zeros(lab.size, dtype=bool) if interior is None else np.asarray(interior, dtype=bool).reshape(-1)
+    rows_own, rows_other = _levels_read(pk, lab, inner, np.array([int(lab[members[0]]), int(other)]))
+    weight = _force_weights(rows_own, rows_other)
+    if weight is None:
+        return np.all(_past_halfway(pk, lab, inner, members, other), axis=1)
+    own, far = np.median(rows_own, axis=0) @ weight, np.median(rows_other, axis=0) @ weight
+    return ((pk[members] @ weight - 0.5 * (own + far)) * np.sign(far - own) > 0.0) & (far != own)
 
 
 def _past_halfway(peaks_mm: np.ndarray, seed_labels: np.ndarray, interior: np.ndarray | None,
@@ -547,7 +564,7 @@ def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.
     its own region's side, s_a <= ``SEAM_SIDE`` < 1/2 < 1 - ``SEAM_SIDE`` <= s_b (its level
     is one measurement; its label was decided with its neighbours), except the seeds that
     ``cross_a`` (M,) / ``cross_b`` (M,) mark: they count where their levels put them. The
-    final map marks the seeds beside another region whose every survey peak reads past the
+    final map marks the seeds beside another region whose weighted level reads past the
     halfway (:func:`reads_other_side`); densification marks none (its false-position step
     interpolates between the two ends of an edge).
     """
@@ -612,12 +629,21 @@ def _pair_levels(peaks_mm: np.ndarray, labels: np.ndarray, interior: np.ndarray,
     pk = np.asarray(peaks_mm, dtype=float)
     pk = pk.reshape(pk.shape[0], -1)
     rows_a, rows_b = _levels_read(pk, np.asarray(labels, dtype=np.int64), interior, np.array([a, b]))
+    weight = _force_weights(rows_a, rows_b)
+    return pk.mean(axis=1) if weight is None else pk @ weight
+
+
+def _force_weights(rows_a: np.ndarray, rows_b: np.ndarray) -> np.ndarray | None:
+    """(F,) weights summing to 1 that :func:`_pair_levels` gives the survey forces, from the
+    peaks (N,F) two regions' levels are read on: |d_f| / s_f^2 (d_f the difference of their
+    median peaks, s_f^2 their mean squared robust spread). None when some force has no
+    spread or no force tells them apart."""
     spread_sq = 0.5 * (_robust_spread(rows_a) ** 2 + _robust_spread(rows_b) ** 2)      # (F,)
     apart = np.abs(np.median(rows_b, axis=0) - np.median(rows_a, axis=0))
     if not np.all(spread_sq > 0.0) or not np.any(apart > 0.0):
-        return pk.mean(axis=1)
+        return None
     weight = apart / spread_sq
-    return pk @ (weight / weight.sum())
+    return weight / weight.sum()
 
 
 def _robust_spread(rows: np.ndarray) -> np.ndarray:
