@@ -139,3 +139,22 @@ def test_measured_survey_maps_the_composite_within_the_goal():
     again = run.survey(found.points_mm, found.normals, found.t)
     assert run.prober.contacts_measured == before
     assert np.isfinite(again[0].depth_mm).any()
+
+
+def test_the_inclusion_goal_counts_a_strategy_that_never_reached_the_target_as_above_the_largest_budget():
+    """Densify reaching the target at 311 probes beats neither a raster nor a GP that had not
+    reached it by 128: all that is known of them is "more than 128". At 30 probes it beats
+    both (30 <= 128 / 4); a GP that reached it at 48 still beats densify at 60."""
+    se = _bench_module()
+
+    def row(densify: float | None, raster: float | None, gp: float | None) -> dict:
+        counts = {"densify": densify, "raster": raster, "gp": gp}
+        return {"max_budget_contacts": 128, "probes_to_target_sustained": counts,
+                "probes_to_target_with_iou_sustained": counts, "truth_surface": {"one_region_map_error": 0.02}}
+
+    late = se.inclusion_goal(row(311.0, None, None))["with_iou"]
+    assert not late["densify_le_quarter_raster"] and not late["densify_le_gp"] and not late["reached"]
+    early = se.inclusion_goal(row(30.0, None, None))["error"]
+    assert early["densify_le_quarter_raster"] and early["densify_le_gp"] and early["reached"]
+    beaten = se.inclusion_goal(row(60.0, 400.0, 48.0))["error"]
+    assert beaten["densify_le_quarter_raster"] and not beaten["densify_le_gp"] and not beaten["reached"]
