@@ -217,7 +217,7 @@ _UNEQUAL = dict(soft_mm=(3.0, 2.0), stiff_mm=(0.5, 0.2), scatter_mm=(1.0, 0.05))
 
 def test_a_seed_whose_telling_force_reads_the_other_material_counts_on_its_side():
     """The column reads the soft level at the noisy first force (3.2 mm) and the stiff one at
-    the second (0.3 mm, 6 % of the way to the soft 2.0). Every force did not read past the
+    the second (0.3 mm, 6 % of the way to the soft 2.0). Not every force read past the
     halfway, and neither did the plain mean (1.75 mm against a halfway of 1.43); weighed by
     what each force tells apart, the second decides, and the seam falls between the column
     and the soft seeds at x = 29, not beyond the column (suite slab 1012 seed 2: targets
