@@ -449,36 +449,48 @@ def reads_other_side(peaks_mm: np.ndarray, seed_labels: np.ndarray, interior: np
     on the elastomer's side by the low force's noise alone). Where the forces cannot be
     weighed (a region without spread at some force), every force must read past the
     halfway."""
-    pk = np.asarray(peaks_mm, dtype=float)
-    pk = pk.reshape(pk.shape[0], -1)
-    lab = np.asarray(seed_labels, dtype=np.int64).reshape(-1)
-    members = np.asarray(members, dtype=np.int64).reshape(-1)
-    if members.size == 0 or pk.shape[1] == 0:
-        return np.zeros(members.size, dtype=bool)
-    inner = np.zeros(lab.size, dtype=bool) if interior is None else np.asarray(interior, dtype=bool).reshape(-1)
-    rows_own, rows_other = _levels_read(pk, lab, inner, np.array([int(lab[members[0]]), int(other)]))
+    read = _read_pair(peaks_mm, seed_labels, interior, members, other)
+    if read is None:
+        return np.zeros(np.asarray(members).size, dtype=bool)
+    values, rows_own, rows_other = read
+    own, far = np.median(rows_own, axis=0), np.median(rows_other, axis=0)     # (F,)
     weight = _force_weights(rows_own, rows_other)
     if weight is None:
-        return np.all(_past_halfway(pk, lab, inner, members, other), axis=1)
-    own, far = np.median(rows_own, axis=0) @ weight, np.median(rows_other, axis=0) @ weight
-    return ((pk[members] @ weight - 0.5 * (own + far)) * np.sign(far - own) > 0.0) & (far != own)
+        return np.all(_beyond_halfway(values, own, far), axis=1)
+    return _beyond_halfway(values @ weight, own @ weight, far @ weight)
 
 
 def _past_halfway(peaks_mm: np.ndarray, seed_labels: np.ndarray, interior: np.ndarray | None,
                   members: np.ndarray, other: int) -> np.ndarray:
     """(M,F) True where seed ``members[m]``'s peak at force f lies past the halfway between its
     region's and region ``other``'s median peaks at that force (toward ``other``)."""
+    read = _read_pair(peaks_mm, seed_labels, interior, members, other)
+    if read is None:
+        n_forces = np.asarray(peaks_mm).reshape(len(peaks_mm), -1).shape[1]
+        return np.zeros((np.asarray(members).size, n_forces), dtype=bool)
+    values, rows_own, rows_other = read
+    return _beyond_halfway(values, np.median(rows_own, axis=0), np.median(rows_other, axis=0))
+
+
+def _read_pair(peaks_mm: np.ndarray, seed_labels: np.ndarray, interior: np.ndarray | None, members: np.ndarray,
+               other: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The peaks (M,F) of ``members`` (all of one region A), and the peaks A's and region
+    ``other``'s levels are read on (:func:`_levels_read`); None without members or forces."""
     pk = np.asarray(peaks_mm, dtype=float)
     pk = pk.reshape(pk.shape[0], -1)
     lab = np.asarray(seed_labels, dtype=np.int64).reshape(-1)
     members = np.asarray(members, dtype=np.int64).reshape(-1)
     if members.size == 0 or pk.shape[1] == 0:
-        return np.zeros((members.size, pk.shape[1]), dtype=bool)
+        return None
     inner = np.zeros(lab.size, dtype=bool) if interior is None else np.asarray(interior, dtype=bool).reshape(-1)
     rows_own, rows_other = _levels_read(pk, lab, inner, np.array([int(lab[members[0]]), int(other)]))
-    m_own, m_other = np.median(rows_own, axis=0), np.median(rows_other, axis=0)     # (F,)
-    toward = np.sign(m_other - m_own)
-    return ((pk[members] - 0.5 * (m_own + m_other)) * toward > 0.0) & (toward != 0.0)
+    return pk[members], rows_own, rows_other
+
+
+def _beyond_halfway(values: np.ndarray, own: np.ndarray, far: np.ndarray) -> np.ndarray:
+    """True where ``values`` lie past the halfway from ``own`` toward ``far`` (broadcast)."""
+    toward = np.sign(far - own)
+    return ((values - 0.5 * (own + far)) * toward > 0.0) & (toward != 0.0)
 
 
 def defer_to_neighbours(peaks_mm: np.ndarray, seed_labels: np.ndarray,
