@@ -511,9 +511,9 @@ def test_a_small_inclusion_mostly_seam_seeds_is_read_on_its_deepest_seeds():
     densification put 0.8 mm outside it, which read a third of the way to the disc and were
     clustered with it: thirteen seeds, only the centre without a stiff neighbour. Read on all
     thirteen, the disc's level is about the outer ring's, every seed there reads as pure disc,
-    and the disc grows past them (suite slab 1012 seed 2's sponge disc). Read on its three
-    seeds farthest from the stiff ones, it is the disc's own, and the seam passes within
-    the outer ring."""
+    and the disc grows past them (suite slab 1012 seed 2's sponge disc). Read on its deeper
+    half (the seven seeds farthest from the stiff ones: the centre, the inner ring and two
+    of the outer), it is the inner ring's, and the seam passes within the outer ring."""
     pts, nrm = plane(81, 81, 1.0)
     g = sm.build_graph(pts, nrm)
     disc = [[40.0, 40.0, 0.0]] + _ring(8.0, 4) + _ring(10.8, 8, np.pi / 8)
@@ -529,10 +529,10 @@ def test_a_small_inclusion_mostly_seam_seeds_is_read_on_its_deepest_seeds():
     interior = sm.interior_seeds(labels, sm.seed_neighbours(g, sm.cells(g, seeds)))
     assert interior[: len(disc)].sum() < sm.MIN_INTERIOR_SEEDS
     deepest = sm.level_seeds(seeds, labels, interior)
-    assert deepest[0] and deepest[1:5].sum() == sm.MIN_INTERIOR_SEEDS - 1 and not deepest[5: len(disc)].any()
+    assert deepest[:5].all() and deepest[: len(disc)].sum() == (len(disc) + 1) // 2
     assert np.array_equal(deepest[len(disc):], interior[len(disc):])
     truth = np.linalg.norm(pts[:, :2] - 40.0, axis=1) < 10.0
     mapped = sm.labels_from_seeds(g, seeds, labels, seed_levels=dent_mm) == 1
     # The outer ring's seeds, 0.8 mm outside, stay on the plane's side of the seam.
     assert np.all(~mapped[np.linalg.norm(pts[:, :2] - 40.0, axis=1) > 11.0])
-    assert np.sum(mapped & truth) / np.sum(mapped | truth) >= 0.85      # read on all thirteen: 0.69
+    assert np.sum(mapped & truth) / np.sum(mapped | truth) >= 0.8      # 0.85; read on all thirteen: 0.69
