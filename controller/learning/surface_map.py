@@ -429,7 +429,7 @@ def level_seeds(seeds_mm: np.ndarray, seed_labels: np.ndarray, interior: np.ndar
     materials, and a median read on all of them lies part way to the matrix (suite slab
     1012 seed 2's sponge disc, 20 mm across: 13 seeds, one interior, eight of them outside
     the disc; their median was the level of a seed on the seam, so every seed within a
-    millimetre outside read as pure sponge and the disc grew by 1.2 mm all round). The
+    millimetre outside read as pure sponge and the disc was drawn up to 2.3 mm too large). The
     seeds deepest in the region press the least of another material. Half of them, not the
     three deepest: a stiff inclusion's peaks scatter by a third of its contrast with the
     matrix (hard rubber), and a median of three misplaces its level (docs/generated_objects.md,
