@@ -10,6 +10,7 @@ import pytest
 import trimesh
 
 from elastoprobe.controller.core.errors import InputError
+from elastoprobe.sim import objects as sim_objects
 from elastoprobe.sim.objects import load_object
 
 OBJECTS = Path(__file__).resolve().parents[1] / "config" / "objects"
@@ -48,6 +49,19 @@ def test_closest_surface_is_exact_against_brute_force(composite):
         best = np.linalg.norm(trimesh.triangles.closest_point(tris, np.repeat(p[None], len(tris), 0)) - p, axis=1).min()
         assert np.linalg.norm(c - p) == pytest.approx(best, abs=1e-9)
     np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0)
+
+
+def test_closest_surface_in_small_chunks_is_the_one_pass_answer(composite, monkeypatch):
+    """Memory stays bounded on large queries: the candidates are measured a few at a time, and
+    the answer is the one pass's, point for point (ties broken the same way)."""
+    rng = np.random.default_rng(5)
+    points = np.concatenate([composite.mesh.sample(2000, seed=6) + rng.normal(0.0, 2.0, (2000, 3)),
+                             rng.uniform([-220, -170, 0], [220, 170, 160], (500, 3))])
+    whole = composite.closest_surface(points)
+    monkeypatch.setattr(sim_objects, "CLOSEST_CHUNK_PAIRS", 101)
+    monkeypatch.setattr(sim_objects, "CLOSEST_CHUNK_POINTS", 7)
+    for a, b in zip(whole, composite.closest_surface(points)):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_ball_surface_is_the_true_sphere(ball):
