@@ -466,7 +466,7 @@ def reads_other_side(peaks_mm: np.ndarray, seed_labels: np.ndarray, interior: np
     """(M,) True for the seeds ``members`` (indices, all of one region A) whose level on the
     seam between A and region ``other`` (:func:`_pair_levels`: the peaks ``peaks_mm`` (S,F)
     weighted by what each survey force tells the two apart) lies past the halfway between
-    the two regions' levels on that scale (each region read on its interior seeds as in
+    the two regions' levels on that scale (each region read on the ``interior`` seeds as in
     :func:`seam_fractions`).
 
     Such a seed's tip pressed more of the other material than of its own: the clustering
@@ -598,8 +598,9 @@ def seam_fractions(levels: np.ndarray, labels: np.ndarray, a: np.ndarray, b: np.
     within its region's usual range as pure (0 or 1): densification's false-position
     placement reads it that way (densify._crossing_fraction).
 
-    ``interior`` (N,) bool (:func:`interior_seeds`): a region's median and MAD come from its
-    interior seeds when it has ``MIN_INTERIOR_SEEDS`` of them. A seed beside another region
+    ``interior`` (N,) bool (:func:`interior_seeds`; the final map passes :func:`level_seeds`,
+    which adds a small region's deeper seeds): a region's median and MAD come from these
+    seeds when it has ``MIN_INTERIOR_SEEDS`` of them. A seed beside another region
     presses both materials; on a small inclusion densification makes such seeds most of
     its region (suite slab 1012's sponge disc: 16 of 30, whose levels reach the matrix's),
     and a range read on them overlaps the neighbour's, so no seam could be drawn through them.
