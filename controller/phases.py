@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .acquire import unseen_of_cloud
 from .core.config import SessionInputs
@@ -872,8 +873,6 @@ def _seam_evidence(ctx: PhaseContext, ids: list[int]) -> dict[str, np.ndarray | 
 
 def _cloud_normals_at(ctx: PhaseContext, points_mm: np.ndarray) -> np.ndarray:
     """Outward normals of the cloud at (the nearest cloud point to) each point."""
-    from scipy.spatial import cKDTree
-
     if len(points_mm) == 0:
         return np.zeros((0, 3))
     assert ctx.cloud_mm is not None and ctx.cloud_normals is not None

@@ -29,6 +29,7 @@ from typing import Annotated
 import numpy as np
 import trimesh
 from pydantic import Field, StringConstraints
+from scipy.spatial import cKDTree
 
 from elastoprobe.controller.core.errors import InputError, InputErrors
 from elastoprobe.controller.core.geometry import push_direction, unit
@@ -147,7 +148,6 @@ class SurfaceIndex:
     upper bound, then every face whose bounding sphere could beat it is checked exactly."""
 
     def __init__(self, triangles_mm: np.ndarray) -> None:
-        from scipy.spatial import cKDTree
         self.triangles = np.asarray(triangles_mm, dtype=float)
         self.centroids = self.triangles.mean(axis=1)
         self.radii = np.linalg.norm(self.triangles - self.centroids[:, None, :], axis=2).max(axis=1)

@@ -236,8 +236,6 @@ def point_scores(posterior: np.ndarray, scores: Mapping[tuple[int, int], float])
 
 def snap_to_surface(points_mm: np.ndarray, surface_points_mm: np.ndarray) -> np.ndarray:
     """Each point moved to its nearest measured surface point (object frame, mm)."""
-    from scipy.spatial import cKDTree
-
     surf = np.asarray(surface_points_mm, dtype=float)
     _, idx = cKDTree(surf).query(np.asarray(points_mm, dtype=float).reshape(-1, 3))
     return surf[idx]
