@@ -691,17 +691,24 @@ def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbour
     theirs, and densification, which bisects the seam, puts several probes there. They
     form a "region" of their own that is no material. A region is such a transition
     band when each of its pieces (connected on the surface graph) is sandwiched between two
-    regions A and B: every point of the piece borders a point of A and a point of B, the
-    piece's median peak depth lies strictly between A's and B's at every survey force, and
-    the piece has fewer points than either. Each point of the piece joins A or B, whichever
-    median it is nearer to in log depth. The pieces may lie on different seams (A, B
-    differing per piece): on suite slab 1003 (two inclusions, hard rubber and elastomer,
-    in a gel) the probes on both inclusions' seams read alike and formed one fifth region.
+    regions A and B: the piece runs along their seam (every point of it borders A or B, and
+    borders both or a point of the piece that does), the piece's median peak depth lies
+    strictly between A's and B's at every survey force, and the piece has fewer points than
+    either. Each point of the piece joins A or B, whichever median it is nearer to in log
+    depth. The pieces may lie on different seams (A, B differing per piece): on suite slab
+    1003 (two inclusions, hard rubber and elastomer, in a gel) the probes on both
+    inclusions' seams read alike and formed one fifth region.
     A real material probed only along seams looks the same; once probed off the seam it
     has interior points and is kept. The piece, not the region, is weighed against A and B:
     densification keeps adding seam probes, and on slab 1003's round 3 the band's 12 (on two
     seams) matched the hard-rubber disc's 12 interior probes, so a region-wide count kept a
-    fifth region.
+    fifth region. A band two probes thick has probes that border one side only, behind
+    probes that border both: on unseen slab 1612 (run seed 1, rounds 1-3) two of a
+    hard-rubber disc's four seam probes bordered the sponge and the band, not the disc's
+    interior, and a fourth region of three materials stayed. A piece with a point of its
+    own interior (bordering neither A nor B), or with a point that borders one side only
+    and no probe of the piece that borders both, is no band: a strip of a real material between two
+    others has probes that border one of them only.
 
     ``seen_from_mm`` (N,): where each point's peaks were read (:data:`SEEN_FROM_FEATURE`). A
     region whose peaks were read (median) farther out than the piece's by more than
@@ -784,15 +791,16 @@ def _sandwich(piece: np.ndarray, band: int, labels: np.ndarray, neighbours: list
               log_depth: np.ndarray, region_median: np.ndarray, sizes: np.ndarray,
               seen_from_mm: np.ndarray, region_read_at_mm: np.ndarray,
               region_unmeasured: np.ndarray | None = None) -> tuple[int, int] | None:
-    """The pair of regions (a, b) a piece of region ``band`` is the blend of, or None: every
-    point of the piece borders both, both regions have more points than the piece, and at
+    """The pair of regions (a, b) a piece of region ``band`` is the blend of, or None: the
+    piece runs along their seam (every point borders a or b, and borders both or a point
+    of the piece that does), both regions have more points than the piece, and at
     every force the piece's median log depth lies strictly between theirs, or beyond the
     deeper one's where that one's peaks were read farther out than the piece's by more than
     :data:`NEAR_CONTACT_BAND_MM` (lower bounds), or below the shallower one's where that one's
     dent is not measured (``region_unmeasured`` (k,F), True there); strictly between at one
     force at least."""
     touching = [set(int(v) for v in labels[neighbours[i]]) - {band} for i in piece]
-    common = set.intersection(*touching) if touching else set()
+    around = set.union(*touching) if touching else set()
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         mid = np.nanmedian(log_depth[piece], axis=0)
@@ -812,8 +820,20 @@ def _sandwich(piece: np.ndarray, band: int, labels: np.ndarray, neighbours: list
         below = (mid <= region_median[shallower, np.arange(mid.size)]) & in_noise
         return bool(np.any(between) and np.all(between | beyond | below))
 
-    return next(((a, b) for a in sorted(common) for b in sorted(common)
-                 if a < b and sizes[a] > piece.size and sizes[b] > piece.size and blend_of(a, b)), None)
+    position = {int(i): n for n, i in enumerate(piece)}
+
+    def on_seam(a: int, b: int) -> bool:
+        # Every point is on the piece's edge (no interior of its own) and borders both A
+        # and B or a point of the piece that does: the piece runs along the A|B seam.
+        if not all(t & {a, b} for t in touching):
+            return False
+        both = [{a, b} <= t for t in touching]
+        return all(both[n] or any(both[position[int(j)]] for j in neighbours[i] if int(j) in position)
+                   for n, i in enumerate(piece))
+
+    return next(((a, b) for a in sorted(around) for b in sorted(around)
+                 if a < b and sizes[a] > piece.size and sizes[b] > piece.size and on_seam(a, b)
+                 and blend_of(a, b)), None)
 
 
 def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list[str] | None = None, *,
