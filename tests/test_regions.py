@@ -725,9 +725,9 @@ def test_recorded_seam_band_whose_outer_probes_border_one_side_is_absorbed():
     """Recorded survey of unseen slab 1612 (sponge 0, gel 1, hard-rubber disc 2; run seed 1),
     round 1, 405 probes: four hard-rubber probes 2.1-2.6 mm inside the sponge's seam read
     0.05-0.10 mm at 6.5 N, between the disc's interior (0.008 mm, unmeasured) and the sponge
-    (1.15 mm). Two of them border the sponge and the band only, not the disc's interior: the
-    band's probes nearer the disc stand between them and it. "Every point borders both"
-    kept a fourth region of three materials in rounds 1-3. Each of those two borders one
+    (1.15 mm). One of them borders the sponge and the band only, not the disc's interior:
+    the band's probes nearer the disc stand between it and the disc. "Every point borders
+    both" kept a fourth region of three materials in rounds 1-3. That probe borders one
     side and a band probe that borders both: the band runs along the seam. Three regions,
     each material's probes away from the seams in a region of their own."""
     data, names, noise = _recorded("slab_hard_disc_1612_r1.npz")

@@ -703,12 +703,12 @@ def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbour
     densification keeps adding seam probes, and on slab 1003's round 3 the band's 12 (on two
     seams) matched the hard-rubber disc's 12 interior probes, so a region-wide count kept a
     fifth region. A band two probes thick has probes that border one side only, behind
-    probes that border both: on unseen slab 1612 (run seed 1, rounds 1-3) two of a
-    hard-rubber disc's four seam probes bordered the sponge and the band, not the disc's
-    interior, and a fourth region of three materials stayed. A piece with a point of its
-    own interior (bordering neither A nor B), or with a point that borders one side only
-    and no probe of the piece that borders both, is no band: a strip of a real material between two
-    others has probes that border one of them only.
+    probes that border both: on unseen slab 1612 (run seed 1) one of a hard-rubber disc's
+    four seam probes in round 1, and two of seven in rounds 2-3, bordered the sponge and the
+    band, not the disc's interior, and a fourth region of three materials stayed. A piece
+    with a point of its own interior (bordering neither A nor B), or with a point that
+    borders one side only and no neighbour in the piece that borders both, is no band: a
+    strip of a real material between two others has probes that border one of them only.
 
     ``seen_from_mm`` (N,): where each point's peaks were read (:data:`SEEN_FROM_FEATURE`). A
     region whose peaks were read (median) farther out than the piece's by more than
