@@ -30,7 +30,8 @@ slope), and the surface graph (neighbour pairs of the neural-gas units).
    sandwiched between two regions, smaller than both, its dent between theirs, or beyond
    a neighbour's lower bound, or below a neighbour's dent that is within its noise:
    :func:`_absorb_transition_bands`) is split
-   between them (``stats["transition_band_points"]``).
+   between them, and so is each such piece of a real region
+   (``stats["transition_band_points"]``).
 4. Region ids are sorted by the mean of one feature (default column 0, the peak depth
    at the smallest survey force: region 0 is the stiffest), so reruns on the same data
    give the same ids.
