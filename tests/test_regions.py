@@ -742,8 +742,8 @@ def test_recorded_seam_band_whose_outer_probes_border_one_side_is_absorbed():
 
 def test_recorded_seam_pieces_at_a_third_materials_level_leave_its_region():
     """The same 1612 round: seven more hard-rubber probes, 0.6-1.6 mm inside the disc's seam
-    with the sponge, read 0.23-0.49 mm at 6.5 N, the gel's level (0.36 mm): a seam between
-    materials 140x apart passes through every level between. They join the gel's region as
+    with the sponge, read 0.23-0.49 mm at 6.5 N: between the disc's interior (0.008 mm) and
+    the sponge (1.15 mm), at the gel's level (0.36 mm). They join the gel's region as
     five pieces on the disc's seam, away from the gel strip. The region is the gel, so it
     is no band, but each piece is: it runs along the hard rubber | sponge seam and reads
     between them. Weighing only whole regions left them with the gel, whose map then drew

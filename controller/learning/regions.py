@@ -699,9 +699,9 @@ def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbour
     whose pieces are all bands goes; a band piece of a real region leaves it on its own: on
     unseen slab 1612 (run seed 1) a hard-rubber disc's seam probes that read at a gel's level
     joined the gel's region as five pieces on the disc's seam, away from the gel strip, and
-    drew the disc's rim as gel. The pieces may lie on different seams (A, B differing per piece): on suite slab
-    1003 (two inclusions, hard rubber and elastomer, in a gel) the probes on both
-    inclusions' seams read alike and formed one fifth region.
+    drew the disc's rim as gel. The pieces may lie on different seams (A, B differing per
+    piece): on suite slab 1003 (two inclusions, hard rubber and elastomer, in a gel) the
+    probes on both inclusions' seams read alike and formed one fifth region.
     A real material probed only along seams looks the same; once probed off the seam it
     has interior points and is kept. The piece, not the region, is weighed against A and B:
     densification keeps adding seam probes, and on slab 1003's round 3 the band's 12 (on two
