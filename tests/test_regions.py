@@ -721,6 +721,15 @@ def test_recorded_seam_band_below_an_unmeasured_stiff_dent_is_absorbed():
     _each_material_in_a_region_of_its_own(rm, truth, data["seam"] > 3.0, purity=0.95)
 
 
+def _cluster_recorded_1612_round_1():
+    """Unseen slab 1612's recorded round 1: (data, truth per probe, the region map)."""
+    data, names, noise = _recorded("slab_hard_disc_1612_r1.npz")
+    rm = cluster_regions(data["feats"], data["edges"].astype(np.int64), names, seed=int(data["seed"]),
+                         min_contrast=float(data["min_contrast"]), noise_mm=noise,
+                         previous_labels=data["previous"].astype(np.int64), far_field_mm=data["far"])
+    return data, data["truth"].astype(np.int64), rm
+
+
 def test_recorded_seam_band_whose_outer_probes_border_one_side_is_absorbed():
     """Recorded survey of unseen slab 1612 (sponge 0, gel 1, hard-rubber disc 2; run seed 1),
     round 1, 405 probes: four hard-rubber probes 2.1-2.6 mm inside the sponge's seam read
@@ -730,11 +739,23 @@ def test_recorded_seam_band_whose_outer_probes_border_one_side_is_absorbed():
     both" kept a fourth region of three materials in rounds 1-3. That probe borders one
     side and a band probe that borders both: the band runs along the seam. Three regions,
     each material's probes away from the seams in a region of their own."""
-    data, names, noise = _recorded("slab_hard_disc_1612_r1.npz")
-    truth = data["truth"].astype(np.int64)
-    rm = cluster_regions(data["feats"], data["edges"].astype(np.int64), names, seed=int(data["seed"]),
-                         min_contrast=float(data["min_contrast"]), noise_mm=noise,
-                         previous_labels=data["previous"].astype(np.int64), far_field_mm=data["far"])
+    data, truth, rm = _cluster_recorded_1612_round_1()
     assert rm.n_regions == 3
     assert len(rm.stats["transition_band_points"]) >= 4
+    _each_material_in_a_region_of_its_own(rm, truth, data["seam"] > 3.0, purity=0.95)
+
+
+def test_recorded_seam_pieces_at_a_third_materials_level_leave_its_region():
+    """The same 1612 round: seven more hard-rubber probes, 0.6-1.6 mm inside the disc's seam
+    with the sponge, read 0.23-0.49 mm at 6.5 N: between the disc's interior (0.008 mm) and
+    the sponge (1.15 mm), at the gel's level (0.36 mm). They join the gel's region as
+    five pieces on the disc's seam, away from the gel strip. The region is the gel, so it
+    is no band, but each piece is: it runs along the hard rubber | sponge seam and reads
+    between them. Weighing only whole regions left them with the gel, whose map then drew
+    the disc's rim as gel. Each such piece leaves on its own; the gel's region holds gel
+    probes only, and the three materials keep their regions."""
+    data, truth, rm = _cluster_recorded_1612_round_1()
+    assert rm.n_regions == 3
+    gel = int(np.bincount(rm.labels[(truth == 1) & (data["seam"] > 3.0)]).argmax())
+    assert set(truth[rm.labels == gel].tolist()) == {1}
     _each_material_in_a_region_of_its_own(rm, truth, data["seam"] > 3.0, purity=0.95)

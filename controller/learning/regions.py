@@ -30,7 +30,8 @@ slope), and the surface graph (neighbour pairs of the neural-gas units).
    sandwiched between two regions, smaller than both, its dent between theirs, or beyond
    a neighbour's lower bound, or below a neighbour's dent that is within its noise:
    :func:`_absorb_transition_bands`) is split
-   between them (``stats["transition_band_points"]``).
+   between them, and so is each such piece of a real region
+   (``stats["transition_band_points"]``).
 4. Region ids are sorted by the mean of one feature (default column 0, the peak depth
    at the smallest survey force: region 0 is the stiffest), so reruns on the same data
    give the same ids.
@@ -689,15 +690,18 @@ def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbour
 
     Where two materials meet, a probe on the seam presses both: its dent lies between
     theirs, and densification, which bisects the seam, puts several probes there. They
-    form a "region" of their own that is no material. A region is such a transition
-    band when each of its pieces (connected on the surface graph) is sandwiched between two
-    regions A and B: the piece runs along their seam (every point of it borders A or B, and
-    borders both or a point of the piece that does), the piece's median peak depth lies
-    strictly between A's and B's at every survey force, and the piece has fewer points than
-    either. Each point of the piece joins A or B, whichever median it is nearer to in log
-    depth. The pieces may lie on different seams (A, B differing per piece): on suite slab
-    1003 (two inclusions, hard rubber and elastomer, in a gel) the probes on both
-    inclusions' seams read alike and formed one fifth region.
+    form a "region" of their own that is no material. A piece of a region (connected on the
+    surface graph) is such a transition band when it is sandwiched between two regions A and
+    B: the piece runs along their seam (every point of it borders A or B, and borders both
+    or a point of the piece that does), the piece's median peak depth lies strictly between
+    A's and B's at every survey force, and the piece has fewer points than either. Each
+    point of the piece joins A or B, whichever median it is nearer to in log depth. A region
+    whose pieces are all bands goes; a band piece of a real region leaves it on its own: on
+    unseen slab 1612 (run seed 1) a hard-rubber disc's seam probes that read at a gel's level
+    joined the gel's region as five pieces on the disc's seam, away from the gel strip, and
+    drew the disc's rim as gel. The pieces may lie on different seams (A, B differing per
+    piece): on suite slab 1003 (two inclusions, hard rubber and elastomer, in a gel) the
+    probes on both inclusions' seams read alike and formed one fifth region.
     A real material probed only along seams looks the same; once probed off the seam it
     has interior points and is kept. The piece, not the region, is weighed against A and B:
     densification keeps adding seam probes, and on slab 1003's round 3 the band's 12 (on two
@@ -738,6 +742,7 @@ def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbour
     cols = np.log(np.maximum(features[:, depth_columns], 1e-6))
     seen_from = (np.zeros(labels.shape[0]) if seen_from_mm is None
                  else np.asarray(seen_from_mm, dtype=float).reshape(-1))
+    moved = np.zeros(labels.shape[0], dtype=bool)
     while True:
         labels, k = _compact(labels)
         if k < 3:
@@ -755,14 +760,19 @@ def _absorb_transition_bands(features: np.ndarray, labels: np.ndarray, neighbour
             pieces = _pieces(np.flatnonzero(labels == band), neighbours)
             sides = [_sandwich(piece, int(band), labels, neighbours, cols, med, sizes, seen_from, read_at,
                                unmeasured) for piece in pieces]
-            pairs = [pair for pair in sides if pair is not None]
-            if len(pairs) < len(pieces):
+            blends = [(piece, pair) for piece, pair in zip(pieces, sides) if pair is not None]
+            if len(blends) < len(pieces):
+                # Part of a real region: its blend pieces go, the region stays. A point moves
+                # once this way, so the loop ends (otherwise the region count falls each pass).
+                blends = [(piece, pair) for piece, pair in blends if not moved[piece].any()]
+            if not blends:
                 continue
-            for piece, (a, b) in zip(pieces, pairs):
+            for piece, (a, b) in blends:
                 with np.errstate(all="ignore"):
                     da = np.nanmean(np.abs(cols[piece] - med[a]), axis=1)
                     db = np.nanmean(np.abs(cols[piece] - med[b]), axis=1)
                 labels[piece] = np.where(np.nan_to_num(da, nan=np.inf) <= np.nan_to_num(db, nan=np.inf), a, b)
+                moved[piece] = True
                 relabelled.extend(int(i) for i in piece)
             done = False
             break
