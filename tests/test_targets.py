@@ -6,7 +6,8 @@ from scipy.spatial import cKDTree
 from elastoprobe.controller.learning.cloud import box_on_pillow_mesh, local_geometry, sample_mesh
 from elastoprobe.controller.learning.profiles import MAX_FACE_SLOPE
 from elastoprobe.controller.learning.targets import (TargetRules, _Surface, border_scan_frames, face_runs_mm,
-                                                     make_targets, probeable, scan_frames, surface_graph)
+                                                     make_targets, probeable, probeable_and_rim_band, scan_frames,
+                                                     surface_graph)
 
 from test_neural_gas import BOX_TOP, BOX_X, BOX_Y, PILLOW_A, PILLOW_B, PILLOW_H, box_edge_tree
 
@@ -271,8 +272,6 @@ def test_the_rim_band_lies_between_the_band_clearance_and_the_survey_clearance(s
     part is exactly ``probeable``; the band lies off it, nearer the box's sharp edges than the
     survey clearance allows but no nearer than the band's clearance; with the band clearance
     at the survey's it is empty."""
-    from elastoprobe.controller.learning.targets import probeable_and_rim_band
-
     pts, normals, curv = scene["pts"], scene["normals"], scene["curv"]
     survey, band = probeable_and_rim_band(pts, normals, curv, RULES, band_clearance_mm=RULES.tip_radius_mm)
     np.testing.assert_array_equal(survey, probeable(pts, normals, curv, RULES))

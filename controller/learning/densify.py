@@ -366,7 +366,7 @@ def rim_candidates(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np.n
         if not 0.0 < dist <= step:
             continue
         u = (band[b] - pos[k]) / dist
-        _, c = band_tree.query(pos[k] + max(step, float(dist)) * u)
+        _, c = band_tree.query(pos[k] + step * u)
         if probes.query(band[c])[0] < 0.5 * step:
             continue
         rel = band - pos[k]
