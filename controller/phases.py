@@ -807,13 +807,20 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
         found = _region_features(ctx, ids)
         assert found is not None
         curv = cl.curvature(ctx.cloud_mm, k=16)
-        surface = ctx.cloud_mm[tg.probeable(ctx.cloud_mm, ctx.cloud_normals, curv, _target_rules(ctx))]
+        radius = ctx.inputs.cell.tool.tip_radius_mm
+        survey_ok, band_ok = tg.probeable_and_rim_band(
+            ctx.cloud_mm, ctx.cloud_normals, curv, _target_rules(ctx),
+            radius if dp.rim_clearance_mm is None else dp.rim_clearance_mm)
+        # New points snap to where a target may go: the survey's surface, or the rim band
+        # beyond it that a seam running out toward the rim is followed into.
+        surface = ctx.cloud_mm[survey_ok | band_ok]
         rnd = dn.plan_round(round_, pts, np.asarray(edges).reshape(-1, 2), labels, ctx.models,
                             forces_n=grid_forces, angles_deg=np.array(sv.angles_deg, dtype=float),
                             noise_mm=noise, budget=dp.points_per_round,
                             min_spacing_mm=dp.min_spacing_mm, resolution_mm=dp.resolution_mm,
                             surface_points_mm=surface if len(surface) else ctx.cloud_mm,
-                            border=border, **dn.survey_evidence(found[0], found[1], labels, noise, sv.min_contrast))
+                            border=border, band_points_mm=ctx.cloud_mm[band_ok],
+                            **dn.survey_evidence(found[0], found[1], labels, noise, sv.min_contrast))
         new_pts = canonical(np.asarray(rnd.proposed_mm, dtype=float).reshape(-1, 3), 6)
         new_nrm = canonical(_cloud_normals_at(ctx, new_pts), 9)
         first = max(ctx.targets) + 1 if ctx.targets else 0

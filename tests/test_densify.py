@@ -303,3 +303,35 @@ def test_a_small_region_mostly_seam_points_is_split_next_to_them():
     assert np.all((where[crossing] >= 0.2) & (where[crossing] < 0.4))
     assert np.allclose(where[crossing & (part[edges[:, 0]] > 0.5)], 0.2)
     assert np.allclose(where[~crossing], 0.5)
+
+
+def test_a_seam_that_runs_out_toward_the_rim_band_is_followed_into_it():
+    """A stiff inclusion (x <= 10, y 30-50) on the 10 mm grid's left side, where the survey
+    stopped 3 mm short of a 12 mm rim band (x -15 to -3) that densify may still probe. The
+    seam's ends beside the band (x = 0, y 20-60) each get one point a spacing out (x = -10),
+    scored as their crossing edges; the map would otherwise draw the inclusion out to the rim.
+    (0, 40), whose neighbours are all the inclusion's, has no seam to follow; ends farther in,
+    and a round with no band, get none; a point already probed there is not proposed again."""
+    labels = ((POS[:, 0] <= 10.0) & (POS[:, 1] >= 30.0) & (POS[:, 1] <= 50.0)).astype(int)
+    bx, by = np.meshgrid(np.arange(-15.0, -2.5, 1.0), np.arange(-5.0, 95.5, 1.0))
+    band = np.column_stack([bx.ravel(), by.ravel(), np.zeros(bx.size)])
+    models = {0: _Dent(2.0, 0.1), 1: _Dent(0.1, 0.1)}
+    rnd = plan_round(1, POS, EDGES, labels, models, SURVEY_F, SURVEY_A, NOISE_MM, budget=20,
+                     min_spacing_mm=3.0, resolution_mm=6.0, band_points_mm=band)
+    ends = sorted(int(k) for k in rnd.extra["rim_from"])
+    assert ends == [k for k in range(N * N) if POS[k, 0] == 0.0 and POS[k, 1] in (20.0, 30.0, 50.0, 60.0)]
+    prop = np.asarray(rnd.proposed_mm)
+    in_band = prop[prop[:, 0] < -2.5]
+    assert sorted(in_band[:, 1].tolist()) == [20.0, 30.0, 50.0, 60.0]
+    assert np.allclose(in_band[:, 0], -10.0)
+    assert "rim band" in rnd.reason and not rnd.resolved
+    plain = plan_round(1, POS, EDGES, labels, models, SURVEY_F, SURVEY_A, NOISE_MM, budget=20,
+                       min_spacing_mm=3.0, resolution_mm=6.0)
+    assert plain.extra["rim_from"] == [] and np.all(np.asarray(plain.proposed_mm)[:, 0] >= 0.0)
+    probed = np.vstack([POS, in_band])
+    grown = np.concatenate([labels, np.zeros(len(in_band), dtype=int)])
+    extra_edges = np.array([[int(np.flatnonzero((POS[:, 0] == 0.0) & (POS[:, 1] == y))[0]), N * N + k]
+                            for k, y in enumerate(in_band[:, 1])])
+    again = plan_round(2, probed, np.vstack([EDGES, extra_edges]), grown, models, SURVEY_F, SURVEY_A, NOISE_MM,
+                       budget=20, min_spacing_mm=3.0, resolution_mm=6.0, band_points_mm=band)
+    assert not any(p[0] < -2.5 and abs(p[0] + 10.0) < 5.0 for p in again.proposed_mm)

@@ -6,7 +6,8 @@ from scipy.spatial import cKDTree
 from elastoprobe.controller.learning.cloud import box_on_pillow_mesh, local_geometry, sample_mesh
 from elastoprobe.controller.learning.profiles import MAX_FACE_SLOPE
 from elastoprobe.controller.learning.targets import (TargetRules, _Surface, border_scan_frames, face_runs_mm,
-                                                     make_targets, probeable, scan_frames, surface_graph)
+                                                     make_targets, probeable, probeable_and_rim_band, scan_frames,
+                                                     surface_graph)
 
 from test_neural_gas import BOX_TOP, BOX_X, BOX_Y, PILLOW_A, PILLOW_B, PILLOW_H, box_edge_tree
 
@@ -264,3 +265,21 @@ def test_the_tip_fits_in_a_groove_only_if_the_groove_is_wider_than_the_tip(groov
     surf = _Surface(cloud, normals, np.zeros(len(cloud)), TargetRules(tip_radius_mm=5.0), np.array([0.0, 0.0, 1.0]))
     bottom = np.flatnonzero((np.abs(x) < 0.2) & (np.abs(cloud[:, 1]) < 2.0))
     assert surf.tip_fits(bottom).all() == fits and surf.tip_fits(bottom).any() == fits
+
+
+def test_the_rim_band_lies_between_the_band_clearance_and_the_survey_clearance(scene):
+    """Densify's rim band (targets.probeable_and_rim_band) on the box-on-pillow: the survey's
+    part is exactly ``probeable``; the band lies off it, nearer the box's sharp edges than the
+    survey clearance allows but no nearer than the band's clearance; with the band clearance
+    at the survey's it is empty."""
+    pts, normals, curv = scene["pts"], scene["normals"], scene["curv"]
+    survey, band = probeable_and_rim_band(pts, normals, curv, RULES, band_clearance_mm=RULES.tip_radius_mm)
+    np.testing.assert_array_equal(survey, probeable(pts, normals, curv, RULES))
+    assert band.sum() > 1000 and not np.any(band & survey)
+    # The band also runs along the pillow's rim; the box's edges are the ones the truth has.
+    edge_dist_mm, _ = scene["edges"].query(pts[band])
+    by_box = edge_dist_mm[edge_dist_mm < 20.0]
+    survey_dist_mm, _ = scene["edges"].query(pts[survey])
+    assert by_box.size > 1000 and by_box.min() >= RULES.tip_radius_mm
+    assert np.median(by_box) < survey_dist_mm.min()
+    assert not probeable_and_rim_band(pts, normals, curv, RULES, band_clearance_mm=RULES.clearance_mm)[1].any()

@@ -414,6 +414,11 @@ class DensifySpec(Spec):
     points_per_round: int = Field(8, ge=1, le=500)
     min_spacing_mm: float = Field(5.0, gt=0, le=200)
     resolution_mm: float = Field(12.0, gt=0, le=200)
+    # How near a sharp edge densify may follow a seam that runs out toward the rim, where the
+    # survey kept `sampling.edge_clearance_mm` (docs/design.md, Densify). None: one tip
+    # radius, the ball resting wholly on the face. At or above the edge clearance: never
+    # nearer than the survey.
+    rim_clearance_mm: float | None = Field(None, ge=0, le=200)
 
     @model_validator(mode="after")
     def _splittable(self) -> "DensifySpec":

@@ -329,6 +329,58 @@ def ring_candidates(positions_mm: np.ndarray, edges: np.ndarray, centres: np.nda
     return ring, np.concatenate(owner)
 
 
+def rim_candidates(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np.ndarray, labels: np.ndarray,
+                   band_points_mm: np.ndarray | None, threshold: float = DEFAULT_THRESHOLD
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Points (C,3) in the rim band beyond a seam's outermost probes, their scores (C,), the
+    area (C,) mm^2 each speaks for, and the point (C,) each steps out from.
+
+    The survey keeps its edge clearance from a sharp edge, so between a seam's outermost
+    probes and the rim lies a band (``band_points_mm``: where densify may still probe, the
+    tip on the face, but the survey did not go) that the map fills from the nearest probe:
+    an inclusion near the rim is drawn out to it. Each end of a crossing edge scoring at
+    least ``threshold`` that lies within its survey spacing (the median length of its edges)
+    of the band gets one candidate: a spacing from it toward the band's nearest point,
+    snapped to the band, unless a probe already stands within half a spacing of that. Its
+    score is the end's best crossing edge; its area the spacing times the band's depth
+    beyond it (what the nearest-probe rule would otherwise extrapolate).
+    """
+    pos = np.asarray(positions_mm, dtype=float).reshape(-1, 3)
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    empty = (np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64))
+    if band_points_mm is None or len(band_points_mm) == 0 or e.shape[0] == 0:
+        return empty
+    band = np.asarray(band_points_mm, dtype=float).reshape(-1, 3)
+    lab = np.asarray(labels)
+    es = np.asarray(edge_score, dtype=float)
+    hot = (lab[e[:, 0]] != lab[e[:, 1]]) & (np.nan_to_num(es, nan=-np.inf) >= threshold)
+    if not hot.any():
+        return empty
+    lengths = np.linalg.norm(pos[e[:, 0]] - pos[e[:, 1]], axis=1)
+    band_tree, probes = cKDTree(band), cKDTree(pos)
+    out, scores, areas, source = [], [], [], []
+    for k in np.unique(e[hot].ravel()):
+        mine = (e[:, 0] == k) | (e[:, 1] == k)
+        step = float(np.median(lengths[mine]))
+        dist, b = band_tree.query(pos[k])
+        if not 0.0 < dist <= step:
+            continue
+        u = (band[b] - pos[k]) / dist
+        _, c = band_tree.query(pos[k] + step * u)
+        if probes.query(band[c])[0] < 0.5 * step:
+            continue
+        rel = band - pos[k]
+        along = rel @ u
+        beside = np.linalg.norm(rel - along[:, None] * u, axis=1) <= 0.5 * step
+        out.append(band[c])
+        scores.append(float(np.max(es[mine & hot])))
+        areas.append(step * float(np.max(along[beside & (along > 0)], initial=dist)))
+        source.append(int(k))
+    if not out:
+        return empty
+    return np.asarray(out), np.asarray(scores), np.asarray(areas), np.asarray(source, dtype=np.int64)
+
+
 def lone_points(labels: np.ndarray, min_points: int = LONE_REGION_POINTS) -> np.ndarray:
     """(N,) True for the points of a region with fewer than ``min_points`` points."""
     lab = np.asarray(labels, dtype=np.int64).reshape(-1)
@@ -448,7 +500,7 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
                surface_points_mm: np.ndarray | None = None,
                survey_scores: Mapping[tuple[int, int], float] | None = None,
                misfit: np.ndarray | None = None, levels: np.ndarray | None = None,
-               border: np.ndarray | None = None) -> DensifyRound:
+               border: np.ndarray | None = None, band_points_mm: np.ndarray | None = None) -> DensifyRound:
     """Score the current map, apply the stop rule and propose the next survey points.
 
     ``forces_n``, ``angles_deg``: the survey probe settings; ``posterior`` (N,K) optional
@@ -463,6 +515,8 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
     middle 60 % of the edge), the midpoint when both ends are pure; ``border`` (E,): the length of the border between each edge's two cells
     (surface_map.shared_border). Candidates are taken in decreasing edge length x border
     (the area whose label is unresolved; length alone without ``border``).
+    ``band_points_mm``: the rim band, where densify may probe and the survey did not go
+    (:func:`rim_candidates`): a seam whose crossing edges end beside it is followed out.
     When resolved, nothing is proposed; when nothing can be placed (spacing), the reason
     says so.
     """
@@ -509,6 +563,11 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
         reason += (f"; around {int(np.sum(doubt >= threshold))} points that their region explains badly, that lie "
                    f"between regions or that are their region's only ones, edges longer than {resolution_mm:g} mm "
                    "remain")
+    rim, rim_scores, rim_area, rim_from = rim_candidates(positions_mm, e, es, lab, band_points_mm, threshold)
+    if rim_scores.size:
+        resolved = False
+        reason += f"; {rim_scores.size} seam ends beside the rim band, unprobed beyond them"
+        cand, cs, area = np.vstack([cand, rim]), np.concatenate([cs, rim_scores]), np.concatenate([area, rim_area])
     proposed = np.zeros((0, 3))
     proposed_scores = np.zeros(0)
     if not resolved:
@@ -524,4 +583,5 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
         disagreeing_edges=e[hot].tolist(), disagreeing_scores=[_finite_or_none(v) for v in es[hot]],
         proposed_mm=proposed.tolist(), proposed_scores=[_finite_or_none(v) for v in proposed_scores],
         resolved=resolved, reason=reason, extra={"misfit_points": np.flatnonzero(odd).tolist(),
-                                                      "ring_around": sorted(set(owner.tolist()))})
+                                                      "ring_around": sorted(set(owner.tolist())),
+                                                      "rim_from": rim_from.tolist()})

@@ -116,7 +116,8 @@ class _Surface:
         edge = np.asarray(curvature) > rules.edge_curvature
         self.edge_tree = cKDTree(self.points[edge]) if edge.any() else None
         # The edge is known only to within the point spacing: keep that much more clearance.
-        self.guard_mm = rules.clearance_mm + self._spacing_mm()
+        self.spacing_mm = self._spacing_mm()
+        self.guard_mm = rules.clearance_mm + self.spacing_mm
         self._plan_tree: cKDTree | None = None   # the cloud seen from up, built on first use
 
     def _spacing_mm(self, n_probe: int = 20_000) -> float:
@@ -126,10 +127,13 @@ class _Surface:
         dist, _ = self.tree.query(probe, k=2)
         return float(np.median(dist[:, 1]))
 
-    def near_edge(self, idx: np.ndarray) -> np.ndarray:
+    def near_edge(self, idx: np.ndarray, clearance_mm: float | None = None) -> np.ndarray:
+        """True where a sharp edge lies within the clearance (the rules', unless given) plus
+        the point spacing."""
         if self.edge_tree is None:
             return np.zeros(len(idx), dtype=bool)
-        dist, _ = self.edge_tree.query(self.points[idx], distance_upper_bound=self.guard_mm)
+        guard = self.guard_mm if clearance_mm is None else clearance_mm + self.spacing_mm
+        dist, _ = self.edge_tree.query(self.points[idx], distance_upper_bound=guard)
         return np.isfinite(dist)
 
     def tip_fits(self, idx: np.ndarray, chunk: int = 20_000) -> np.ndarray:
@@ -216,8 +220,28 @@ def probeable(cloud_mm: np.ndarray, normals: np.ndarray, curvature: np.ndarray, 
     gave 2 targets; on a block with rounded shoulders 23 units gave 9.
     """
     surf = _Surface(cloud_mm, normals, curvature, rules, np.asarray(up, dtype=float))
+    return _probeable_within(surf, rules.clearance_mm)
+
+
+def probeable_and_rim_band(cloud_mm: np.ndarray, normals: np.ndarray, curvature: np.ndarray,
+                           rules: TargetRules, band_clearance_mm: float,
+                           up: "np.ndarray | tuple" = (0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
+    """(P,) :func:`probeable` with ``rules``, and (P,) the rim band: the points that pass every
+    test with the edge clearance cut to ``band_clearance_mm`` (mm) but are too near an edge for
+    the rules' own. Empty when ``band_clearance_mm`` is not below the rules' clearance, and
+    along a rim where the cloud shows no sharp edge (a wall the sweep did not see: survey
+    targets stand near such a rim already)."""
+    surf = _Surface(cloud_mm, normals, curvature, rules, np.asarray(up, dtype=float))
+    near = _probeable_within(surf, min(float(band_clearance_mm), rules.clearance_mm))
+    far = near & ~surf.near_edge(np.arange(surf.points.shape[0]))
+    return far, near & ~far
+
+
+def _probeable_within(surf: _Surface, clearance_mm: float) -> np.ndarray:
+    """(P,) the :func:`probeable` tests, keeping ``clearance_mm`` (plus the spacing) from edges."""
+    rules = surf.rules
     idx = np.arange(surf.points.shape[0])
-    ok = surf.tilt_ok(idx) & ~surf.near_edge(idx)
+    ok = surf.tilt_ok(idx) & ~surf.near_edge(idx, clearance_mm)
     if ok.any():
         counts = surf.tree.query_ball_point(surf.points[ok], rules.density_radius_mm, return_length=True)
         ok[np.flatnonzero(ok)[np.asarray(counts) < rules.min_neighbours]] = False
