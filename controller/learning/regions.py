@@ -675,6 +675,98 @@ def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.n
     return labels, sorted(set(relabelled)), sorted(kept)
 
 
+def _enclosed_materials(features: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray],
+                        depth_columns: list[int], min_contrast: float, floor_mm: float,
+                        far_field_mm: np.ndarray | None, seen_from_mm: np.ndarray | None,
+                        distinct: Callable[[np.ndarray, np.ndarray], bool],
+                        unread: np.ndarray | None = None) -> tuple[np.ndarray, list[int]]:
+    """Give back a material that the spatial steps folded into the region around it.
+
+    A point is odd in its region when, at every survey force where its dent or the region's
+    median is measured (+ ``floor_mm``, beyond ``MEASURED_DENT_NOISES`` of the region's peak
+    scatters: :func:`peak_noise_mm` of its far fields ``far_field_mm``), and there is one,
+    its peak (+ ``floor_mm``) lies a factor ``min_contrast`` beyond the region's median
+    (+ ``floor_mm``) and more than 3 scatters away, all on one side. Every measured force,
+    not one: a softer material dents deeper at every force by about one factor, and on suite
+    slab 1012 (round 4 of a recorded run) two neighbouring elastomer probes 40 mm inside
+    read 3x their region at 1.5 N and 1.3-1.7x at 4.5 N. Odd points of one region, odd the
+    same way and connected on the surface graph, form a piece; a piece of two points or more
+    whose every neighbour outside it lies in the region (enclosed: not a blend along a seam,
+    which :func:`_absorb_transition_bands` weighs) and that ``distinct(piece, rest)`` (the
+    contrast rule, measured on the piece's own far fields) calls another material is taken
+    out: it joins the other region that rule does not tell it from (nearest median in log
+    depth), or becomes a region of its own. A point read farther out than its region
+    (``seen_from_mm`` beyond the region's median by :data:`NEAR_CONTACT_BAND_MM`) reads
+    lower bounds: shallower is not odd. A point in ``unread`` (N,) (its dent falls as the
+    force rises, :func:`dent_falls_with_force`: it did not read its dent) is never odd: on
+    the same slab two trios of hard-rubber probes 40-70 mm from any seam read 0.034-0.047 mm
+    at 1.5 N and 0.011-0.026 mm at 4.5 N, which the contrast rule alone calls softer.
+
+    Why: iterated conditional modes weighs each point's likelihood under Gaussians with one
+    pooled covariance in log depth against its neighbours' votes, and a stiff material's
+    log depths scatter widely (its dents lie near the noise), so the likelihood of a point
+    on a small stiff-ish inclusion barely prefers its own cluster. On unseen slab 1703 (run
+    seed 1) seven survey probes on an elastomer ellipse (semi-axes 16.2 and 10.0 mm) read
+    0.038-0.054 mm at 4.5 N inside hard rubber at 0.013 mm (peak scatter 0.0076 mm); the
+    mixture gave them a cluster, with 13 hard-rubber probes from its tails, that the contrast
+    rule kept, and each probe, its neighbours mostly hard rubber, joined the hard rubber:
+    three regions of four in every round, the misfit rule (log depths again) saw nothing to
+    probe. Why two points: one deep reading among hundreds of one material is a scattered
+    return (four of 379 hard-rubber probes on that slab read 0.033-0.065 mm, scattered).
+    Returns (labels, indices of the points taken out).
+    """
+    labels = labels.copy()
+    if not depth_columns or min_contrast <= 1.0:
+        return labels, []
+    peaks = features[:, depth_columns]
+    floor = max(float(floor_mm), 1e-6)
+    seen_from = (np.zeros(labels.shape[0]) if seen_from_mm is None
+                 else np.asarray(seen_from_mm, dtype=float).reshape(-1))
+    taken: list[int] = []
+    for region in range(int(labels.max(initial=-1)) + 1):
+        members = np.flatnonzero(labels == region)
+        if members.size < 3:
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.maximum(np.nanmedian(peaks[members], axis=0), 0.0)
+            read_at = float(np.nanmedian(seen_from[members]))
+        noise = (peak_noise_mm(far_field_mm[members], floor) if far_field_mm is not None else floor)
+        value = np.maximum(peaks[members], 0.0)
+        with np.errstate(invalid="ignore"):
+            measured = np.maximum(value, med) + floor > MEASURED_DENT_NOISES * noise          # (M,F)
+            apart = np.abs(peaks[members] - med) > 3.0 * noise
+            ratio = (value + floor) / (med + floor)
+            deeper = apart & (peaks[members] > med) & (ratio >= min_contrast)
+            shallower = apart & (peaks[members] < med) & (ratio <= 1.0 / min_contrast)
+            readable = np.ones(members.size, dtype=bool) if unread is None else ~unread[members]
+            readable &= np.any(measured, axis=1)
+            odd_deeper = np.all(deeper | ~measured, axis=1) & readable
+            odd_shallower = (np.all(shallower | ~measured, axis=1) & readable
+                             & ~(seen_from[members] > read_at + NEAR_CONTACT_BAND_MM))
+        for odd in (members[odd_deeper], members[odd_shallower]):
+            for piece in _pieces(odd, neighbours):
+                if piece.size < 2:
+                    continue
+                border = np.setdiff1d(np.concatenate([neighbours[i] for i in piece]), piece)
+                if border.size == 0 or np.any(labels[border] != region):
+                    continue
+                rest = np.setdiff1d(np.flatnonzero(labels == region), piece)
+                if not distinct(piece, rest):
+                    continue
+                k = int(labels.max()) + 1
+                with np.errstate(all="ignore"), warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    level = np.log(np.nanmedian(np.maximum(peaks[piece], 0.0), axis=0) + floor)
+                    joins = [(float(np.nanmean(np.abs(level - np.log(np.nanmedian(
+                        np.maximum(peaks[labels == q], 0.0), axis=0) + floor)))), q)
+                        for q in range(k) if q != region and np.any(labels == q)
+                        and not distinct(piece, np.flatnonzero(labels == q))]
+                labels[piece] = min(joins)[1] if joins else k
+                taken.extend(int(i) for i in piece)
+    return labels, sorted(taken)
+
+
 def _region_medians(columns: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
     """(k, C) NaN-aware median of each column over each region's points (NaN: none seen)."""
     with np.errstate(all="ignore"), warnings.catch_warnings():
@@ -953,13 +1045,17 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
         labels, islands, kept = _remove_islands(labels, e, neighbours, min_island_points,
                                                 distinct if log_cols and min_contrast > 1.0 else None)
         labels, bands = _absorb_transition_bands(x, labels, neighbours, depth_cols, seen_from, far, floor_mm)
+        labels, enclosed = (_enclosed_materials(x, labels, neighbours, depth_cols, min_contrast, floor_mm, far,
+                                                seen_from, distinct, dent_falls_with_force(x, names, floor_mm))
+                            if log_cols and min_contrast > 1.0 else (labels, []))
         labels, k = _compact(labels)
     else:
-        islands, bands = [], []
+        islands, bands, enclosed = [], [], []
     stats["icm_changes"] = icm_changes
     stats["islands"] = islands
     stats["distinct_islands"] = kept
     stats["transition_band_points"] = bands
+    stats["enclosed_material_points"] = enclosed
 
     # Stable ids: sort regions by the mean of one feature (then by size, then by first index).
     order_key = [(float(np.nanmean(x[labels == j, order_feature])), -int(np.sum(labels == j)),
