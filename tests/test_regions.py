@@ -759,3 +759,25 @@ def test_recorded_seam_pieces_at_a_third_materials_level_leave_its_region():
     gel = int(np.bincount(rm.labels[(truth == 1) & (data["seam"] > 3.0)]).argmax())
     assert set(truth[rm.labels == gel].tolist()) == {1}
     _each_material_in_a_region_of_its_own(rm, truth, data["seam"] > 3.0, purity=0.95)
+
+
+def test_a_small_inclusion_that_its_neighbours_outvote_is_given_back():
+    """Recorded survey (round 0, 454 probes) of unseen slab 1703 (hard rubber 0 around an
+    elastomer ellipse 2 of semi-axes 16.2 and 10.0 mm, a foam strip 1, a gel disc 3; run seed
+    1). Seven probes on the ellipse read 0.038-0.054 mm at 4.5 N, the hard rubber 0.013 mm
+    (peak scatter 0.0076 mm); each, its surface neighbours mostly hard rubber, joined the hard
+    rubber in the spatial step: three regions of four. Given back as a material enclosed by
+    its region: four regions, the ellipse's probes more than 2 mm inside its seam in a region
+    of their own. Two trios of hard-rubber probes 40-70 mm inside read deeper at 1.5 N than at
+    4.5 N (no dent read) and stay hard rubber."""
+    data, names, noise = _recorded("slab_two_inclusions_and_strip_1703.npz")
+    truth, seam = data["true"].astype(np.int64), data["seam"].astype(float)
+    rm = cluster_regions(data["feats"].astype(float), data["edges"].astype(np.int64), names, seed=1,
+                         noise_mm=noise, far_field_mm=data["far"].astype(float))
+    assert rm.n_regions == 4
+    ellipse = rm.labels[(truth == 2) & (seam > 2.0)]
+    assert ellipse.size >= 4 and np.all(ellipse == ellipse[0])
+    hard = rm.labels[(truth == 0) & (seam > 3.0)]
+    assert np.all(hard == hard[0]) and hard[0] != ellipse[0]
+    assert not np.any(rm.labels[truth != 2] == ellipse[0])
+    assert sorted(rm.stats["enclosed_material_points"]) == sorted(np.flatnonzero(rm.labels == ellipse[0]).tolist())

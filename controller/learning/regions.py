@@ -31,7 +31,10 @@ slope), and the surface graph (neighbour pairs of the neural-gas units).
    a neighbour's lower bound, or below a neighbour's dent that is within its noise:
    :func:`_absorb_transition_bands`) is split
    between them, and so is each such piece of a real region
-   (``stats["transition_band_points"]``).
+   (``stats["transition_band_points"]``); and a connected piece of points that its region
+   explains badly, enclosed by that region and another material by the contrast rule, is
+   taken out again (:func:`_enclosed_materials`, ``stats["enclosed_material_points"]``):
+   the neighbours' votes must not outvote a small inclusion's own dents.
 4. Region ids are sorted by the mean of one feature (default column 0, the peak depth
    at the smallest survey force: region 0 is the stiffest), so reruns on the same data
    give the same ids.
