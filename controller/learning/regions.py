@@ -390,7 +390,8 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
                        far_field_mm: np.ndarray | None = None,
                        seen_from_mm: np.ndarray | None = None,
                        previous_labels: np.ndarray | None = None,
-                       edges: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+                       edges: np.ndarray | None = None, pooled_scatter: bool = False
+                       ) -> tuple[np.ndarray, int]:
     """Merge clusters that are not two materials, closest pair first. Two clusters are two
     materials when, at some survey force at which either dent is measured (deeper than
     ``MEASURED_DENT_NOISES`` x the scatter of one of its points' peak depth, measured from
@@ -413,7 +414,8 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     measured and found wanting, not because neither dent counts as measured any more.
     ``edges`` (E,2): the surface graph's neighbour pairs; with them, each cluster is measured
     (medians, counts, far-field scatter, where its peaks were read) on its interior points
-    (:func:`_measured_points`).
+    (:func:`_measured_points`). ``pooled_scatter``: every cluster's peak scatter is read on all
+    the points' far fields together (see :func:`_enclosed_materials`).
 
     Why the interior: a probe whose surface neighbour lies in another cluster stands within
     a probe spacing of the seam, and a tip there presses both materials, so its dent lies
@@ -467,6 +469,7 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
                  else np.asarray(seen_from_mm, dtype=float).reshape(-1))
 
     interior = None if edges is None else sm.interior_seeds(labels, edges)
+    pooled = peak_noise_mm(far, floor)
 
     def measure(c: int) -> tuple[np.ndarray, float, np.ndarray, float]:
         # (median depths + floor (C,), peak scatter, finite counts (C,), median seen-from) of cluster c
@@ -475,7 +478,8 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
             warnings.simplefilter("ignore", RuntimeWarning)
             depth = np.maximum(np.nanmedian(cols[basis], axis=0), 0.0) + floor
             where = float(np.nanmedian(seen_from[basis]))
-        return depth, peak_noise_mm(far[basis], floor), np.sum(np.isfinite(cols[basis]), axis=0).astype(float), where
+        scatter = pooled if pooled_scatter else peak_noise_mm(far[basis], floor)
+        return depth, scatter, np.sum(np.isfinite(cols[basis]), axis=0).astype(float), where
 
     measured_clusters = [measure(c) for c in range(k)]
     med = np.stack([m[0] for m in measured_clusters])
@@ -681,7 +685,7 @@ def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.n
 def _enclosed_materials(features: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray],
                         depth_columns: list[int], min_contrast: float, floor_mm: float,
                         far_field_mm: np.ndarray | None, seen_from_mm: np.ndarray | None,
-                        distinct: Callable[[np.ndarray, np.ndarray], bool],
+                        distinct: Callable[..., bool],
                         unread: np.ndarray | None = None) -> tuple[np.ndarray, list[int]]:
     """Give back a material that the spatial steps folded into the region around it.
 
@@ -695,9 +699,9 @@ def _enclosed_materials(features: np.ndarray, labels: np.ndarray, neighbours: li
     read 3x their region at 1.5 N and 1.3-1.7x at 4.5 N. Odd points of one region, odd the
     same way and connected on the surface graph, form a piece; a piece of two points or more
     whose every neighbour outside it lies in the region (enclosed: not a blend along a seam,
-    which :func:`_absorb_transition_bands` weighs) and that ``distinct(piece, rest)`` (the
-    contrast rule, measured on the piece's own far fields) calls another material is taken
-    out: it joins the other region that rule does not tell it from (nearest median in log
+    which :func:`_absorb_transition_bands` weighs) and that ``distinct(piece, rest,
+    pooled_scatter=True)`` (the contrast rule, with one peak scatter for both, read on their
+    far fields together) calls another material is taken out: it joins the other region that rule does not tell it from (nearest median in log
     depth), or becomes a region of its own. A point read farther out than its region
     (``seen_from_mm`` beyond the region's median by :data:`NEAR_CONTACT_BAND_MM`) reads
     lower bounds: shallower is not odd. A point in ``unread`` (N,) (its dent falls as the
@@ -714,7 +718,12 @@ def _enclosed_materials(features: np.ndarray, labels: np.ndarray, neighbours: li
     mixture gave them a cluster, with 13 hard-rubber probes from its tails, that the contrast
     rule kept, and each probe, its neighbours mostly hard rubber, joined the hard rubber:
     three regions of four in every round, the misfit rule (log depths again) saw nothing to
-    probe. Why two points: one deep reading among hundreds of one material is a scattered
+    probe. Why one scatter for both: a piece's far fields, read 15 mm and more from each
+    contact, lie on the region around it and carry the piece's own dent's tail; on 1703's
+    round 1 the ellipse's eight odd probes read a far-field level of 0.004-0.014 mm (the hard
+    rubber's: about 0), a scatter of 0.0107 mm against the hard rubber's 0.0071, under which
+    their median of 0.047 mm at 4.5 N was no measured dent, and the ellipse, taken out in
+    round 0, was folded in again from round 1 on. Why two points: one deep reading among hundreds of one material is a scattered
     return (four of 379 hard-rubber probes on that slab read 0.033-0.065 mm, scattered).
     Returns (labels, indices of the points taken out).
     """
@@ -755,7 +764,7 @@ def _enclosed_materials(features: np.ndarray, labels: np.ndarray, neighbours: li
                 if border.size == 0 or np.any(labels[border] != region):
                     continue
                 rest = np.setdiff1d(np.flatnonzero(labels == region), piece)
-                if not distinct(piece, rest):
+                if not distinct(piece, rest, pooled_scatter=True):
                     continue
                 k = int(labels.max()) + 1
                 with np.errstate(all="ignore"), warnings.catch_warnings():
@@ -764,7 +773,7 @@ def _enclosed_materials(features: np.ndarray, labels: np.ndarray, neighbours: li
                     joins = [(float(np.nanmean(np.abs(level - np.log(np.nanmedian(
                         np.maximum(peaks[labels == q], 0.0), axis=0) + floor)))), q)
                         for q in range(k) if q != region and np.any(labels == q)
-                        and not distinct(piece, np.flatnonzero(labels == q))]
+                        and not distinct(piece, np.flatnonzero(labels == q), pooled_scatter=True)]
                 labels[piece] = min(joins)[1] if joins else k
                 taken.extend(int(i) for i in piece)
     return labels, sorted(taken)
@@ -1037,13 +1046,14 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
     if k > 1:
         means, cov, log_prior = _fit_gaussians(z, labels, k, reg)
         labels, icm_changes = _icm(_gauss_loglik(z, means, cov) + log_prior, labels, neighbours, beta)
-        def distinct(members: np.ndarray, region: np.ndarray) -> bool:
+        def distinct(members: np.ndarray, region: np.ndarray, pooled_scatter: bool = False) -> bool:
             # Another material by the same contrast rule that made the regions.
             both = np.concatenate([members, region])
             two = np.concatenate([np.zeros(members.size, np.int64), np.ones(region.size, np.int64)])
             return int(_merge_by_contrast(x[both], two, depth_cols, min_contrast, floor_mm,
                                           None if far is None else far[both],
-                                          None if seen_from is None else seen_from[both])[0].max()) > 0
+                                          None if seen_from is None else seen_from[both],
+                                          pooled_scatter=pooled_scatter)[0].max()) > 0
 
         labels, islands, kept = _remove_islands(labels, e, neighbours, min_island_points,
                                                 distinct if log_cols and min_contrast > 1.0 else None)
