@@ -701,8 +701,9 @@ def _enclosed_materials(features: np.ndarray, labels: np.ndarray, neighbours: li
     whose every neighbour outside it lies in the region (enclosed: not a blend along a seam,
     which :func:`_absorb_transition_bands` weighs) and that ``distinct(piece, rest,
     pooled_scatter=True)`` (the contrast rule, with one peak scatter for both, read on their
-    far fields together) calls another material is taken out: it joins the other region that rule does not tell it from (nearest median in log
-    depth), or becomes a region of its own. A point read farther out than its region
+    far fields together) calls another material is taken out: it joins the other region
+    that rule does not tell it from (nearest median in log depth), or becomes a region of
+    its own. A point read farther out than its region
     (``seen_from_mm`` beyond the region's median by :data:`NEAR_CONTACT_BAND_MM`) reads
     lower bounds: shallower is not odd. A point in ``unread`` (N,) (its dent falls as the
     force rises, :func:`dent_falls_with_force`: it did not read its dent) is never odd: on
@@ -723,8 +724,9 @@ def _enclosed_materials(features: np.ndarray, labels: np.ndarray, neighbours: li
     round 1 the ellipse's eight odd probes read a far-field level of 0.004-0.014 mm (the hard
     rubber's: about 0), a scatter of 0.0107 mm against the hard rubber's 0.0071, under which
     their median of 0.047 mm at 4.5 N was no measured dent, and the ellipse, taken out in
-    round 0, was folded in again from round 1 on. Why two points: one deep reading among hundreds of one material is a scattered
-    return (four of 379 hard-rubber probes on that slab read 0.033-0.065 mm, scattered).
+    round 0, was folded in again from round 1 on. Why two points: one deep reading among
+    hundreds of one material is a scattered return (four of 379 hard-rubber probes on that
+    slab read 0.033-0.065 mm, scattered).
     Returns (labels, indices of the points taken out).
     """
     labels = labels.copy()
