@@ -31,7 +31,10 @@ slope), and the surface graph (neighbour pairs of the neural-gas units).
    a neighbour's lower bound, or below a neighbour's dent that is within its noise:
    :func:`_absorb_transition_bands`) is split
    between them, and so is each such piece of a real region
-   (``stats["transition_band_points"]``).
+   (``stats["transition_band_points"]``); and a connected piece of points that its region
+   explains badly, enclosed by that region and another material by the contrast rule, is
+   taken out again (:func:`_enclosed_materials`, ``stats["enclosed_material_points"]``):
+   the neighbours' votes must not outvote a small inclusion's own dents.
 4. Region ids are sorted by the mean of one feature (default column 0, the peak depth
    at the smallest survey force: region 0 is the stiffest), so reruns on the same data
    give the same ids.
@@ -387,7 +390,8 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
                        far_field_mm: np.ndarray | None = None,
                        seen_from_mm: np.ndarray | None = None,
                        previous_labels: np.ndarray | None = None,
-                       edges: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+                       edges: np.ndarray | None = None, pooled_scatter: bool = False
+                       ) -> tuple[np.ndarray, int]:
     """Merge clusters that are not two materials, closest pair first. Two clusters are two
     materials when, at some survey force at which either dent is measured (deeper than
     ``MEASURED_DENT_NOISES`` x the scatter of one of its points' peak depth, measured from
@@ -410,7 +414,8 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
     measured and found wanting, not because neither dent counts as measured any more.
     ``edges`` (E,2): the surface graph's neighbour pairs; with them, each cluster is measured
     (medians, counts, far-field scatter, where its peaks were read) on its interior points
-    (:func:`_measured_points`).
+    (:func:`_measured_points`). ``pooled_scatter``: every cluster's peak scatter is read on all
+    the points' far fields together (see :func:`_enclosed_materials`).
 
     Why the interior: a probe whose surface neighbour lies in another cluster stands within
     a probe spacing of the seam, and a tip there presses both materials, so its dent lies
@@ -464,6 +469,7 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
                  else np.asarray(seen_from_mm, dtype=float).reshape(-1))
 
     interior = None if edges is None else sm.interior_seeds(labels, edges)
+    pooled = peak_noise_mm(far, floor)
 
     def measure(c: int) -> tuple[np.ndarray, float, np.ndarray, float]:
         # (median depths + floor (C,), peak scatter, finite counts (C,), median seen-from) of cluster c
@@ -472,7 +478,8 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
             warnings.simplefilter("ignore", RuntimeWarning)
             depth = np.maximum(np.nanmedian(cols[basis], axis=0), 0.0) + floor
             where = float(np.nanmedian(seen_from[basis]))
-        return depth, peak_noise_mm(far[basis], floor), np.sum(np.isfinite(cols[basis]), axis=0).astype(float), where
+        scatter = pooled if pooled_scatter else peak_noise_mm(far[basis], floor)
+        return depth, scatter, np.sum(np.isfinite(cols[basis]), axis=0).astype(float), where
 
     measured_clusters = [measure(c) for c in range(k)]
     med = np.stack([m[0] for m in measured_clusters])
@@ -673,6 +680,105 @@ def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.n
         if not changed:
             break
     return labels, sorted(set(relabelled)), sorted(kept)
+
+
+def _enclosed_materials(features: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray],
+                        depth_columns: list[int], min_contrast: float, floor_mm: float,
+                        far_field_mm: np.ndarray | None, seen_from_mm: np.ndarray | None,
+                        distinct: Callable[..., bool],
+                        unread: np.ndarray | None = None) -> tuple[np.ndarray, list[int]]:
+    """Give back a material that the spatial steps folded into the region around it.
+
+    A point is odd in its region when, at every survey force where its dent or the region's
+    median is measured (+ ``floor_mm``, beyond ``MEASURED_DENT_NOISES`` of the region's peak
+    scatters: :func:`peak_noise_mm` of its far fields ``far_field_mm``), and there is one,
+    its peak (+ ``floor_mm``) lies a factor ``min_contrast`` beyond the region's median
+    (+ ``floor_mm``) and more than 3 scatters away, all on one side. Every measured force,
+    not one: a softer material dents deeper at every force by about one factor, and on suite
+    slab 1012 (round 4 of a recorded run) two neighbouring elastomer probes 40 mm inside
+    read 3x their region at 1.5 N and 1.3-1.7x at 4.5 N. Odd points of one region, odd the
+    same way and connected on the surface graph, form a piece; a piece of two points or more
+    whose every neighbour outside it lies in the region (enclosed: not a blend along a seam,
+    which :func:`_absorb_transition_bands` weighs) and that ``distinct(piece, rest,
+    pooled_scatter=True)`` (the contrast rule, with one peak scatter for both, read on their
+    far fields together) calls another material is taken out: it joins the other region
+    that rule does not tell it from (nearest median in log depth), or becomes a region of
+    its own. A point read farther out than its region
+    (``seen_from_mm`` beyond the region's median by :data:`NEAR_CONTACT_BAND_MM`) reads
+    lower bounds: shallower is not odd. A point in ``unread`` (N,) (its dent falls as the
+    force rises, :func:`dent_falls_with_force`: it did not read its dent) is never odd: on
+    the same slab two trios of hard-rubber probes 40-70 mm from any seam read 0.034-0.047 mm
+    at 1.5 N and 0.011-0.026 mm at 4.5 N, which the contrast rule alone calls softer.
+
+    Why: iterated conditional modes weighs each point's likelihood under Gaussians with one
+    pooled covariance in log depth against its neighbours' votes, and a stiff material's
+    log depths scatter widely (its dents lie near the noise), so the likelihood of a point
+    on a small stiff-ish inclusion barely prefers its own cluster. On unseen slab 1703 (run
+    seed 1) seven survey probes on an elastomer ellipse (semi-axes 16.2 and 10.0 mm) read
+    0.038-0.054 mm at 4.5 N inside hard rubber at 0.013 mm (peak scatter 0.0076 mm); the
+    mixture gave them a cluster, with 13 hard-rubber probes from its tails, that the contrast
+    rule kept, and each probe, its neighbours mostly hard rubber, joined the hard rubber:
+    three regions of four in every round, the misfit rule (log depths again) saw nothing to
+    probe. Why one scatter for both: a piece's far fields, read 15 mm and more from each
+    contact, lie on the region around it and carry the piece's own dent's tail; on 1703's
+    round 1 the ellipse's eight odd probes read a far-field level of 0.004-0.014 mm (the hard
+    rubber's: about 0), a scatter of 0.0107 mm against the hard rubber's 0.0071, under which
+    their median of 0.047 mm at 4.5 N was no measured dent, and the ellipse, taken out in
+    round 0, was folded in again from round 1 on. Why two points: one deep reading among
+    hundreds of one material is a scattered return (four of 379 hard-rubber probes on that
+    slab read 0.033-0.065 mm, scattered).
+    Returns (labels, indices of the points taken out).
+    """
+    labels = labels.copy()
+    if not depth_columns or min_contrast <= 1.0:
+        return labels, []
+    peaks = features[:, depth_columns]
+    floor = max(float(floor_mm), 1e-6)
+    seen_from = (np.zeros(labels.shape[0]) if seen_from_mm is None
+                 else np.asarray(seen_from_mm, dtype=float).reshape(-1))
+    taken: list[int] = []
+    for region in range(int(labels.max(initial=-1)) + 1):
+        members = np.flatnonzero(labels == region)
+        if members.size < 3:
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.maximum(np.nanmedian(peaks[members], axis=0), 0.0)
+            read_at = float(np.nanmedian(seen_from[members]))
+        noise = (peak_noise_mm(far_field_mm[members], floor) if far_field_mm is not None else floor)
+        value = np.maximum(peaks[members], 0.0)
+        with np.errstate(invalid="ignore"):
+            measured = np.maximum(value, med) + floor > MEASURED_DENT_NOISES * noise          # (M,F)
+            apart = np.abs(peaks[members] - med) > 3.0 * noise
+            ratio = (value + floor) / (med + floor)
+            deeper = apart & (peaks[members] > med) & (ratio >= min_contrast)
+            shallower = apart & (peaks[members] < med) & (ratio <= 1.0 / min_contrast)
+            readable = np.ones(members.size, dtype=bool) if unread is None else ~unread[members]
+            readable &= np.any(measured, axis=1)
+            odd_deeper = np.all(deeper | ~measured, axis=1) & readable
+            odd_shallower = (np.all(shallower | ~measured, axis=1) & readable
+                             & ~(seen_from[members] > read_at + NEAR_CONTACT_BAND_MM))
+        for odd in (members[odd_deeper], members[odd_shallower]):
+            for piece in _pieces(odd, neighbours):
+                if piece.size < 2:
+                    continue
+                border = np.setdiff1d(np.concatenate([neighbours[i] for i in piece]), piece)
+                if border.size == 0 or np.any(labels[border] != region):
+                    continue
+                rest = np.setdiff1d(np.flatnonzero(labels == region), piece)
+                if not distinct(piece, rest, pooled_scatter=True):
+                    continue
+                k = int(labels.max()) + 1
+                with np.errstate(all="ignore"), warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    level = np.log(np.nanmedian(np.maximum(peaks[piece], 0.0), axis=0) + floor)
+                    joins = [(float(np.nanmean(np.abs(level - np.log(np.nanmedian(
+                        np.maximum(peaks[labels == q], 0.0), axis=0) + floor)))), q)
+                        for q in range(k) if q != region and np.any(labels == q)
+                        and not distinct(piece, np.flatnonzero(labels == q), pooled_scatter=True)]
+                labels[piece] = min(joins)[1] if joins else k
+                taken.extend(int(i) for i in piece)
+    return labels, sorted(taken)
 
 
 def _region_medians(columns: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
@@ -942,24 +1048,29 @@ def cluster_regions(features: np.ndarray, edges: np.ndarray, feature_names: list
     if k > 1:
         means, cov, log_prior = _fit_gaussians(z, labels, k, reg)
         labels, icm_changes = _icm(_gauss_loglik(z, means, cov) + log_prior, labels, neighbours, beta)
-        def distinct(members: np.ndarray, region: np.ndarray) -> bool:
+        def distinct(members: np.ndarray, region: np.ndarray, pooled_scatter: bool = False) -> bool:
             # Another material by the same contrast rule that made the regions.
             both = np.concatenate([members, region])
             two = np.concatenate([np.zeros(members.size, np.int64), np.ones(region.size, np.int64)])
             return int(_merge_by_contrast(x[both], two, depth_cols, min_contrast, floor_mm,
                                           None if far is None else far[both],
-                                          None if seen_from is None else seen_from[both])[0].max()) > 0
+                                          None if seen_from is None else seen_from[both],
+                                          pooled_scatter=pooled_scatter)[0].max()) > 0
 
         labels, islands, kept = _remove_islands(labels, e, neighbours, min_island_points,
                                                 distinct if log_cols and min_contrast > 1.0 else None)
         labels, bands = _absorb_transition_bands(x, labels, neighbours, depth_cols, seen_from, far, floor_mm)
+        labels, enclosed = (_enclosed_materials(x, labels, neighbours, depth_cols, min_contrast, floor_mm, far,
+                                                seen_from, distinct, dent_falls_with_force(x, names, floor_mm))
+                            if log_cols and min_contrast > 1.0 else (labels, []))
         labels, k = _compact(labels)
     else:
-        islands, bands = [], []
+        islands, bands, enclosed = [], [], []
     stats["icm_changes"] = icm_changes
     stats["islands"] = islands
     stats["distinct_islands"] = kept
     stats["transition_band_points"] = bands
+    stats["enclosed_material_points"] = enclosed
 
     # Stable ids: sort regions by the mean of one feature (then by size, then by first index).
     order_key = [(float(np.nanmean(x[labels == j, order_feature])), -int(np.sum(labels == j)),
