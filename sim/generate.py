@@ -123,6 +123,7 @@ RING_CLEAR_MM = 0.7           # every other point keeps this far inside a ring (
 GHOST_OUT_MM = 1.0
 EDGE_ROW_ARC_MM = 3.0
 MIN_POINT_GAP_MM = 0.3
+CHORD_CLEAR_MM = 0.05         # spare beyond a ring chord's diametral circle: no point cocircular with a chord
 FLAT_TILT_DEG = 30.0          # region heights are taken over the top within this tilt
 # Survey force, largest force (N) for an object of this height (mm); the plan rule passes its own.
 ForceRule = Callable[[float], tuple[float, float]]
@@ -591,18 +592,38 @@ def _ring_with(footprint: Footprint, ring: np.ndarray, extra: np.ndarray) -> np.
 def _top_faces(footprint: Footprint, ring: np.ndarray, inner: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Points and Delaunay faces of a top whose boundary is ``ring`` (counter-clockwise).
 
-    Every other point keeps RING_CLEAR_MM from the ring (more than half the ring's step), so
-    each ring chord is a Gabriel edge, hence a Delaunay edge; a ghost ring just outside
-    makes the hull, and the faces touching it are dropped: what is left is exactly the
-    polygon of the ring, however flat its sides (qhull need not see them as a hull).
+    Every other point keeps RING_CLEAR_MM inside the ring and out of each ring chord's
+    diametral circle, so each chord is a Gabriel edge, hence a Delaunay edge; a ghost ring
+    just outside (kept out of those circles too) makes the hull, and the faces touching it
+    are dropped: what is left is exactly the polygon of the ring, however flat its sides
+    (qhull need not see them as a hull).
     """
     pts = _dedupe([ring] + inner, MIN_POINT_GAP_MM)
     n_ring = len(ring)
     others = pts[n_ring:]
-    pts = np.vstack([pts[:n_ring], others[footprint.inset_mm(others) >= RING_CLEAR_MM]])
+    others = others[(footprint.inset_mm(others) >= RING_CLEAR_MM) & _clear_of_chords(ring, others)]
+    pts = np.vstack([pts[:n_ring], others])
     ghost = footprint.inset_points(ring[::2], -GHOST_OUT_MM)
+    ghost = ghost[_clear_of_chords(ring, ghost)]
     faces = _triangulate(np.vstack([pts, ghost]), len(pts))
     return pts, faces[np.all(faces < len(pts), axis=1)]
+
+
+def _clear_of_chords(ring: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N,) True where a point lies outside every chord's diametral circle of the closed ``ring``
+    (with CHORD_CLEAR_MM to spare). Why not the inset alone: the inset is measured along
+    the ray from the centre, and where a superellipse's corner turns the boundary away
+    from that ray, a point RING_CLEAR_MM inside along it is nearer the chord than half
+    the chord (seed 1803's slab: 0.59 mm from a 1.28 mm chord's midpoint)."""
+    if not len(points):
+        return np.ones(0, bool)
+    nxt = np.roll(ring, -1, axis=0)
+    centres = 0.5 * (ring + nxt)
+    radii = 0.5 * np.linalg.norm(nxt - ring, axis=1) + CHORD_CLEAR_MM
+    clear = np.ones(len(points), bool)
+    for near in cKDTree(points).query_ball_point(centres, radii):
+        clear[near] = False
+    return clear
 
 
 def build_mesh(shape: Shape, pattern: Pattern) -> PaintedMesh:
