@@ -469,7 +469,7 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
                  else np.asarray(seen_from_mm, dtype=float).reshape(-1))
 
     interior = None if edges is None else sm.interior_seeds(labels, edges)
-    pooled = peak_noise_mm(far, floor)
+    pooled = peak_noise_mm(far, floor) if pooled_scatter else None
 
     def measure(c: int) -> tuple[np.ndarray, float, np.ndarray, float]:
         # (median depths + floor (C,), peak scatter, finite counts (C,), median seen-from) of cluster c
@@ -478,7 +478,7 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
             warnings.simplefilter("ignore", RuntimeWarning)
             depth = np.maximum(np.nanmedian(cols[basis], axis=0), 0.0) + floor
             where = float(np.nanmedian(seen_from[basis]))
-        scatter = pooled if pooled_scatter else peak_noise_mm(far[basis], floor)
+        scatter = pooled if pooled is not None else peak_noise_mm(far[basis], floor)
         return depth, scatter, np.sum(np.isfinite(cols[basis]), axis=0).astype(float), where
 
     measured_clusters = [measure(c) for c in range(k)]
@@ -682,6 +682,37 @@ def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.n
     return labels, sorted(set(relabelled)), sorted(kept)
 
 
+def odd_scores(peaks_mm: np.ndarray, median_mm: np.ndarray, scatter_mm: float, floor_mm: float,
+               min_contrast: float) -> np.ndarray:
+    """(M,) how far each point's peak depths (M,F) lie beyond its region's median (F,), in
+    units of what tells another material: > 1 when at every survey force where the point's
+    dent or the median is measured (+ ``floor_mm``, beyond ``MEASURED_DENT_NOISES`` x the
+    region's peak scatter ``scatter_mm``, :func:`peak_noise_mm`), and there is one, the peak
+    (+ ``floor_mm``) lies a factor ``min_contrast`` deeper than the median (+ ``floor_mm``)
+    and more than 3 scatters from it; < -1 when shallower so at every measured force; the
+    score is the smallest of those margins (log ratio over log ``min_contrast``, distance
+    over 3 scatters) with its side, 0 where the sides differ or no force is measured.
+    Negative readings count as 0 in the ratio.
+
+    In mm and per force, not in log depth over the region's spread: a stiff material's log
+    depths scatter widely (its dents lie near the noise), which hides a softer inclusion
+    in it (:func:`_enclosed_materials`, :func:`survey_misfit`)."""
+    peaks = np.asarray(peaks_mm, dtype=float)
+    med = np.maximum(np.asarray(median_mm, dtype=float), 0.0)
+    floor = max(float(floor_mm), 1e-6)
+    value = np.maximum(peaks, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        measured = np.maximum(value, med) + floor > MEASURED_DENT_NOISES * scatter_mm
+        apart = np.abs(peaks - med) / (3.0 * scatter_mm)
+        contrast = np.abs(np.log((value + floor) / (med + floor))) / np.log(min_contrast)
+        margin = np.where(peaks > med, 1.0, -1.0) * np.minimum(apart, contrast)
+        margin = np.where(measured & np.isfinite(margin), margin, np.nan)
+    any_measured = np.any(np.isfinite(margin), axis=1)
+    low = np.where(any_measured, np.nanmin(np.where(any_measured[:, None], margin, 0.0), axis=1), 0.0)
+    high = np.where(any_measured, np.nanmax(np.where(any_measured[:, None], margin, 0.0), axis=1), 0.0)
+    return np.where(low > 0.0, low, np.where(high < 0.0, high, 0.0))
+
+
 def _enclosed_materials(features: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray],
                         depth_columns: list[int], min_contrast: float, floor_mm: float,
                         far_field_mm: np.ndarray | None, seen_from_mm: np.ndarray | None,
@@ -693,7 +724,8 @@ def _enclosed_materials(features: np.ndarray, labels: np.ndarray, neighbours: li
     median is measured (+ ``floor_mm``, beyond ``MEASURED_DENT_NOISES`` of the region's peak
     scatters: :func:`peak_noise_mm` of its far fields ``far_field_mm``), and there is one,
     its peak (+ ``floor_mm``) lies a factor ``min_contrast`` beyond the region's median
-    (+ ``floor_mm``) and more than 3 scatters away, all on one side. Every measured force,
+    (+ ``floor_mm``) and more than 3 scatters away, all on one side (:func:`odd_scores`
+    beyond 1). Every measured force,
     not one: a softer material dents deeper at every force by about one factor, and on suite
     slab 1012 (round 4 of a recorded run) two neighbouring elastomer probes 40 mm inside
     read 3x their region at 1.5 N and 1.3-1.7x at 4.5 N. Odd points of one region, odd the
@@ -746,18 +778,10 @@ def _enclosed_materials(features: np.ndarray, labels: np.ndarray, neighbours: li
             med = np.maximum(np.nanmedian(peaks[members], axis=0), 0.0)
             read_at = float(np.nanmedian(seen_from[members]))
         noise = (peak_noise_mm(far_field_mm[members], floor) if far_field_mm is not None else floor)
-        value = np.maximum(peaks[members], 0.0)
-        with np.errstate(invalid="ignore"):
-            measured = np.maximum(value, med) + floor > MEASURED_DENT_NOISES * noise          # (M,F)
-            apart = np.abs(peaks[members] - med) > 3.0 * noise
-            ratio = (value + floor) / (med + floor)
-            deeper = apart & (peaks[members] > med) & (ratio >= min_contrast)
-            shallower = apart & (peaks[members] < med) & (ratio <= 1.0 / min_contrast)
-            readable = np.ones(members.size, dtype=bool) if unread is None else ~unread[members]
-            readable &= np.any(measured, axis=1)
-            odd_deeper = np.all(deeper | ~measured, axis=1) & readable
-            odd_shallower = (np.all(shallower | ~measured, axis=1) & readable
-                             & ~(seen_from[members] > read_at + NEAR_CONTACT_BAND_MM))
+        score = odd_scores(peaks[members], med, noise, floor, min_contrast)
+        readable = np.ones(members.size, dtype=bool) if unread is None else ~unread[members]
+        odd_deeper = (score > 1.0) & readable
+        odd_shallower = (score < -1.0) & readable & ~(seen_from[members] > read_at + NEAR_CONTACT_BAND_MM)
         for odd in (members[odd_deeper], members[odd_shallower]):
             for piece in _pieces(odd, neighbours):
                 if piece.size < 2:
