@@ -1170,7 +1170,8 @@ def dent_falls_with_force(features: np.ndarray, feature_names: list[str], noise_
 
 
 def survey_misfit(features: np.ndarray, labels: np.ndarray, feature_names: list[str], noise_mm: float,
-                  min_contrast: float = MIN_CONTRAST, sigmas: float = 3.0) -> np.ndarray:
+                  min_contrast: float = MIN_CONTRAST, sigmas: float = 3.0,
+                  far_field_mm: np.ndarray | None = None) -> np.ndarray:
     """(N,) how far each point's peak depths lie from its region's, in units of what the
     region can explain; > 1 means "another material may be here".
 
@@ -1188,6 +1189,15 @@ def survey_misfit(features: np.ndarray, labels: np.ndarray, feature_names: list[
 
     A model fitted to the region's survey profiles predicts about their mean at the survey
     settings, pulled toward the misfit itself; the median is not.
+
+    With ``far_field_mm`` (N,2) (what each point's profile reads far from the contact, as
+    :func:`cluster_regions` takes it), a point is also a misfit by the test that gives an
+    enclosed material back (:func:`odd_scores` against its region's peak scatter, in mm;
+    not where its dent falls with force, :func:`dent_falls_with_force`): the larger of the
+    two scores. Why: in a stiff region the logarithms' spread is the noise's, and on unseen
+    slab 1703 (hard rubber, log MAD x 3 = 1.47) seven probes on an elastomer ellipse reading
+    4x deeper (log 1.27 to 1.4) were no misfit, so nothing was probed around them in four
+    rounds; one such probe alone is the case that matters, as the regions step needs two.
     """
     lab = np.asarray(labels, dtype=np.int64).reshape(-1)
     out = np.zeros(lab.shape[0])
@@ -1195,6 +1205,12 @@ def survey_misfit(features: np.ndarray, labels: np.ndarray, feature_names: list[
         return out
     y, rel_noise = log_peaks(features, feature_names, noise_mm)
     contrast = float(np.log(min_contrast))
+    floor = max(float(noise_mm), 1e-6)
+    far = None if far_field_mm is None else np.asarray(far_field_mm, dtype=float).reshape(-1, 2)
+    if far is not None and far.shape[0] != lab.shape[0]:
+        raise ValueError(f"far_field_mm must be (N,2) for N={lab.shape[0]} points; got {far.shape}")
+    peaks = np.asarray(features, dtype=float)[:, _peak_columns(feature_names)]
+    unread = dent_falls_with_force(features, feature_names, floor)
     seen_from = (np.asarray(features, dtype=float)[:, feature_names.index(SEEN_FROM_FEATURE)]
                  if SEEN_FROM_FEATURE in feature_names else np.zeros(lab.shape[0]))
     for region in np.unique(lab):
@@ -1209,6 +1225,13 @@ def survey_misfit(features: np.ndarray, labels: np.ndarray, feature_names: list[
         deviation = np.where(read_far[:, None], np.maximum(deviation, 0.0), np.abs(deviation))
         ratio = deviation / allowed
         out[members] = np.nanmax(np.where(np.isfinite(ratio), ratio, 0.0), axis=1)
+        if far is not None and members.size >= 3:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                med_mm = np.nanmedian(peaks[members], axis=0)
+            odd = odd_scores(peaks[members], med_mm, peak_noise_mm(far[members], floor), floor, min_contrast)
+            odd = np.where(read_far, np.maximum(odd, 0.0), np.abs(odd)) * ~unread[members]
+            out[members] = np.maximum(out[members], odd)
     return out
 
 
