@@ -64,6 +64,7 @@ PHASE_ARRAY_ATTRS: dict[str, dict[str, str]] = {
     "target_index": {"units": "index"}, "edge_flag": {"units": "bool (int8)"},
     "labelled_targets": {"units": "target index"}, "labels": {"units": "region id"},
     "features": {"units": "see outputs.feature_names"}, "cloud_labels": {"units": "region id per cloud point"},
+    "far_field_mm": {"units": "mm", "description": "survey profile far from the contact: level, one sample's scatter"},
 }
 
 

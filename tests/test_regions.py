@@ -786,3 +786,32 @@ def test_a_small_inclusion_that_its_neighbours_outvote_is_given_back(recorded):
     assert np.all(hard == hard[0]) and hard[0] != ellipse[0]
     assert not np.any(rm.labels[truth != 2] == ellipse[0])
     assert sorted(rm.stats["enclosed_material_points"]) == sorted(np.flatnonzero(rm.labels == ellipse[0]).tolist())
+
+
+def test_a_lone_probe_on_a_stiff_regions_softer_inclusion_is_a_misfit():
+    """Recorded round 0 of unseen slab 1703 with the ellipse's probes labelled hard rubber,
+    as the spatial step left them, and all but one taken out: the case densify must probe
+    around, as the regions step gives a material back only from two odd probes. In log
+    depth over the region's spread none of them is a misfit (the hard rubber's log MAD is
+    the noise's: their misfits 0.61-0.85); by the odd test in mm against the region's peak
+    scatter each one more than 2 mm inside the seam is, alone (1.27-1.36). Hard-rubber
+    probes more than 3 mm from any seam that read so: 7 of 390 (scattered returns, which
+    densify then probes around)."""
+    from elastoprobe.controller.learning.regions import survey_misfit
+
+    data, names, noise = _recorded("slab_two_inclusions_and_strip_1703.npz")
+    truth, seam = data["true"].astype(np.int64), data["seam"].astype(float)
+    feats, far = data["feats"].astype(float), data["far"].astype(float)
+    labels = np.where(truth == 2, 0, truth)
+    assert np.all(survey_misfit(feats, labels, names, noise)[truth == 2] < 1.0)
+    inside = np.flatnonzero((truth == 2) & (seam > 2.0))
+    assert inside.size >= 3
+    for lone in inside:
+        keep = (truth != 2) | (np.arange(truth.size) == lone)
+        misfit = survey_misfit(feats[keep], labels[keep], names, noise, far_field_mm=far[keep])
+        assert misfit[np.flatnonzero(keep).tolist().index(lone)] > 1.0
+    misfit = survey_misfit(feats, labels, names, noise, far_field_mm=far)
+    hard = (truth == 0) & (seam > 3.0)
+    assert np.sum(misfit[hard] > 1.0) <= 0.02 * np.sum(hard)
+    # The strip's and the disc's probes read as their regions do: no misfit.
+    assert np.all(misfit[truth == 1] < 1.0) and np.all(misfit[truth == 3] < 1.0)

@@ -171,18 +171,22 @@ def survey_pair_scores(log_depth: np.ndarray, labels: np.ndarray, rel_noise: np.
 
 
 def survey_evidence(features: np.ndarray, feature_names: list[str], labels: np.ndarray, noise_mm: float,
-                    min_contrast: float = rg.MIN_CONTRAST) -> dict[str, Any]:
+                    min_contrast: float = rg.MIN_CONTRAST,
+                    far_field_mm: np.ndarray | None = None) -> dict[str, Any]:
     """What the survey itself says, as :func:`plan_round`'s keyword arguments: the pair scores
     of the regions' dents (:func:`survey_pair_scores`), each point's misfit to its region
     (regions.survey_misfit) and its level (mean over survey forces of log(peak + noise)).
 
     ``features`` (N,D) and ``feature_names``: the survey features of the labelled points
-    (regions.survey_features); ``noise_mm``: the standard error of an averaged profile.
+    (regions.survey_features); ``noise_mm``: the standard error of an averaged profile;
+    ``far_field_mm`` (N,2): what their profiles read far from the contact (the regions
+    step's input), from which the misfit measures each region's peak scatter.
     """
     log_depth, rel_noise = rg.log_peaks(features, feature_names, noise_mm)
     lab = np.asarray(labels, dtype=np.int64).reshape(-1)
     return {"survey_scores": survey_pair_scores(log_depth, lab, rel_noise),
-            "misfit": rg.survey_misfit(features, lab, feature_names, noise_mm, min_contrast),
+            "misfit": rg.survey_misfit(features, lab, feature_names, noise_mm, min_contrast,
+                                       far_field_mm=far_field_mm),
             "levels": log_depth.mean(axis=1)}
 
 

@@ -469,7 +469,7 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
                  else np.asarray(seen_from_mm, dtype=float).reshape(-1))
 
     interior = None if edges is None else sm.interior_seeds(labels, edges)
-    pooled = peak_noise_mm(far, floor)
+    pooled = peak_noise_mm(far, floor) if pooled_scatter else None
 
     def measure(c: int) -> tuple[np.ndarray, float, np.ndarray, float]:
         # (median depths + floor (C,), peak scatter, finite counts (C,), median seen-from) of cluster c
@@ -478,7 +478,7 @@ def _merge_by_contrast(features: np.ndarray, labels: np.ndarray, depth_columns: 
             warnings.simplefilter("ignore", RuntimeWarning)
             depth = np.maximum(np.nanmedian(cols[basis], axis=0), 0.0) + floor
             where = float(np.nanmedian(seen_from[basis]))
-        scatter = pooled if pooled_scatter else peak_noise_mm(far[basis], floor)
+        scatter = pooled if pooled is not None else peak_noise_mm(far[basis], floor)
         return depth, scatter, np.sum(np.isfinite(cols[basis]), axis=0).astype(float), where
 
     measured_clusters = [measure(c) for c in range(k)]
@@ -682,6 +682,37 @@ def _remove_islands(labels: np.ndarray, edges: np.ndarray, neighbours: list[np.n
     return labels, sorted(set(relabelled)), sorted(kept)
 
 
+def odd_scores(peaks_mm: np.ndarray, median_mm: np.ndarray, scatter_mm: float, floor_mm: float,
+               min_contrast: float) -> np.ndarray:
+    """(M,) how far each point's peak depths (M,F) lie beyond its region's median (F,), in
+    units of what tells another material: > 1 when at every survey force where the point's
+    dent or the median is measured (+ ``floor_mm``, beyond ``MEASURED_DENT_NOISES`` x the
+    region's peak scatter ``scatter_mm``, :func:`peak_noise_mm`), and there is one, the peak
+    (+ ``floor_mm``) lies a factor ``min_contrast`` deeper than the median (+ ``floor_mm``)
+    and more than 3 scatters from it; < -1 when shallower so at every measured force; the
+    score is the smallest of those margins (log ratio over log ``min_contrast``, distance
+    over 3 scatters) with its side, 0 where the sides differ or no force is measured.
+    Negative readings count as 0 in the ratio.
+
+    In mm and per force, not in log depth over the region's spread: a stiff material's log
+    depths scatter widely (its dents lie near the noise), which hides a softer inclusion
+    in it (:func:`_enclosed_materials`, :func:`survey_misfit`)."""
+    peaks = np.asarray(peaks_mm, dtype=float)
+    med = np.maximum(np.asarray(median_mm, dtype=float), 0.0)
+    floor = max(float(floor_mm), 1e-6)
+    value = np.maximum(peaks, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        measured = np.maximum(value, med) + floor > MEASURED_DENT_NOISES * scatter_mm
+        apart = np.abs(peaks - med) / (3.0 * scatter_mm)
+        contrast = np.abs(np.log((value + floor) / (med + floor))) / np.log(min_contrast)
+        margin = np.where(peaks > med, 1.0, -1.0) * np.minimum(apart, contrast)
+        margin = np.where(measured & np.isfinite(margin), margin, np.nan)
+    any_measured = np.any(np.isfinite(margin), axis=1)
+    low = np.where(any_measured, np.nanmin(np.where(any_measured[:, None], margin, 0.0), axis=1), 0.0)
+    high = np.where(any_measured, np.nanmax(np.where(any_measured[:, None], margin, 0.0), axis=1), 0.0)
+    return np.where(low > 0.0, low, np.where(high < 0.0, high, 0.0))
+
+
 def _enclosed_materials(features: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray],
                         depth_columns: list[int], min_contrast: float, floor_mm: float,
                         far_field_mm: np.ndarray | None, seen_from_mm: np.ndarray | None,
@@ -693,7 +724,8 @@ def _enclosed_materials(features: np.ndarray, labels: np.ndarray, neighbours: li
     median is measured (+ ``floor_mm``, beyond ``MEASURED_DENT_NOISES`` of the region's peak
     scatters: :func:`peak_noise_mm` of its far fields ``far_field_mm``), and there is one,
     its peak (+ ``floor_mm``) lies a factor ``min_contrast`` beyond the region's median
-    (+ ``floor_mm``) and more than 3 scatters away, all on one side. Every measured force,
+    (+ ``floor_mm``) and more than 3 scatters away, all on one side (:func:`odd_scores`
+    beyond 1). Every measured force,
     not one: a softer material dents deeper at every force by about one factor, and on suite
     slab 1012 (round 4 of a recorded run) two neighbouring elastomer probes 40 mm inside
     read 3x their region at 1.5 N and 1.3-1.7x at 4.5 N. Odd points of one region, odd the
@@ -746,18 +778,10 @@ def _enclosed_materials(features: np.ndarray, labels: np.ndarray, neighbours: li
             med = np.maximum(np.nanmedian(peaks[members], axis=0), 0.0)
             read_at = float(np.nanmedian(seen_from[members]))
         noise = (peak_noise_mm(far_field_mm[members], floor) if far_field_mm is not None else floor)
-        value = np.maximum(peaks[members], 0.0)
-        with np.errstate(invalid="ignore"):
-            measured = np.maximum(value, med) + floor > MEASURED_DENT_NOISES * noise          # (M,F)
-            apart = np.abs(peaks[members] - med) > 3.0 * noise
-            ratio = (value + floor) / (med + floor)
-            deeper = apart & (peaks[members] > med) & (ratio >= min_contrast)
-            shallower = apart & (peaks[members] < med) & (ratio <= 1.0 / min_contrast)
-            readable = np.ones(members.size, dtype=bool) if unread is None else ~unread[members]
-            readable &= np.any(measured, axis=1)
-            odd_deeper = np.all(deeper | ~measured, axis=1) & readable
-            odd_shallower = (np.all(shallower | ~measured, axis=1) & readable
-                             & ~(seen_from[members] > read_at + NEAR_CONTACT_BAND_MM))
+        score = odd_scores(peaks[members], med, noise, floor, min_contrast)
+        readable = np.ones(members.size, dtype=bool) if unread is None else ~unread[members]
+        odd_deeper = (score > 1.0) & readable
+        odd_shallower = (score < -1.0) & readable & ~(seen_from[members] > read_at + NEAR_CONTACT_BAND_MM)
         for odd in (members[odd_deeper], members[odd_shallower]):
             for piece in _pieces(odd, neighbours):
                 if piece.size < 2:
@@ -1146,7 +1170,8 @@ def dent_falls_with_force(features: np.ndarray, feature_names: list[str], noise_
 
 
 def survey_misfit(features: np.ndarray, labels: np.ndarray, feature_names: list[str], noise_mm: float,
-                  min_contrast: float = MIN_CONTRAST, sigmas: float = 3.0) -> np.ndarray:
+                  min_contrast: float = MIN_CONTRAST, sigmas: float = 3.0,
+                  far_field_mm: np.ndarray | None = None) -> np.ndarray:
     """(N,) how far each point's peak depths lie from its region's, in units of what the
     region can explain; > 1 means "another material may be here".
 
@@ -1164,6 +1189,15 @@ def survey_misfit(features: np.ndarray, labels: np.ndarray, feature_names: list[
 
     A model fitted to the region's survey profiles predicts about their mean at the survey
     settings, pulled toward the misfit itself; the median is not.
+
+    With ``far_field_mm`` (N,2) (what each point's profile reads far from the contact, as
+    :func:`cluster_regions` takes it), a point is also a misfit by the test that gives an
+    enclosed material back (:func:`odd_scores` against its region's peak scatter, in mm;
+    not where its dent falls with force, :func:`dent_falls_with_force`): the larger of the
+    two scores. Why: in a stiff region the logarithms' spread is the noise's, and on unseen
+    slab 1703 (hard rubber, log MAD x 3 = 1.47) seven probes on an elastomer ellipse reading
+    4x deeper (log 1.27 to 1.4) were no misfit, so nothing was probed around them in four
+    rounds; one such probe alone is the case that matters, as the regions step needs two.
     """
     lab = np.asarray(labels, dtype=np.int64).reshape(-1)
     out = np.zeros(lab.shape[0])
@@ -1171,6 +1205,12 @@ def survey_misfit(features: np.ndarray, labels: np.ndarray, feature_names: list[
         return out
     y, rel_noise = log_peaks(features, feature_names, noise_mm)
     contrast = float(np.log(min_contrast))
+    floor = max(float(noise_mm), 1e-6)
+    far = None if far_field_mm is None else np.asarray(far_field_mm, dtype=float).reshape(-1, 2)
+    if far is not None and far.shape[0] != lab.shape[0]:
+        raise ValueError(f"far_field_mm must be (N,2) for N={lab.shape[0]} points; got {far.shape}")
+    peaks = np.asarray(features, dtype=float)[:, _peak_columns(feature_names)]
+    unread = dent_falls_with_force(features, feature_names, floor)
     seen_from = (np.asarray(features, dtype=float)[:, feature_names.index(SEEN_FROM_FEATURE)]
                  if SEEN_FROM_FEATURE in feature_names else np.zeros(lab.shape[0]))
     for region in np.unique(lab):
@@ -1185,6 +1225,13 @@ def survey_misfit(features: np.ndarray, labels: np.ndarray, feature_names: list[
         deviation = np.where(read_far[:, None], np.maximum(deviation, 0.0), np.abs(deviation))
         ratio = deviation / allowed
         out[members] = np.nanmax(np.where(np.isfinite(ratio), ratio, 0.0), axis=1)
+        if far is not None and members.size >= 3:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                med_mm = np.nanmedian(peaks[members], axis=0)
+            odd = odd_scores(peaks[members], med_mm, peak_noise_mm(far[members], floor), floor, min_contrast)
+            odd = np.where(read_far, np.maximum(odd, 0.0), np.abs(odd)) * ~unread[members]
+            out[members] = np.maximum(out[members], odd)
     return out
 
 
