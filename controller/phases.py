@@ -23,7 +23,7 @@ from .core.config import SessionInputs
 from .core.devices import Cell
 from .core.errors import BudgetSpent, SessionAborted
 from .core.geometry import INTERIOR_ANGLES_DEG, Pose, follows_scan_rule, scan_direction
-from .journal import Journal, PhaseRecord, StepPlan, newest_phase
+from .journal import Journal, StepPlan, newest_phase
 from .learning import cloud as cl
 from .learning import contact as ct
 from .learning import densify as dn
@@ -821,7 +821,7 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
                             surface_points_mm=surface if len(surface) else ctx.cloud_mm,
                             border=border, band_points_mm=ctx.cloud_mm[band_ok],
                             **dn.survey_evidence(found[0], found[1], labels, noise, sv.min_contrast,
-                                                 far_field_mm=_region_far_fields(ctx, ids)))
+                                                 far_field_mm=found[2]))
         new_pts = canonical(np.asarray(rnd.proposed_mm, dtype=float).reshape(-1, 3), 6)
         new_nrm = canonical(_cloud_normals_at(ctx, new_pts), 9)
         first = max(ctx.targets) + 1 if ctx.targets else 0
@@ -847,36 +847,21 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
     return int(rec.outputs["n_new"]) > 0
 
 
-def _latest_regions_rows(ctx: PhaseContext, ids: list[int]) -> tuple[PhaseRecord, list[int]] | None:
-    """The latest regions round's record and the row of each of ``ids`` in its arrays (None
-    when there is none, or it did not label every one)."""
+def _region_features(ctx: PhaseContext, ids: list[int]
+                     ) -> tuple[np.ndarray, list[str], np.ndarray | None] | None:
+    """Survey features (len(ids), D), their names, and what each target's survey profile read
+    far from its contact (len(ids), 2; profiles.far_field_error_mm; None in a journal written
+    before the regions round recorded them), from the latest regions round (None when there
+    is none, or it did not label every one of ``ids``)."""
     _, rec = newest_phase(ctx.journal, "regions")
     if rec is None:
         return None
     row = {int(t): k for k, t in enumerate(rec.arrays["labelled_targets"])}
     if any(i not in row for i in ids):
         return None
-    return rec, [row[i] for i in ids]
-
-
-def _region_features(ctx: PhaseContext, ids: list[int]) -> tuple[np.ndarray, list[str]] | None:
-    """Survey features (len(ids), D) and their names of labelled targets, from the latest
-    regions round (None when there is none, or it did not label every one of ``ids``)."""
-    found = _latest_regions_rows(ctx, ids)
-    if found is None:
-        return None
-    rec, rows = found
-    return rec.arrays["features"][rows], list(rec.outputs["feature_names"])
-
-
-def _region_far_fields(ctx: PhaseContext, ids: list[int]) -> np.ndarray | None:
-    """(len(ids), 2) what each labelled target's survey profile read far from its contact
-    (profiles.far_field_error_mm), from the latest regions round; None when that round did
-    not record them (a journal written before they were) or did not label every one."""
-    found = _latest_regions_rows(ctx, ids)
-    if found is None or "far_field_mm" not in found[0].arrays:
-        return None
-    return found[0].arrays["far_field_mm"][found[1]]
+    rows = [row[i] for i in ids]
+    far = rec.arrays["far_field_mm"][rows] if "far_field_mm" in rec.arrays else None
+    return rec.arrays["features"][rows], list(rec.outputs["feature_names"]), far
 
 
 def _seam_evidence(ctx: PhaseContext, ids: list[int]) -> dict[str, np.ndarray | None]:

@@ -707,10 +707,10 @@ def odd_scores(peaks_mm: np.ndarray, median_mm: np.ndarray, scatter_mm: float, f
         contrast = np.abs(np.log((value + floor) / (med + floor))) / np.log(min_contrast)
         margin = np.where(peaks > med, 1.0, -1.0) * np.minimum(apart, contrast)
         margin = np.where(measured & np.isfinite(margin), margin, np.nan)
-    any_measured = np.any(np.isfinite(margin), axis=1)
-    low = np.where(any_measured, np.nanmin(np.where(any_measured[:, None], margin, 0.0), axis=1), 0.0)
-    high = np.where(any_measured, np.nanmax(np.where(any_measured[:, None], margin, 0.0), axis=1), 0.0)
-    return np.where(low > 0.0, low, np.where(high < 0.0, high, 0.0))
+    # Unmeasured forces drop out: +inf in the smallest margin, -inf in the largest.
+    low = np.min(np.where(np.isnan(margin), np.inf, margin), axis=1)
+    high = np.max(np.where(np.isnan(margin), -np.inf, margin), axis=1)
+    return np.where(np.isfinite(low) & (low > 0.0), low, np.where(np.isfinite(high) & (high < 0.0), high, 0.0))
 
 
 def _enclosed_materials(features: np.ndarray, labels: np.ndarray, neighbours: list[np.ndarray],
@@ -1207,10 +1207,11 @@ def survey_misfit(features: np.ndarray, labels: np.ndarray, feature_names: list[
     contrast = float(np.log(min_contrast))
     floor = max(float(noise_mm), 1e-6)
     far = None if far_field_mm is None else np.asarray(far_field_mm, dtype=float).reshape(-1, 2)
-    if far is not None and far.shape[0] != lab.shape[0]:
-        raise ValueError(f"far_field_mm must be (N,2) for N={lab.shape[0]} points; got {far.shape}")
-    peaks = np.asarray(features, dtype=float)[:, _peak_columns(feature_names)]
-    unread = dent_falls_with_force(features, feature_names, floor)
+    if far is not None:
+        if far.shape[0] != lab.shape[0]:
+            raise ValueError(f"far_field_mm must be (N,2) for N={lab.shape[0]} points; got {far.shape}")
+        peaks = np.asarray(features, dtype=float)[:, _peak_columns(feature_names)]
+        unread = dent_falls_with_force(features, feature_names, floor)
     seen_from = (np.asarray(features, dtype=float)[:, feature_names.index(SEEN_FROM_FEATURE)]
                  if SEEN_FROM_FEATURE in feature_names else np.zeros(lab.shape[0]))
     for region in np.unique(lab):
