@@ -222,6 +222,26 @@ def test_a_crossing_edge_is_split_where_the_level_crosses_midway():
     assert 0.0 < toward.proposed_mm[0][0] < 10.0
 
 
+def test_a_crossing_edge_whose_crossing_lies_near_an_end_still_gets_a_probe():
+    """A 10 mm crossing edge whose stiff end dents nearly as deep as the soft side (it straddles
+    the seam): the level crosses midway near that end, and the false-position step, clipped to
+    a fifth of the edge, puts the new probe 2 mm from it, inside the 3 mm spacing. The probe
+    goes where the spacing allows (3 mm from that end), not nowhere: the seam along this edge
+    is still unknown to within its 10 mm."""
+    pos = np.array([[0.0, 0, 0], [-10.0, 0, 0], [-20.0, 0, 0], [10.0, 0, 0], [20.0, 0, 0], [30.0, 0, 0]])
+    edges = np.array([[0, 3], [1, 0], [2, 1], [3, 4], [4, 5]])
+    labels = np.array([0, 0, 0, 1, 1, 1])
+    levels = np.log(np.array([1.6, 0.1, 0.1, 2.0, 2.0, 2.0]))
+    models = {0: _Dent(0.1, 0.1), 1: _Dent(2.0, 0.1)}
+    assert np.isclose(_crossing_fraction(edges, labels, levels)[0], 0.2)
+    rnd = plan_round(1, pos, edges, labels, models, SURVEY_F, SURVEY_A, NOISE_MM, budget=4,
+                     min_spacing_mm=3.0, resolution_mm=6.0, levels=levels)
+    assert np.allclose(rnd.proposed_mm, [[3.0, 0, 0]])
+    wide = plan_round(1, pos, edges, labels, models, SURVEY_F, SURVEY_A, NOISE_MM, budget=4,
+                      min_spacing_mm=1.0, resolution_mm=6.0, levels=levels)
+    assert np.allclose(wide.proposed_mm, [[2.0, 0, 0]])
+
+
 def test_a_longer_border_is_split_before_an_equal_gap_at_a_corner(models):
     """Two crossing edges of equal length: with ``border`` the one whose cells share more
     surface (more area hangs on where that boundary is drawn) is split first."""
