@@ -248,7 +248,8 @@ def snap_to_surface(points_mm: np.ndarray, surface_points_mm: np.ndarray) -> np.
 def candidate_points(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np.ndarray,
                      point_score: np.ndarray | None = None, surface_points_mm: np.ndarray | None = None,
                      min_length_mm: float = 0.0, return_lengths: bool = False,
-                     fraction: np.ndarray | None = None, return_edges: bool = False) -> tuple[np.ndarray, ...]:
+                     fraction: np.ndarray | None = None, return_edges: bool = False,
+                     end_clearance_mm: float = 0.0) -> tuple[np.ndarray, ...]:
     """Candidate new survey points (C,3) and their scores (C,) [and edge lengths (C,) mm]
     [and the index (C,) of each one's edge].
 
@@ -256,7 +257,8 @@ def candidate_points(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np
     piece of the boundary within that length) with a positive score: their own (a crossing
     edge), or the larger ``point_score`` of their two ends (a ring around a doubtful point:
     ambiguous features, or a misfit of its region). Each lies ``fraction`` (E,) of the way
-    from the edge's first end to its second (default 0.5, the midpoint).
+    from the edge's first end to its second (default 0.5, the midpoint), moved in to keep
+    ``end_clearance_mm`` from both ends (:func:`_clear_of_ends`).
     """
     pos = np.asarray(positions_mm, dtype=float).reshape(-1, 3)
     e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
@@ -268,6 +270,7 @@ def candidate_points(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np
     s[lengths <= min_length_mm] = 0.0
     keep = s > 0
     t = np.full(e.shape[0], 0.5) if fraction is None else np.asarray(fraction, dtype=float).reshape(-1)
+    t = _clear_of_ends(t, lengths, end_clearance_mm)
     mids = pos[e[keep, 0]] + t[keep, None] * (pos[e[keep, 1]] - pos[e[keep, 0]])
     if surface_points_mm is not None and mids.shape[0]:
         mids = snap_to_surface(mids, surface_points_mm)
@@ -530,7 +533,8 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
     ``levels`` (N,): each point's dent on the scale the regions differ on (mean log peak
     depth): a crossing edge is then split where the level interpolated between its ends
     crosses midway (surface_map.seam_fractions; a false-position step, clipped to the
-    middle 60 % of the edge), the midpoint when both ends are pure; ``border`` (E,): the length of the border between each edge's two cells
+    middle 60 % of the edge and to ``min_spacing_mm`` from its ends), the midpoint when both
+    ends are pure; ``border`` (E,): the length of the border between each edge's two cells
     (surface_map.shared_border). Candidates are taken in decreasing edge length x border
     (the area whose label is unresolved; length alone without ``border``).
     ``band_points_mm``: the rim band, where densify may probe and the survey did not go
@@ -555,14 +559,10 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
         odd = (mf > 1.0) & ~on_seam
         ps = np.maximum(ps, np.where(odd, threshold * mf, 0.0))
     resolved, reason = boundaries_resolved(positions_mm, edges, es, resolution_mm, threshold)
-    where = None
-    if levels is not None:
-        pos = np.asarray(positions_mm, dtype=float).reshape(-1, 3)
-        where = _clear_of_ends(_crossing_fraction(edges, lab, levels),
-                               np.linalg.norm(pos[e[:, 0]] - pos[e[:, 1]], axis=1), min_spacing_mm)
+    where = None if levels is None else _crossing_fraction(edges, lab, levels)
     cand, cs, gap_mm, used = candidate_points(positions_mm, edges, es, ps, surface_points_mm,
                                               min_length_mm=resolution_mm, return_lengths=True,
-                                              fraction=where, return_edges=True)
+                                              fraction=where, return_edges=True, end_clearance_mm=min_spacing_mm)
     area = gap_mm if border is None else gap_mm * np.maximum(np.asarray(border, dtype=float)[used], 1.0)
     # Around a region's lone points (a small inclusion one survey probe landed on): a ring at
     # a quarter of the survey spacing (ring_candidates), ahead of every edge: a material seen
