@@ -530,11 +530,10 @@ def _across_from_label(edges: np.ndarray, labels: np.ndarray, levels: np.ndarray
     inner = sm.interior_seeds(lab, e)
     crossing = lab[e[:, 0]] != lab[e[:, 1]]
     over = np.full(lab.size, -1, dtype=np.int64)           # the region each point reads past the halfway to
-    for a, b in {(int(lab[i]), int(lab[j])) for i, j in e[crossing]} | {(int(lab[j]), int(lab[i])) for i, j in e[crossing]}:
+    pairs = {(int(lab[i]), int(lab[j])) for i, j in e[crossing]}
+    for a, b in sorted(pairs | {(b, a) for a, b in pairs}):
         beside = np.unique(np.concatenate([e[crossing & (lab[e[:, 0]] == a) & (lab[e[:, 1]] == b), 0],
                                            e[crossing & (lab[e[:, 1]] == a) & (lab[e[:, 0]] == b), 1]]))
-        if beside.size == 0:
-            continue
         past = sm.reads_other_side(levels[:, None], lab, inner, beside, b)
         over[beside[past & (over[beside] < 0)]] = b
     for k, (i, j) in enumerate(e):
@@ -570,7 +569,8 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
     crosses midway (surface_map.seam_fractions; a false-position step, clipped to the
     middle 60 % of the edge and to ``min_spacing_mm`` from its ends), the midpoint when both
     ends are pure; and an edge within a region one of whose ends reads past the halfway
-    toward a region it borders scores as a crossing edge to it (:func:`_across_from_label`); ``border`` (E,): the length of the border between each edge's two cells
+    toward a region it borders scores as a crossing edge to it (:func:`_across_from_label`);
+    ``border`` (E,): the length of the border between each edge's two cells
     (surface_map.shared_border). Candidates are taken in decreasing edge length x border
     (the area whose label is unresolved; length alone without ``border``).
     ``band_points_mm``: the rim band, where densify may probe and the survey did not go
