@@ -227,7 +227,9 @@ def test_a_crossing_edge_whose_crossing_lies_near_an_end_still_gets_a_probe():
     the seam): the level crosses midway near that end, and the false-position step, clipped to
     a fifth of the edge, puts the new probe 2 mm from it, inside the 3 mm spacing. The probe
     goes where the spacing allows (3 mm from that end), not nowhere: the seam along this edge
-    is still unknown to within its 10 mm."""
+    is still unknown to within its 10 mm. (That end reads past the halfway toward the soft
+    side, so its edge into its own region, x -10 to 0, is split too: only the crossing edge's
+    probe, x > 0, is checked here.)"""
     pos = np.array([[0.0, 0, 0], [-10.0, 0, 0], [-20.0, 0, 0], [10.0, 0, 0], [20.0, 0, 0], [30.0, 0, 0]])
     edges = np.array([[0, 3], [1, 0], [2, 1], [3, 4], [4, 5]])
     labels = np.array([0, 0, 0, 1, 1, 1])
@@ -236,10 +238,33 @@ def test_a_crossing_edge_whose_crossing_lies_near_an_end_still_gets_a_probe():
     assert np.isclose(_crossing_fraction(edges, labels, levels)[0], 0.2)
     rnd = plan_round(1, pos, edges, labels, models, SURVEY_F, SURVEY_A, NOISE_MM, budget=4,
                      min_spacing_mm=3.0, resolution_mm=6.0, levels=levels)
-    assert np.allclose(rnd.proposed_mm, [[3.0, 0, 0]])
+    assert np.allclose([p for p in rnd.proposed_mm if p[0] > 0.0], [[3.0, 0, 0]])
     wide = plan_round(1, pos, edges, labels, models, SURVEY_F, SURVEY_A, NOISE_MM, budget=4,
                       min_spacing_mm=1.0, resolution_mm=6.0, levels=levels)
-    assert np.allclose(wide.proposed_mm, [[2.0, 0, 0]])
+    assert np.allclose([p for p in wide.proposed_mm if p[0] > 0.0], [[2.0, 0, 0]])
+
+
+def test_an_edge_within_a_region_whose_end_reads_toward_its_neighbour_is_split():
+    """A stiff inclusion (x 0-20, level log 0.1) in a soft matrix (log 2.0). The probe at x = 30
+    is labelled soft (the clustering put it with its neighbours) but dents nearly as little as
+    the stiff side (log 0.15, past the halfway toward it): its tip pressed mostly stiff
+    material, and the seam lies between it and the soft probe at x = 40, along an edge
+    whose ends share a label. That edge scores as a crossing edge (its midpoint, x = 35, is
+    proposed); with the probe at x = 30 reading short of the halfway (log 1.5), it does not."""
+    pos = np.array([[x, 0.0, 0.0] for x in (0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0)])
+    edges = np.array([[k, k + 1] for k in range(6)])
+    labels = np.array([1, 1, 1, 0, 0, 0, 0])
+    models = {0: _Dent(2.0, 0.1), 1: _Dent(0.1, 0.1)}
+    kw = dict(budget=4, min_spacing_mm=2.0, resolution_mm=6.0)
+    past = np.log(np.array([0.1, 0.1, 0.1, 0.15, 2.0, 2.0, 2.0]))
+    rnd = plan_round(1, pos, edges, labels, models, SURVEY_F, SURVEY_A, NOISE_MM, levels=past, **kw)
+    xs = sorted(p[0] for p in rnd.proposed_mm)
+    assert 35.0 in xs and len(xs) == 2 and 20.0 < xs[0] < 30.0
+    assert [3, 4] in rnd.disagreeing_edges
+    short = np.log(np.array([0.1, 0.1, 0.1, 1.5, 2.0, 2.0, 2.0]))
+    rnd = plan_round(1, pos, edges, labels, models, SURVEY_F, SURVEY_A, NOISE_MM, levels=short, **kw)
+    assert len(rnd.proposed_mm) == 1 and 20.0 < rnd.proposed_mm[0][0] < 30.0
+    assert rnd.disagreeing_edges == [[2, 3]]
 
 
 def test_a_longer_border_is_split_before_an_equal_gap_at_a_corner(models):

@@ -510,6 +510,40 @@ def _clear_of_ends(fraction: np.ndarray, lengths_mm: np.ndarray, min_spacing_mm:
     return np.clip(np.asarray(fraction, dtype=float), margin, 1.0 - margin)
 
 
+def _across_from_label(edges: np.ndarray, labels: np.ndarray, levels: np.ndarray,
+                       scores: Mapping[tuple[int, int], float]) -> np.ndarray:
+    """(E,) the pair score on each edge within one region A whose one end stands beside a
+    region B (a crossing edge to it) and reads past the halfway from A's level toward B's
+    (surface_map.reads_other_side), its other end not: the seam runs along that edge, though
+    both ends carry A's label. 0 elsewhere.
+
+    Such a point's tip pressed more of B than of A; the clustering kept it with A on its
+    neighbours. Scored only on the crossing edges, densify then splits the edges between it
+    and B's interior, where the seam is not, and never the edge beyond it, where it is (suite
+    slab 1012 seed 2: four probes just inside a hard-rubber ellipse read past the halfway
+    toward it and were labelled elastomer; the rounds split the ellipse's interior while the
+    true seam lay on the 5-10 mm edges out to the elastomer, and the final map cut the
+    ellipse along them)."""
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    lab = np.asarray(labels, dtype=np.int64).reshape(-1)
+    out = np.zeros(e.shape[0])
+    inner = sm.interior_seeds(lab, e)
+    crossing = lab[e[:, 0]] != lab[e[:, 1]]
+    over = np.full(lab.size, -1, dtype=np.int64)           # the region each point reads past the halfway to
+    pairs = {(int(lab[i]), int(lab[j])) for i, j in e[crossing]}
+    for a, b in sorted(pairs | {(b, a) for a, b in pairs}):
+        beside = np.unique(np.concatenate([e[crossing & (lab[e[:, 0]] == a) & (lab[e[:, 1]] == b), 0],
+                                           e[crossing & (lab[e[:, 1]] == a) & (lab[e[:, 0]] == b), 1]]))
+        past = sm.reads_other_side(levels[:, None], lab, inner, beside, b)
+        over[beside[past & (over[beside] < 0)]] = b
+    for k, (i, j) in enumerate(e):
+        if crossing[k] or (over[i] < 0) == (over[j] < 0):
+            continue
+        far_end = i if over[i] >= 0 else j
+        out[k] = _pair(scores, int(lab[far_end]), int(over[far_end]))
+    return out
+
+
 def _finite_or_none(v: float) -> float | None:
     return float(v) if np.isfinite(v) else None
 
@@ -534,7 +568,9 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
     depth): a crossing edge is then split where the level interpolated between its ends
     crosses midway (surface_map.seam_fractions; a false-position step, clipped to the
     middle 60 % of the edge and to ``min_spacing_mm`` from its ends), the midpoint when both
-    ends are pure; ``border`` (E,): the length of the border between each edge's two cells
+    ends are pure; and an edge within a region one of whose ends reads past the halfway
+    toward a region it borders scores as a crossing edge to it (:func:`_across_from_label`);
+    ``border`` (E,): the length of the border between each edge's two cells
     (surface_map.shared_border). Candidates are taken in decreasing edge length x border
     (the area whose label is unresolved; length alone without ``border``).
     ``band_points_mm``: the rim band, where densify may probe and the survey did not go
@@ -558,6 +594,8 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
         mf = np.nan_to_num(np.asarray(misfit, dtype=float).reshape(-1))
         odd = (mf > 1.0) & ~on_seam
         ps = np.maximum(ps, np.where(odd, threshold * mf, 0.0))
+    if levels is not None and e.size:
+        es = es + _across_from_label(e, lab, np.asarray(levels, dtype=float).reshape(-1), pscores)
     resolved, reason = boundaries_resolved(positions_mm, edges, es, resolution_mm, threshold)
     where = None if levels is None else _crossing_fraction(edges, lab, levels)
     cand, cs, gap_mm, used = candidate_points(positions_mm, edges, es, ps, surface_points_mm,
