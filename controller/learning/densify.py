@@ -536,11 +536,10 @@ def _across_from_label(edges: np.ndarray, labels: np.ndarray, levels: np.ndarray
                                            e[crossing & (lab[e[:, 1]] == a) & (lab[e[:, 0]] == b), 1]]))
         past = sm.reads_other_side(levels[:, None], lab, inner, beside, b)
         over[beside[past & (over[beside] < 0)]] = b
-    for k, (i, j) in enumerate(e):
-        if crossing[k] or (over[i] < 0) == (over[j] < 0):
-            continue
-        far_end = i if over[i] >= 0 else j
-        out[k] = _pair(scores, int(lab[far_end]), int(over[far_end]))
+    across = ~crossing & ((over[e[:, 0]] >= 0) != (over[e[:, 1]] >= 0))
+    far_end = np.where(over[e[:, 0]] >= 0, e[:, 0], e[:, 1])
+    for k in np.flatnonzero(across):
+        out[k] = _pair(scores, int(lab[far_end[k]]), int(over[far_end[k]]))
     return out
 
 
