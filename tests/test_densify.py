@@ -389,7 +389,7 @@ def test_a_seam_end_standing_in_the_rim_band_steps_on_away_from_the_survey_area(
     it. Each of the four seam ends steps its spacing (the median length of its edges: 10 mm
     in the middle, 8 mm at the ends of the row) away from the survey area, to x = -16 or
     -14, not toward its own nearest band point (itself, or one beside it); without the
-    survey area a point in the band has no way out and gets none."""
+    survey area a point standing on a band point has no way out and gets none."""
     labels = ((POS[:, 0] <= 10.0) & (POS[:, 1] >= 30.0) & (POS[:, 1] <= 50.0)).astype(int)
     bx, by = np.meshgrid(np.arange(-30.0, -2.5, 1.0), np.arange(-5.0, 95.5, 1.0))
     band = np.column_stack([bx.ravel(), by.ravel(), np.zeros(bx.size)])

@@ -355,8 +355,9 @@ def rim_candidates(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np.n
     An end standing in the band itself (nearer a band point than any point of
     ``survey_area_mm``, the surface the survey may probe: an earlier round's rim point) steps
     the same spacing away from the survey area (from the mean of its points within a
-    spacing), where the band goes on and the map would extrapolate the end's label; without
-    ``survey_area_mm`` such ends get none.
+    spacing), where the band goes on and the map would extrapolate the end's label. Without
+    ``survey_area_mm`` every end steps toward its nearest band point (none when it stands
+    on one).
     """
     pos = np.asarray(positions_mm, dtype=float).reshape(-1, 3)
     e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
