@@ -820,6 +820,7 @@ def phase_densify(ctx: PhaseContext, round_: int) -> bool:
                             min_spacing_mm=dp.min_spacing_mm, resolution_mm=dp.resolution_mm,
                             surface_points_mm=surface if len(surface) else ctx.cloud_mm,
                             border=border, band_points_mm=ctx.cloud_mm[band_ok],
+                            survey_area_mm=ctx.cloud_mm[survey_ok],
                             **dn.survey_evidence(found[0], found[1], labels, noise, sv.min_contrast,
                                                  far_field_mm=found[2]))
         new_pts = canonical(np.asarray(rnd.proposed_mm, dtype=float).reshape(-1, 3), 6)

@@ -380,3 +380,36 @@ def test_a_seam_that_runs_out_toward_the_rim_band_is_followed_into_it():
     again = plan_round(2, probed, np.vstack([EDGES, extra_edges]), grown, models, SURVEY_F, SURVEY_A, NOISE_MM,
                        budget=20, min_spacing_mm=3.0, resolution_mm=6.0, band_points_mm=band)
     assert not any(p[0] < -2.5 and abs(p[0] + 10.0) < 5.0 for p in again.proposed_mm)
+
+
+def test_a_seam_end_standing_in_the_rim_band_steps_on_away_from_the_survey_area():
+    """Last round's rim points stand in a deep band (x -30 to -3; the survey's area x >= 0):
+    the inclusion's two (-6, 30) and (-6, 50), reading it, and the matrix's (-6, 20) and
+    (-6, 60). The band beyond them (to x = -30) is filled from them unless a round probes
+    it. Each of the four seam ends steps its spacing (the median length of its edges: 10 mm
+    in the middle, 8 mm at the ends of the row) away from the survey area, to x = -16 or
+    -14, not toward its own nearest band point (itself, or one beside it); without the
+    survey area a point standing on a band point has no way out and gets none."""
+    labels = ((POS[:, 0] <= 10.0) & (POS[:, 1] >= 30.0) & (POS[:, 1] <= 50.0)).astype(int)
+    bx, by = np.meshgrid(np.arange(-30.0, -2.5, 1.0), np.arange(-5.0, 95.5, 1.0))
+    band = np.column_stack([bx.ravel(), by.ravel(), np.zeros(bx.size)])
+    ax, ay = np.meshgrid(np.arange(0.0, 90.5, 1.0), np.arange(-5.0, 95.5, 1.0))
+    area = np.column_stack([ax.ravel(), ay.ravel(), np.zeros(ax.size)])
+    rows = np.arange(20.0, 60.5, 10.0)
+    rim = np.column_stack([np.full(rows.size, -6.0), rows, np.zeros(rows.size)])
+    probed = np.vstack([POS, rim])
+    grown = np.concatenate([labels, ((rows >= 30.0) & (rows <= 50.0)).astype(int)])
+    first = N * N
+    inward = [[int(np.flatnonzero((POS[:, 0] == 0.0) & (POS[:, 1] == y))[0]), first + k] for k, y in enumerate(rows)]
+    along = [[first + k, first + k + 1] for k in range(rows.size - 1)]
+    edges = np.vstack([EDGES, inward, along])
+    models = {0: _Dent(2.0, 0.1), 1: _Dent(0.1, 0.1)}
+    kw = dict(budget=20, min_spacing_mm=3.0, resolution_mm=6.0, band_points_mm=band)
+    rnd = plan_round(2, probed, edges, grown, models, SURVEY_F, SURVEY_A, NOISE_MM, survey_area_mm=area, **kw)
+    assert sorted(int(k) for k in rnd.extra["rim_from"]) == [first, first + 1, first + 3, first + 4]
+    prop = np.asarray(rnd.proposed_mm)
+    out = prop[prop[:, 0] < -8.0]
+    by_row = {float(y): float(x) for x, y in out[:, :2]}
+    assert by_row == {20.0: -14.0, 30.0: -16.0, 50.0: -16.0, 60.0: -14.0}
+    blind = plan_round(2, probed, edges, grown, models, SURVEY_F, SURVEY_A, NOISE_MM, **kw)
+    assert blind.extra["rim_from"] == [] and not np.any(np.asarray(blind.proposed_mm)[:, 0] < -8.0)

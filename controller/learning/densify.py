@@ -337,7 +337,8 @@ def ring_candidates(positions_mm: np.ndarray, edges: np.ndarray, centres: np.nda
 
 
 def rim_candidates(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np.ndarray, labels: np.ndarray,
-                   band_points_mm: np.ndarray | None, threshold: float = DEFAULT_THRESHOLD
+                   band_points_mm: np.ndarray | None, threshold: float = DEFAULT_THRESHOLD,
+                   survey_area_mm: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Points (C,3) in the rim band beyond a seam's outermost probes, their scores (C,), the
     area (C,) mm^2 each speaks for, and the point (C,) each steps out from.
@@ -351,6 +352,12 @@ def rim_candidates(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np.n
     snapped to the band, unless a probe already stands within half a spacing of that. Its
     score is the end's best crossing edge; its area the spacing times the band's depth
     beyond it (what the nearest-probe rule would otherwise extrapolate).
+    An end standing in the band itself (nearer a band point than any point of
+    ``survey_area_mm``, the surface the survey may probe: an earlier round's rim point) steps
+    the same spacing away from the survey area (from the mean of its points within a
+    spacing), where the band goes on and the map would extrapolate the end's label. Without
+    ``survey_area_mm`` every end steps toward its nearest band point (none when it stands
+    on one).
     """
     pos = np.asarray(positions_mm, dtype=float).reshape(-1, 3)
     e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
@@ -365,14 +372,25 @@ def rim_candidates(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np.n
         return empty
     lengths = np.linalg.norm(pos[e[:, 0]] - pos[e[:, 1]], axis=1)
     band_tree, probes = cKDTree(band), cKDTree(pos)
+    area_pts = None if survey_area_mm is None else np.asarray(survey_area_mm, dtype=float).reshape(-1, 3)
+    area_tree = cKDTree(area_pts) if area_pts is not None and len(area_pts) else None
     out, scores, areas, source = [], [], [], []
     for k in np.unique(e[hot].ravel()):
         mine = (e[:, 0] == k) | (e[:, 1] == k)
         step = float(np.median(lengths[mine]))
         dist, b = band_tree.query(pos[k])
-        if not 0.0 < dist <= step:
+        if area_tree is not None and dist < area_tree.query(pos[k])[0]:
+            # In the band: toward its nearest point is any way at all (a sideways step
+            # lands beside a probe and is refused, and the band beyond stays unprobed).
+            inside = area_tree.query_ball_point(pos[k], step)
+            away = pos[k] - area_pts[inside].mean(axis=0) if inside else np.zeros(3)
+            if not np.linalg.norm(away) > 0.0:
+                continue
+            u, dist = away / np.linalg.norm(away), 0.0
+        elif 0.0 < dist <= step:
+            u = (band[b] - pos[k]) / dist
+        else:
             continue
-        u = (band[b] - pos[k]) / dist
         _, c = band_tree.query(pos[k] + step * u)
         if probes.query(band[c])[0] < 0.5 * step:
             continue
@@ -554,7 +572,8 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
                surface_points_mm: np.ndarray | None = None,
                survey_scores: Mapping[tuple[int, int], float] | None = None,
                misfit: np.ndarray | None = None, levels: np.ndarray | None = None,
-               border: np.ndarray | None = None, band_points_mm: np.ndarray | None = None) -> DensifyRound:
+               border: np.ndarray | None = None, band_points_mm: np.ndarray | None = None,
+               survey_area_mm: np.ndarray | None = None) -> DensifyRound:
     """Score the current map, apply the stop rule and propose the next survey points.
 
     ``forces_n``, ``angles_deg``: the survey probe settings; ``posterior`` (N,K) optional
@@ -573,7 +592,9 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
     (surface_map.shared_border). Candidates are taken in decreasing edge length x border
     (the area whose label is unresolved; length alone without ``border``).
     ``band_points_mm``: the rim band, where densify may probe and the survey did not go
-    (:func:`rim_candidates`): a seam whose crossing edges end beside it is followed out.
+    (:func:`rim_candidates`): a seam whose crossing edges end beside it is followed out;
+    ``survey_area_mm``: the surface the survey may probe (beside ``band_points_mm``, it tells
+    a point in the band which way the band goes on).
     When resolved, nothing is proposed; when nothing can be placed (spacing), the reason
     says so.
     """
@@ -622,7 +643,8 @@ def plan_round(round_index: int, positions_mm: np.ndarray, edges: np.ndarray, la
         reason += (f"; around {int(np.sum(doubt >= threshold))} points that their region explains badly, that lie "
                    f"between regions or that are their region's only ones, edges longer than {resolution_mm:g} mm "
                    "remain")
-    rim, rim_scores, rim_area, rim_from = rim_candidates(positions_mm, e, es, lab, band_points_mm, threshold)
+    rim, rim_scores, rim_area, rim_from = rim_candidates(positions_mm, e, es, lab, band_points_mm, threshold,
+                                                         survey_area_mm)
     if rim_scores.size:
         resolved = False
         reason += f"; {rim_scores.size} seam ends beside the rim band, unprobed beyond them"
