@@ -372,8 +372,8 @@ def rim_candidates(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np.n
         return empty
     lengths = np.linalg.norm(pos[e[:, 0]] - pos[e[:, 1]], axis=1)
     band_tree, probes = cKDTree(band), cKDTree(pos)
-    area_pts = None if survey_area_mm is None else np.asarray(survey_area_mm, dtype=float).reshape(-1, 3)
-    area_tree = cKDTree(area_pts) if area_pts is not None and len(area_pts) else None
+    area_tree = (cKDTree(np.asarray(survey_area_mm, dtype=float).reshape(-1, 3))
+                 if survey_area_mm is not None and len(survey_area_mm) else None)
     out, scores, areas, source = [], [], [], []
     for k in np.unique(e[hot].ravel()):
         mine = (e[:, 0] == k) | (e[:, 1] == k)
@@ -383,10 +383,11 @@ def rim_candidates(positions_mm: np.ndarray, edges: np.ndarray, edge_score: np.n
             # In the band: toward its nearest point is any way at all (a sideways step
             # lands beside a probe and is refused, and the band beyond stays unprobed).
             inside = area_tree.query_ball_point(pos[k], step)
-            away = pos[k] - area_pts[inside].mean(axis=0) if inside else np.zeros(3)
-            if not np.linalg.norm(away) > 0.0:
+            away = pos[k] - area_tree.data[inside].mean(axis=0) if inside else np.zeros(3)
+            away_mm = float(np.linalg.norm(away))
+            if not away_mm > 0.0:
                 continue
-            u, dist = away / np.linalg.norm(away), 0.0
+            u, dist = away / away_mm, 0.0
         elif 0.0 < dist <= step:
             u = (band[b] - pos[k]) / dist
         else:
